@@ -1,0 +1,34 @@
+"""Exception types of pmdsim.
+
+Every error that a user can cause (a bad setup file, a bad image set, a calibration that does
+not converge) raises one of these, with a message that names the offending key, file or array
+and what was expected.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "PmdsimError",
+    "SetupError",
+    "OutputExistsError",
+    "ImageSetError",
+]
+
+
+class PmdsimError(Exception):
+    """Base class of all pmdsim errors."""
+
+
+class SetupError(PmdsimError, ValueError):
+    """A measurement setup (TOML file or Python values) is invalid.
+
+    The message names the key (for example ``cameras.left.focal_length_px``) and the problem.
+    """
+
+
+class OutputExistsError(PmdsimError, FileExistsError):
+    """An output file or directory exists and ``force`` was not given."""
+
+
+class ImageSetError(PmdsimError, ValueError):
+    """An image set (manifest plus image files) is missing, inconsistent or unreadable."""

@@ -1,0 +1,173 @@
+"""Phase-shifted sinusoidal fringe patterns and image rendering.
+
+The pattern is defined on the continuous screen (pattern coordinates in mm, screen frame); the
+recorded intensity of a pixel is the pattern's intensity at the pixel's mapped screen point
+(paper §2.4). Model and signs: docs/conventions.md, "Fringe patterns":
+
+    φ = 2π·c/p,   δ_k = 2π·k/N,   I_k = A + B·cos(φ − δ_k)
+
+with c the screen x (direction "x") or y (direction "y") coordinate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+__all__ = ["PatternFrame", "FringeSequence", "render", "render_sequence"]
+
+DIRECTIONS = ("x", "y")
+
+
+@dataclass(frozen=True)
+class PatternFrame:
+    """One displayed fringe pattern: direction, period (mm), shift index k of N."""
+
+    direction: str
+    period_mm: float
+    shift_index: int
+    n_shifts: int
+
+    @property
+    def shift_rad(self) -> float:
+        """δ_k = 2π k / N."""
+        return 2.0 * np.pi * self.shift_index / self.n_shifts
+
+    @property
+    def axis(self) -> int:
+        """0 for direction x, 1 for y (index into screen_xy_mm)."""
+        return DIRECTIONS.index(self.direction)
+
+
+@dataclass(frozen=True)
+class FringeSequence:
+    """A sequence of phase-shifted fringe patterns along screen x and y.
+
+    Parameters
+    ----------
+    periods_x_mm, periods_y_mm : tuple of float
+        Fringe periods in mm for each direction, coarsest first. For temporal (hierarchical)
+        unwrapping the coarsest period must be at least the screen's extent in that direction.
+    n_shifts : int
+        N ≥ 3 phase shifts per period.
+    mean_level, amplitude : float
+        A and B as fractions of full scale; A − B ≥ 0 and A + B ≤ 1 avoid clipping.
+    """
+
+    periods_x_mm: tuple[float, ...]
+    periods_y_mm: tuple[float, ...]
+    n_shifts: int = 4
+    mean_level: float = 0.5
+    amplitude: float = 0.45
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "periods_x_mm", tuple(float(p) for p in self.periods_x_mm))
+        object.__setattr__(self, "periods_y_mm", tuple(float(p) for p in self.periods_y_mm))
+        if int(self.n_shifts) != self.n_shifts or self.n_shifts < 3:
+            raise ValueError(f"n_shifts must be an integer ≥ 3, got {self.n_shifts!r}")
+        for name in ("periods_x_mm", "periods_y_mm"):
+            ps = getattr(self, name)
+            if not ps:
+                raise ValueError(f"{name} must list at least one period")
+            if not all(np.isfinite(p) and p > 0 for p in ps):
+                raise ValueError(f"{name} must be finite and > 0, got {list(ps)}")
+        if not (0.0 <= self.mean_level <= 1.0) or not (0.0 < self.amplitude <= 1.0):
+            raise ValueError("mean_level must be in [0, 1] and amplitude in (0, 1]")
+
+    def periods(self, direction: str) -> tuple[float, ...]:
+        return self.periods_x_mm if direction == "x" else self.periods_y_mm
+
+    def frames(self) -> list[PatternFrame]:
+        """All frames in display order: direction x then y, periods coarsest first, shifts 0…N−1."""
+        out = []
+        for direction in DIRECTIONS:
+            for p in self.periods(direction):
+                for k in range(self.n_shifts):
+                    out.append(PatternFrame(direction, p, k, self.n_shifts))
+        return out
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _render_kernel(screen_xy, valid, axis, period, shift, mean, amp, full_scale, noise, out):
+    h, w = valid.shape
+    two_pi_over_p = 2.0 * np.pi / period
+    for v in numba.prange(h):
+        for u in range(w):
+            if not valid[v, u]:
+                out[v, u] = 0
+                continue
+            val = full_scale * (mean + amp * np.cos(two_pi_over_p * screen_xy[v, u, axis] - shift))
+            if noise.shape[0] > 0:
+                val += noise[v, u]
+            q = np.floor(val + 0.5)
+            if q < 0.0:
+                q = 0.0
+            elif q > full_scale:
+                q = full_scale
+            out[v, u] = q
+
+
+def render(
+    screen_xy_mm: np.ndarray,
+    valid: np.ndarray,
+    frame: PatternFrame,
+    sequence: FringeSequence,
+    *,
+    bit_depth: int = 8,
+    noise_std: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Render one camera image of one pattern frame from a pixel → screen mapping.
+
+    Parameters
+    ----------
+    screen_xy_mm : ndarray (H, W, 2)
+        Pattern coordinates per pixel (screen frame, mm).
+    valid : ndarray of bool (H, W)
+        Pixels that see the screen; the others are black.
+    frame : PatternFrame
+    sequence : FringeSequence
+        Supplies A and B.
+    bit_depth : {8, 16}
+    noise_std : float
+        Standard deviation of additive Gaussian intensity noise, in grey levels, before
+        quantisation (0: none).
+    rng : numpy.random.Generator
+        Source of the noise (required when noise_std > 0, for reproducibility).
+
+    Returns
+    -------
+    ndarray (H, W), uint8 or uint16
+        Rounded to the nearest grey level and clipped to [0, 2**bit_depth − 1].
+    """
+    if bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    ok = np.asarray(valid, dtype=bool)
+    if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
+        raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    full = float(2**bit_depth - 1)
+    if noise_std > 0:
+        if rng is None:
+            raise ValueError("noise_std > 0 needs a seeded rng for reproducible images")
+        noise = rng.normal(0.0, noise_std, size=ok.shape)
+    else:
+        noise = np.empty((0, 0))
+    out = np.empty(ok.shape, dtype=np.uint8 if bit_depth == 8 else np.uint16)
+    _render_kernel(xy, ok, frame.axis, frame.period_mm, frame.shift_rad, sequence.mean_level,
+                   sequence.amplitude, full, noise, out)
+    return out
+
+
+def render_sequence(screen_xy_mm, valid, sequence: FringeSequence, *, bit_depth: int = 8,
+                    noise_std: float = 0.0, seed: int | None = None):
+    """Yield ``(frame, image)`` for every frame of ``sequence`` (see :func:`render`).
+
+    With noise, the generator is seeded with ``seed`` so the same inputs give the same images.
+    """
+    rng = np.random.default_rng(seed) if noise_std > 0 else None
+    for frame in sequence.frames():
+        yield frame, render(screen_xy_mm, valid, frame, sequence, bit_depth=bit_depth,
+                            noise_std=noise_std, rng=rng)

@@ -1,0 +1,79 @@
+"""The simulated measurement (paper §2): trace every camera once, render its fringe images.
+
+This layer combines the numeric core (camera, surfaces, tracer, patterns) for a
+:class:`~pmdsim.setup.Setup`; it neither prints nor writes files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+
+from .patterns import PatternFrame, render
+from .setup import Setup
+from .trace import Mapping, trace_camera
+
+__all__ = ["trace_setup_camera", "ImageSpec", "image_specs", "render_images"]
+
+
+def trace_setup_camera(setup: Setup, camera: str, *, store_points: bool = False) -> Mapping:
+    """Pixel → screen mapping of one camera of ``setup`` (paper §2.4)."""
+    if camera not in setup.cameras:
+        raise KeyError(f"camera {camera!r} is not in the setup (cameras: {list(setup.cameras)})")
+    cs = setup.cameras[camera]
+    return trace_camera(
+        cs.camera,
+        cs.T_world_cam,
+        setup.sample.T_world_sample,
+        setup.sample.surface,
+        setup.screen.T_world_screen,
+        setup.screen.surface,
+        store_points=store_points,
+    )
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    """One image of a simulated image set: camera, pattern frame and file name."""
+
+    camera: str
+    frame: PatternFrame
+    period_index: int
+    file: str
+
+    def as_manifest_entry(self) -> dict:
+        return {
+            "file": self.file,
+            "camera": self.camera,
+            "direction": self.frame.direction,
+            "period_mm": self.frame.period_mm,
+            "period_index": self.period_index,
+            "shift_index": self.frame.shift_index,
+            "n_shifts": self.frame.n_shifts,
+        }
+
+
+def image_specs(setup: Setup, camera: str, *, extension: str = "png") -> list[ImageSpec]:
+    """The images of one camera in display order, with their file names
+    ``{camera}_{direction}_p{period index}_s{shift index}.{extension}``."""
+    seq = setup.patterns.sequence
+    out = []
+    for frame in seq.frames():
+        pi = seq.periods(frame.direction).index(frame.period_mm)
+        out.append(ImageSpec(camera, frame, pi,
+                             f"{camera}_{frame.direction}_p{pi}_s{frame.shift_index}.{extension}"))
+    return out
+
+
+def render_images(setup: Setup, camera: str, mapping: Mapping) -> Iterator[tuple[ImageSpec, np.ndarray]]:
+    """Yield ``(spec, image)`` for every image of ``camera``; noise (if any) is seeded from
+    the setup's seed and the camera's index, so the same setup gives the same images."""
+    p = setup.patterns
+    cam_index = list(setup.cameras).index(camera)
+    rng = np.random.default_rng([p.seed, cam_index]) if p.noise_std > 0 else None
+    for spec in image_specs(setup, camera):
+        img = render(mapping.screen_xy_mm, mapping.valid, spec.frame, p.sequence,
+                     bit_depth=p.bit_depth, noise_std=p.noise_std, rng=rng)
+        yield spec, img

@@ -1,0 +1,277 @@
+"""Ray tracing: camera pixel → sample → screen (paper §2.4).
+
+For every pixel the view ray (paper §2.2) is intersected with the sample surface (eqs. 9–16),
+reflected (eq. 17) and intersected with the screen surface; the result is the pixel → pattern
+coordinate mapping (x_q, y_q) in mm of the screen frame, with a status code per pixel
+(:class:`Status`, docs/conventions.md "Validity codes"). The mapping is computed once per
+camera and reused for a whole pattern sequence.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from .camera import Camera
+from .surface import FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel
+from .transform import RigidTransform
+
+__all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
+
+
+class Status(enum.IntEnum):
+    """Per-pixel status of the tracer (docs/conventions.md, "Validity codes")."""
+
+    VALID = 0
+    UNDISTORT_FAILED = 1
+    SAMPLE_PARALLEL = 2
+    SAMPLE_OUTSIDE = 3
+    SAMPLE_NO_CONVERGENCE = 4
+    SCREEN_PARALLEL = 5
+    SCREEN_OUTSIDE = 6
+    SCREEN_NO_CONVERGENCE = 7
+
+    @property
+    def description(self) -> str:
+        return _DESCRIPTIONS[self]
+
+
+_DESCRIPTIONS = {
+    Status.VALID: "the pixel sees the screen via the sample",
+    Status.UNDISTORT_FAILED: "the lens distortion could not be inverted for this pixel",
+    Status.SAMPLE_PARALLEL: "the view ray is parallel to the sample plane or the sample is behind the camera",
+    Status.SAMPLE_OUTSIDE: "the view ray meets the sample outside its grid bounds",
+    Status.SAMPLE_NO_CONVERGENCE: "no intersection with the sample surface was found",
+    Status.SCREEN_PARALLEL: "the reflected ray is parallel to the screen or points away from it",
+    Status.SCREEN_OUTSIDE: "the reflected ray meets the screen outside its grid bounds",
+    Status.SCREEN_NO_CONVERGENCE: "no intersection with the screen surface was found",
+}
+
+# Map intersection codes to tracer codes, per surface.
+_SAMPLE_CODES = np.array([Status.VALID, Status.SAMPLE_PARALLEL, Status.SAMPLE_OUTSIDE, Status.SAMPLE_NO_CONVERGENCE], dtype=np.uint8)
+_SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OUTSIDE, Status.SCREEN_NO_CONVERGENCE], dtype=np.uint8)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _trace_run(
+    run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
+    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+    tol, max_iter, sample_codes, screen_codes,
+    screen_xy, status, p_sample, q_screen, store,
+):
+    """Trace one run of ``run_length`` rays (an image row); each intersection is warm started
+    from the previous pixel's height, so results do not depend on the thread count."""
+    n = d_cam.shape[0]
+    # Ray origin: the pinhole, in the sample frame.
+    ox = t_sc[0]
+    oy = t_sc[1]
+    oz = t_sc[2]
+    if True:
+        zs_prev = np.nan
+        zp_prev = np.nan
+        k_end = min(n, (run + 1) * run_length)
+        for k in range(run * run_length, k_end):
+            screen_xy[k, 0] = np.nan
+            screen_xy[k, 1] = np.nan
+            if store:
+                for c in range(3):
+                    p_sample[k, c] = np.nan
+                    q_screen[k, c] = np.nan
+            if not ok[k]:
+                status[k] = 1  # UNDISTORT_FAILED
+                continue
+            a = d_cam[k, 0]
+            b = d_cam[k, 1]
+            c = d_cam[k, 2]
+            # Direction in the sample frame.
+            vx = r_sc[0, 0] * a + r_sc[0, 1] * b + r_sc[0, 2] * c
+            vy = r_sc[1, 0] * a + r_sc[1, 1] * b + r_sc[1, 2] * c
+            vz = r_sc[2, 0] * a + r_sc[2, 1] * b + r_sc[2, 2] * c
+            t, px, py, pz, hx, hy, st = intersect_kernel(
+                s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, ox, oy, oz, vx, vy, vz, tol, max_iter, zs_prev
+            )
+            if st != 0:
+                status[k] = sample_codes[st]
+                zs_prev = np.nan
+                continue
+            zs_prev = pz
+            # Reflection, eq. (17), with n = (−h_x, −h_y, 1).
+            nx = -hx
+            ny = -hy
+            f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
+            rx = vx - f * nx
+            ry = vy - f * ny
+            rz = vz - f
+            # Origin and direction of the reflected ray in the screen frame.
+            qox = r_ps[0, 0] * px + r_ps[0, 1] * py + r_ps[0, 2] * pz + t_ps[0]
+            qoy = r_ps[1, 0] * px + r_ps[1, 1] * py + r_ps[1, 2] * pz + t_ps[1]
+            qoz = r_ps[2, 0] * px + r_ps[2, 1] * py + r_ps[2, 2] * pz + t_ps[2]
+            wx = r_ps[0, 0] * rx + r_ps[0, 1] * ry + r_ps[0, 2] * rz
+            wy = r_ps[1, 0] * rx + r_ps[1, 1] * ry + r_ps[1, 2] * rz
+            wz = r_ps[2, 0] * rx + r_ps[2, 1] * ry + r_ps[2, 2] * rz
+            t2, qx, qy, qz, _gx, _gy, st2 = intersect_kernel(
+                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, zp_prev
+            )
+            if store:
+                p_sample[k, 0] = px
+                p_sample[k, 1] = py
+                p_sample[k, 2] = pz
+            if st2 != 0:
+                status[k] = screen_codes[st2]
+                zp_prev = np.nan
+                continue
+            zp_prev = qz
+            status[k] = 0
+            screen_xy[k, 0] = qx
+            screen_xy[k, 1] = qy
+            if store:
+                q_screen[k, 0] = qx
+                q_screen[k, 1] = qy
+                q_screen[k, 2] = qz
+
+
+@numba.njit(cache=True, parallel=True)
+def _trace_kernel(
+    d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
+    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+    tol, max_iter, sample_codes, screen_codes,
+    screen_xy, status, p_sample, q_screen, store,
+):
+    n_runs = (d_cam.shape[0] + run_length - 1) // run_length
+    for run in numba.prange(n_runs):
+        _trace_run(
+            run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+            s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
+            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+            tol, max_iter, sample_codes, screen_codes,
+            screen_xy, status, p_sample, q_screen, store,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Mapping:
+    """Result of tracing one camera: the pixel → pattern-coordinate mapping (paper §2.4).
+
+    Attributes
+    ----------
+    screen_xy_mm : ndarray (H, W, 2)
+        Pattern coordinates (x_q, y_q) in the screen frame, NaN where ``status != VALID``.
+    status : ndarray of uint8 (H, W)
+        :class:`Status` code per pixel.
+    p_sample_mm : ndarray (H, W, 3) or None
+        The sample intersection point (sample frame), if requested.
+    q_screen_mm : ndarray (H, W, 3) or None
+        The screen intersection point (screen frame, z = screen height), if requested.
+    """
+
+    screen_xy_mm: np.ndarray
+    status: np.ndarray
+    p_sample_mm: np.ndarray | None = None
+    q_screen_mm: np.ndarray | None = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(H, W) bool: status == VALID."""
+        return self.status == Status.VALID
+
+    def status_counts(self) -> dict[str, int]:
+        """Number of pixels per status name (only non-zero counts)."""
+        counts = np.bincount(self.status.ravel(), minlength=len(Status))
+        return {Status(i).name: int(c) for i, c in enumerate(counts) if c}
+
+
+def trace_rays(
+    d_cam: np.ndarray,
+    converged: np.ndarray,
+    T_sample_cam: RigidTransform,
+    T_screen_sample: RigidTransform,
+    sample,
+    screen,
+    *,
+    store_points: bool = False,
+    tol_mm: float = INTERSECT_TOL_MM,
+) -> Mapping:
+    """Trace view rays through sample and screen (paper §2.4).
+
+    Parameters
+    ----------
+    d_cam : ndarray (..., 3)
+        View-ray directions in the camera frame (rays start at the pinhole).
+    converged : ndarray of bool (...)
+        False where the view ray could not be computed (marked UNDISTORT_FAILED).
+    T_sample_cam, T_screen_sample : RigidTransform
+        Camera → sample and sample → screen transforms (eq. 1).
+    sample, screen : SplineSurface or PlaneSurface
+        Surfaces in their own frames.
+    store_points : bool
+        Also return the sample and screen intersection points.
+    tol_mm : float
+        Intersection convergence tolerance (mm).
+
+    Returns
+    -------
+    Mapping
+        Arrays shaped like ``d_cam.shape[:-1]``.
+    """
+    d = np.asarray(d_cam, dtype=float)
+    if d.shape[-1] != 3:
+        raise ValueError(f"d_cam must have shape (..., 3), got {d.shape}")
+    ok = np.asarray(converged, dtype=bool)
+    if ok.shape != d.shape[:-1]:
+        raise ValueError(f"converged must have shape {d.shape[:-1]}, got {ok.shape}")
+    shape = d.shape[:-1]
+    df = np.ascontiguousarray(d.reshape(-1, 3))
+    okf = np.ascontiguousarray(ok.reshape(-1))
+    n = df.shape[0]
+    screen_xy = np.empty((n, 2))
+    status = np.empty(n, dtype=np.uint8)
+    if store_points:
+        p_s = np.empty((n, 3))
+        q_p = np.empty((n, 3))
+    else:
+        p_s = np.empty((0, 3))
+        q_p = np.empty((0, 3))
+    s = sample.kernel
+    p = screen.kernel
+    run_length = shape[-1] if len(shape) >= 2 else min(max(n, 1), 1024)
+    _trace_kernel(
+        df, okf, max(int(run_length), 1),
+        np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
+        np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
+        s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max,
+        p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max,
+        tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
+        screen_xy, status, p_s, q_p, store_points,
+    )
+    return Mapping(
+        screen_xy.reshape(shape + (2,)),
+        status.reshape(shape),
+        p_s.reshape(shape + (3,)) if store_points else None,
+        q_p.reshape(shape + (3,)) if store_points else None,
+    )
+
+
+def trace_camera(
+    camera: Camera,
+    T_world_cam: RigidTransform,
+    T_world_sample: RigidTransform,
+    sample,
+    T_world_screen: RigidTransform,
+    screen,
+    *,
+    store_points: bool = False,
+    rays: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Mapping:
+    """Trace every pixel of ``camera`` (H, W) through sample and screen.
+
+    ``rays`` may pass precomputed ``camera.sensor_rays()`` to reuse them across setups.
+    """
+    d_cam, ok = camera.sensor_rays() if rays is None else rays
+    T_sample_cam = T_world_sample.inv() @ T_world_cam
+    T_screen_sample = T_world_screen.inv() @ T_world_sample
+    return trace_rays(d_cam, ok, T_sample_cam, T_screen_sample, sample, screen, store_points=store_points)
