@@ -224,8 +224,8 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
     ``z_start`` is NaN, or a nearby ray's height as a warm start — and stops when the height
     has converged to ``tol``: the error of a linearly converging iteration is estimated as
     step·q/(1 − q), with q = |step_n/step_(n−1)| the observed contraction factor
-    (q ≈ |∇h·d_xy/d_z|). The gradient returned is that of the last evaluation, at a point
-    within one step of the result (its error is ≈ |∇²h|·step, far below 1e-9 here). If it has not converged after ``max_iter`` steps (q ≥ 1: steep surface
+    (q ≈ |∇h·d_xy/d_z|). The gradient returned is evaluated within one step of size ≤ ``tol``
+    of the returned point. If it has not converged after ``max_iter`` steps (q ≥ 1: steep surface
     or grazing ray), a fallback takes over: the first sign change of
     f(t) = o_z + t d_z − h(o_xy + t d_xy) within the part of the ray that lies inside the
     surface's height bounds and over its grid rectangle, refined by bracketed Newton steps.
@@ -269,6 +269,12 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
                 q = step / step_prev
                 if q < 0.5 and step * q / (1.0 - q) <= tol:
                     converged = True
+                    if step > tol:
+                        # The gradient came from the previous point, one step (in z) away:
+                        # evaluate once more at the final point (a further step of eq. 13).
+                        z, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)
+                        x = ax + bx * z
+                        y = ay + by * z
                     break
             step_prev = step
         if not converged:
@@ -356,18 +362,30 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
     return t, x, y, z, hx, hy, _HIT
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def _eval_many(kind, gx, gy, coef, x, y, out):
-    for k in numba.prange(x.shape[0]):
+# Parallel loops are thin wrappers over chunks that call a serial, compiled function: numba's
+# parallel lowering of large inlined bodies is slow to compile, a call per chunk is not.
+_CHUNK = 4096
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _eval_range(start, end, kind, gx, gy, coef, x, y, out):
+    for k in range(start, end):
         h, hx, hy = eval_kernel(kind, gx, gy, coef, x[k], y[k])
         out[k, 0] = h
         out[k, 1] = hx
         out[k, 2] = hy
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def _intersect_many(kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out, p_out, status):
-    for k in numba.prange(o.shape[0]):
+@numba.njit(cache=True, parallel=True)
+def _eval_many(kind, gx, gy, coef, x, y, out):
+    n = x.shape[0]
+    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+        _eval_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, x, y, out)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _intersect_range(start, end, kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out, p_out, status):
+    for k in range(start, end):
         t, x, y, z, hx, hy, st = intersect_kernel(
             kind, gx, gy, coef, z_min, z_max, o[k, 0], o[k, 1], o[k, 2], d[k, 0], d[k, 1], d[k, 2],
             tol, max_iter, np.nan,
@@ -377,6 +395,14 @@ def _intersect_many(kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out
         p_out[k, 1] = y
         p_out[k, 2] = z
         status[k] = st
+
+
+@numba.njit(cache=True, parallel=True)
+def _intersect_many(kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out, p_out, status):
+    n = o.shape[0]
+    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+        _intersect_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, o, d,
+                         tol, max_iter, t_out, p_out, status)
 
 
 # ----------------------------------------------------------------------------- classes
