@@ -19,8 +19,6 @@ from .errors import PmdsimError
 from .io import MANIFEST_NAME, MAPPING_NAME, IMAGESET_FORMAT, atomic_output_dir, provenance, write_json, write_mapping_h5, write_png
 from .setup import Setup, default_setup, load_setup
 
-_COMMAND = "pmdsim " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-
 
 def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
     setup = default_setup() if setup_path is None else load_setup(setup_path)
@@ -31,6 +29,12 @@ def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
 
 class _Group(click.Group):
     """Turns pmdsim's own errors into a one-line message and exit code 2 (no traceback)."""
+
+    def parse_args(self, ctx, args):
+        # The command line as invoked (also when main() is called with args, not from sys.argv),
+        # recorded in the outputs' provenance.
+        ctx.meta["pmdsim.command"] = "pmdsim " + " ".join(shlex.quote(a) for a in args)
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx):
         try:
@@ -70,7 +74,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, force, quiet) -> None:
     from .simulation import image_specs, render_images, trace_setup_camera
 
     setup = _load(setup_path, bulge_mm)
-    prov = provenance(_COMMAND, setup.to_toml())
+    prov = provenance(click.get_current_context().meta.get("pmdsim.command"), setup.to_toml())
     t0 = time.perf_counter()
     with atomic_output_dir(out_dir, force=force) as tmp:
         mappings = {}

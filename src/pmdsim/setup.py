@@ -350,6 +350,9 @@ class _Reader:
             raise SetupError(f"unknown key {self.key(unknown[0])} (known keys here: {sorted(self.used)})")
 
 
+_MAX_IMAGE_SIDE_PX = 2**31 - 1  # the PNG format's limit on width and height
+
+
 def _pose(r: _Reader) -> Pose:
     return Pose(r.vector("origin_world_mm", 3), r.vector("angles_deg", 3))
 
@@ -364,6 +367,8 @@ def _camera(r: _Reader) -> CameraSetup:
         raise SetupError(f"{r.key('image_size_px')} must be [width, height] in whole pixels, got {size!r}")
     if size[0] <= 0 or size[1] <= 0:
         raise SetupError(f"{r.key('image_size_px')} must be positive, got {size!r}")
+    if size[0] > _MAX_IMAGE_SIDE_PX or size[1] > _MAX_IMAGE_SIDE_PX:
+        raise SetupError(f"{r.key('image_size_px')} must be ≤ {_MAX_IMAGE_SIDE_PX} px per side (PNG's limit), got {size!r}")
     f = r.vector("focal_length_px", 2)
     if f[0] <= 0 or f[1] <= 0:
         raise SetupError(f"{r.key('focal_length_px')} must be > 0, got {list(f)}")
@@ -402,7 +407,7 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         raise SetupError("cameras must define at least one camera, e.g. [cameras.left]")
     cameras = {}
     for name in cams_r.table:
-        if not name.isidentifier():
+        if not (name.isascii() and name.isidentifier()):  # a bare TOML key, file and HDF5 group name
             raise SetupError(f"camera name {name!r} must be a plain identifier (letters, digits, _)")
         cameras[name] = _camera(cams_r.table_(name))
 
@@ -439,6 +444,8 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         for key, ps in (("periods_x_mm", px), ("periods_y_mm", py)):
             if any(v <= 0 for v in ps):
                 raise SetupError(f"patterns.{key} must be > 0, got {list(ps)}")
+            if len(set(ps)) != len(ps):  # images are named by period index: a repeat would collide
+                raise SetupError(f"patterns.{key} must not repeat a period, got {list(ps)}")
         mean = p.number("mean_level", d.sequence.mean_level, nonneg=True)
         amp = p.number("amplitude", d.sequence.amplitude, positive=True)
         if mean > 1 or amp > 1:

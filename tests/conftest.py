@@ -1,0 +1,55 @@
+"""Shared fixtures: the built-in setup as TOML text and a small, fast variant of it.
+
+The small setup is made by editing the default TOML text (not by pmdsim's own writer), so that
+tests of the writer/reader do not depend on what they test: both cameras shrink from 1920×1200
+to 96×60 px with the focal length and principal point scaled by the same factor 1/20 (the same
+field of view as the paper's Table 1).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from pmdsim.setup import default_setup
+
+SMALL_W, SMALL_H = 96, 60
+SMALL_PERIODS_X = [720.0, 60.0, 4.0]
+SMALL_PERIODS_Y = [420.0, 35.0, 4.0]
+SMALL_N_SHIFTS = 4
+
+
+def replace_exactly(text: str, old: str, new: str, count: int) -> str:
+    """``text.replace(old, new)``, asserting that ``old`` occurs exactly ``count`` times."""
+    assert text.count(old) == count, f"expected {count} × {old!r} in the setup TOML, found {text.count(old)}"
+    return text.replace(old, new)
+
+
+def make_small_toml(default_toml: str) -> str:
+    t = default_toml
+    t = replace_exactly(t, "image_size_px = [1920, 1200]", f"image_size_px = [{SMALL_W}, {SMALL_H}]", 2)
+    t = replace_exactly(t, "focal_length_px = [4400.0, 4400.0]", "focal_length_px = [220.0, 220.0]", 2)
+    t = replace_exactly(t, "principal_point_px = [960.0, 600.0]", "principal_point_px = [48.0, 30.0]", 2)
+    t = replace_exactly(t, "periods_x_mm = [720.0, 60.0, 4.0]", f"periods_x_mm = {SMALL_PERIODS_X}", 1)
+    t = replace_exactly(t, "periods_y_mm = [420.0, 35.0, 4.0]", f"periods_y_mm = {SMALL_PERIODS_Y}", 1)
+    t = replace_exactly(t, "n_shifts = 4", f"n_shifts = {SMALL_N_SHIFTS}", 1)
+    return t
+
+
+@pytest.fixture(scope="session")
+def default_toml() -> str:
+    """The built-in (Table 1) setup as TOML text."""
+    return default_setup().to_toml()
+
+
+@pytest.fixture(scope="session")
+def small_toml(default_toml) -> str:
+    """TOML text of the small setup (96×60 px cameras, Table 1 field of view)."""
+    return make_small_toml(default_toml)
+
+
+@pytest.fixture(scope="session")
+def small_setup_file(tmp_path_factory, small_toml):
+    """The small setup written to a file."""
+    p = tmp_path_factory.mktemp("setup") / "small.toml"
+    p.write_text(small_toml, encoding="utf-8")
+    return p
