@@ -29,8 +29,8 @@ def make_small_toml(default_toml: str) -> str:
     t = replace_exactly(t, "image_size_px = [1920, 1200]", f"image_size_px = [{SMALL_W}, {SMALL_H}]", 2)
     t = replace_exactly(t, "focal_length_px = [4400.0, 4400.0]", "focal_length_px = [220.0, 220.0]", 2)
     t = replace_exactly(t, "principal_point_px = [960.0, 600.0]", "principal_point_px = [48.0, 30.0]", 2)
-    t = replace_exactly(t, "periods_x_mm = [720.0, 60.0, 4.0]", f"periods_x_mm = {SMALL_PERIODS_X}", 1)
-    t = replace_exactly(t, "periods_y_mm = [420.0, 35.0, 4.0]", f"periods_y_mm = {SMALL_PERIODS_Y}", 1)
+    t = replace_exactly(t, "periods_x_mm = [720.0, 48.0, 2.0]", f"periods_x_mm = {SMALL_PERIODS_X}", 1)
+    t = replace_exactly(t, "periods_y_mm = [420.0, 28.0, 2.0]", f"periods_y_mm = {SMALL_PERIODS_Y}", 1)
     t = replace_exactly(t, "n_shifts = 4", f"n_shifts = {SMALL_N_SHIFTS}", 1)
     return t
 

@@ -7,7 +7,7 @@ OpenCV's 5-coefficient model (k1, k2, p1, p2, k3); the paper's eq. (3) is the ca
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numba
 import numpy as np
@@ -145,6 +145,30 @@ class Camera:
         """(camera_matrix (3, 3), dist_coeffs (5,)) in OpenCV's layout."""
         k = np.array([[self.fx_px, 0.0, self.ppx_px], [0.0, self.fy_px, self.ppy_px], [0.0, 0.0, 1.0]])
         return k, self.distortion
+
+    def binned(self, factor: int) -> "Camera":
+        """The same camera with ``factor`` × ``factor`` pixels binned into one.
+
+        Same field of view and distortion: W' = W // factor, H' = H // factor,
+        f' = f / factor, and since binned pixel u' covers original pixels
+        factor·u' … factor·u' + factor − 1 (centre factor·u' + (factor − 1)/2),
+        pp' = (pp − (factor − 1)/2) / factor.
+        """
+        k = int(factor)
+        if k != factor or k < 1:
+            raise ValueError(f"binning factor must be a positive integer, got {factor!r}")
+        if self.width_px // k < 1 or self.height_px // k < 1:
+            raise ValueError(f"binning factor {k} leaves no pixel of a {self.width_px}×{self.height_px} sensor")
+        c = (k - 1) / 2.0
+        return replace(
+            self,
+            width_px=self.width_px // k,
+            height_px=self.height_px // k,
+            fx_px=self.fx_px / k,
+            fy_px=self.fy_px / k,
+            ppx_px=(self.ppx_px - c) / k,
+            ppy_px=(self.ppy_px - c) / k,
+        )
 
     @property
     def distortion(self) -> np.ndarray:

@@ -174,3 +174,26 @@ def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str
             st.attrs["codes"] = json.dumps({s.name: int(s) for s in Status})
             for sname, count in m.status_counts().items():
                 g.attrs[f"count_{sname}"] = count
+
+
+def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> None:
+    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``).
+
+    Each group holds ``height_mm`` (float64 H×W, reconstructed height in the sample frame,
+    NaN outside the FOV), ``height_error_um`` (float32, reconstructed − true), ``points_mm``
+    (float32 H×W×3, sample frame) and ``valid`` (bool), with the metrics as attributes.
+    """
+    with h5py.File(path, "w", track_order=True) as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v if v is not None else ""
+        for c in cases:
+            g = f.require_group(f"bulge_{c.bulge_mm:g}mm").create_group(c.camera)
+            r = c.reconstruction
+            kw = dict(compression="gzip", compression_opts=1)
+            d = g.create_dataset("height_mm", data=r.height_mm, **kw)
+            d.attrs["frame"] = "sample"
+            g.create_dataset("height_error_um", data=(c.height_error_mm * 1e3).astype(np.float32), **kw)
+            g.create_dataset("points_mm", data=r.points.astype(np.float32), **kw)
+            g.create_dataset("valid", data=r.reconstructed, **kw)
+            for k, v in c.as_record().items():
+                g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v

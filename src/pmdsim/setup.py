@@ -239,7 +239,7 @@ def default_setup() -> Setup:
         ),
         sample=SampleSetup(Pose((-200.0, -200.0, 0.0), (0.0, 0.0, 0.0)), (0.0, 400.0), (0.0, 400.0)),
         patterns=PatternSetup(
-            FringeSequence((720.0, 60.0, 4.0), (420.0, 35.0, 4.0), n_shifts=4, mean_level=0.5, amplitude=0.45),
+            FringeSequence((720.0, 48.0, 2.0), (420.0, 28.0, 2.0), n_shifts=4, mean_level=0.5, amplitude=0.45),
             bit_depth=8,
             noise_std=0.0,
             seed=0,

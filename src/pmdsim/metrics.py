@@ -1,0 +1,58 @@
+"""Figures of merit of a reconstructed surface (paper Tables 2 and 3).
+
+All metrics are computed over one camera's field of view, i.e. over the reconstructed pixels,
+from the height error e = z_reconstructed − z_true at the reconstructed points (sample frame):
+
+* ``max_height_diff_um`` — the peak-to-valley max(e) − min(e) (the paper's "maximum height
+  difference"; for a tilted plane this is the height difference across the FOV);
+* ``max_dev_plane_um`` — max |e − (a·x + b·y + c)| for the least-squares plane of e over (x, y)
+  (the paper's "maximum deviation from best-fit plane");
+* ``tilt_urad`` — the tilt angle atan(√(a² + b²)) of that plane (the paper's "best-fit plane
+  tilt angle"); ``tilt_x_urad`` / ``tilt_y_urad`` are the signed slopes a and b (µrad), which
+  show the direction of the tilt;
+* ``rms_um`` — the RMS of e, and ``n_pixels`` the number of pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["surface_error_metrics"]
+
+
+def surface_error_metrics(x_mm, y_mm, error_mm) -> dict[str, float]:
+    """Metrics of a height-error field over its points.
+
+    Parameters
+    ----------
+    x_mm, y_mm, error_mm : array_like, same shape
+        Point coordinates and height errors (mm); NaN entries are ignored.
+
+    Returns
+    -------
+    dict
+        ``max_height_diff_um``, ``max_dev_plane_um``, ``tilt_urad``, ``tilt_x_urad``,
+        ``tilt_y_urad``, ``rms_um``, ``mean_um``, ``n_pixels`` (see the module docstring).
+    """
+    x = np.asarray(x_mm, dtype=float).ravel()
+    y = np.asarray(y_mm, dtype=float).ravel()
+    e = np.asarray(error_mm, dtype=float).ravel()
+    m = np.isfinite(x) & np.isfinite(y) & np.isfinite(e)
+    if m.sum() < 3:
+        raise ValueError(f"surface metrics need at least 3 finite points, got {int(m.sum())}")
+    x, y, e = x[m], y[m], e[m]
+    # Centre the coordinates for a well-conditioned fit.
+    xc, yc = x - x.mean(), y - y.mean()
+    A = np.column_stack([xc, yc, np.ones_like(xc)])
+    (a, b, c), *_ = np.linalg.lstsq(A, e, rcond=None)
+    resid = e - A @ np.array([a, b, c])
+    return {
+        "max_height_diff_um": float((e.max() - e.min()) * 1e3),
+        "max_dev_plane_um": float(np.abs(resid).max() * 1e3),
+        "tilt_urad": float(np.arctan(np.hypot(a, b)) * 1e6),
+        "tilt_x_urad": float(a * 1e6),
+        "tilt_y_urad": float(b * 1e6),
+        "rms_um": float(np.sqrt(np.mean(e**2)) * 1e3),
+        "mean_um": float(e.mean() * 1e3),
+        "n_pixels": int(e.size),
+    }

@@ -1,0 +1,62 @@
+"""Figures (matplotlib, off-screen). Only the CLI layer calls this module."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = ["height_map_figure", "height_grid_figure"]
+
+
+def _stride(shape, max_cells=250_000):
+    h, w = shape
+    return max(1, int(np.ceil(np.sqrt(h * w / max_cells))))
+
+
+def _panel(fig, ax, x_mm, y_mm, z_um, title, label):
+    s = _stride(z_um.shape)
+    x, y, z = x_mm[::s, ::s], y_mm[::s, ::s], z_um[::s, ::s]
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    if ok.sum() < 3:
+        ax.set_title(title + " (no data)")
+        return
+    sc = ax.scatter(x[ok], y[ok], c=z[ok], s=1.0, marker="s", linewidths=0, cmap="viridis", rasterized=True)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(title, fontsize=9)
+    cb = fig.colorbar(sc, ax=ax, shrink=0.85)
+    cb.set_label(label)
+    cb.formatter.set_useOffset(False)
+    cb.update_ticks()
+
+
+def height_map_figure(path: str | Path, x_mm, y_mm, z_um, *, title: str, label: str = "height (µm)") -> None:
+    """One height map over its points' x, y (mm) with a colour bar, written to ``path`` (PNG)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=120)
+    _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label)
+    fig.tight_layout()
+    fig.savefig(path, metadata={"Software": None})
+    plt.close(fig)
+
+
+def height_grid_figure(path: str | Path, panels, *, suptitle: str, label: str = "height error (µm)") -> None:
+    """A grid of height maps, each with its own colour scale (like the paper's Figs. 4 and 5).
+
+    ``panels`` is a list of rows; each entry is (x_mm, y_mm, z_um, title).
+    """
+    rows = len(panels)
+    cols = max(len(r) for r in panels)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.6 * cols, 4.2 * rows), dpi=110, squeeze=False)
+    for i, row in enumerate(panels):
+        for j, (x, y, z, title) in enumerate(row):
+            _panel(fig, axes[i, j], np.asarray(x), np.asarray(y), np.asarray(z), title, label)
+    fig.suptitle(suptitle, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, metadata={"Software": None})
+    plt.close(fig)

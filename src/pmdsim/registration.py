@@ -1,0 +1,121 @@
+"""Deflectometric registration: pixel → 3-D screen point, view rays, in a reconstruction frame.
+
+Paper §2.5: for a pixel with decoded pattern coordinates (x_p, y_p), the light came from the
+screen point p_(p) = (x_p, y_p, h_p(x_p, y_p)) of the *screen model* used by the evaluation.
+The paper's evaluation assumes a planar screen (h_p = 0, "It is precisely here, that the
+reconstruction algorithm implicitly assumes the x–y-plane of the pattern screen coordinate
+system to be the planar light source"); any surface of :mod:`pmdsim.surface` is accepted, so a
+deformed (calibrated) screen model can be used as well.
+
+The result is expressed in a reconstruction frame ``ref`` (usually the sample frame), whose +z
+is the height direction of the reconstruction (:mod:`pmdsim.reconstruct`).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Camera
+from .transform import RigidTransform
+
+__all__ = ["Registration", "RegistrationStatus", "register"]
+
+
+class RegistrationStatus(enum.IntEnum):
+    """Why a pixel has no registration (0 = registered)."""
+
+    VALID = 0
+    NOT_DECODED = 1  # the decoder marked the pixel invalid (see pmdsim.phase.PhaseFlag)
+    UNDISTORT_FAILED = 2  # the view ray could not be computed
+    OUTSIDE_SCREEN_MODEL = 3  # decoded pattern coordinates outside the screen model's bounds
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """View rays and screen points of one camera in a reconstruction frame.
+
+    Attributes
+    ----------
+    o_ref_mm : ndarray (3,)
+        Camera centre (pinhole) in the reconstruction frame.
+    d_ref : ndarray (H, W, 3)
+        View-ray directions in the reconstruction frame (not normalised).
+    q_ref_mm : ndarray (H, W, 3)
+        Screen points of the screen model, in the reconstruction frame (NaN where not valid).
+    status : ndarray of uint8 (H, W)
+        :class:`RegistrationStatus` per pixel.
+    """
+
+    o_ref_mm: np.ndarray
+    d_ref: np.ndarray
+    q_ref_mm: np.ndarray
+    status: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.status == RegistrationStatus.VALID
+
+
+def register(
+    camera: Camera,
+    T_world_cam: RigidTransform,
+    screen_model,
+    T_world_screen: RigidTransform,
+    screen_xy_mm: np.ndarray,
+    decoded: np.ndarray,
+    T_world_ref: RigidTransform,
+    *,
+    rays: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Registration:
+    """Register decoded pattern coordinates to 3-D screen points (paper §2.5).
+
+    Parameters
+    ----------
+    camera : Camera
+        Intrinsic model (the evaluation's knowledge of the camera).
+    T_world_cam, T_world_screen, T_world_ref : RigidTransform
+        Poses of camera, screen model and reconstruction frame.
+    screen_model : SplineSurface or PlaneSurface
+        The screen surface the evaluation assumes (a plane in the paper).
+    screen_xy_mm : ndarray (H, W, 2)
+        Decoded pattern coordinates (screen frame, mm).
+    decoded : ndarray of bool (H, W)
+        Pixels the decoder accepted.
+    rays : (d_cam, converged), optional
+        Precomputed ``camera.sensor_rays()``.
+
+    Returns
+    -------
+    Registration
+    """
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    ok = np.asarray(decoded, dtype=bool)
+    if xy.shape != camera.shape + (2,):
+        raise ValueError(f"screen_xy_mm must have shape {camera.shape + (2,)} for this camera, got {xy.shape}")
+    if ok.shape != camera.shape:
+        raise ValueError(f"decoded must have shape {camera.shape}, got {ok.shape}")
+    d_cam, converged = camera.sensor_rays() if rays is None else rays
+    status = np.full(camera.shape, RegistrationStatus.VALID, dtype=np.uint8)
+    status[~ok] = RegistrationStatus.NOT_DECODED
+    status[ok & ~converged] = RegistrationStatus.UNDISTORT_FAILED
+    inside = np.zeros(camera.shape, dtype=bool)
+    fin = np.isfinite(xy).all(axis=-1)
+    inside[fin] = screen_model.contains(xy[fin][:, 0], xy[fin][:, 1])
+    status[(status == RegistrationStatus.VALID) & ~inside] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
+    valid = status == RegistrationStatus.VALID
+
+    q_screen = np.full(camera.shape + (3,), np.nan)
+    q_screen[valid, :2] = xy[valid]
+    q_screen[valid, 2] = screen_model.height(xy[valid][:, 0], xy[valid][:, 1])
+    T_ref_world = T_world_ref.inv()
+    T_ref_screen = T_ref_world @ T_world_screen
+    T_ref_cam = T_ref_world @ T_world_cam
+    return Registration(
+        o_ref_mm=T_ref_cam.translation.copy(),
+        d_ref=T_ref_cam.apply_vector(d_cam),
+        q_ref_mm=T_ref_screen.apply(q_screen),
+        status=status,
+    )
