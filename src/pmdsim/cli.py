@@ -197,7 +197,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, w
             row = []
             for c in cases:
                 if c.bulge_mm == b:
-                    p = c.reconstruction.points
+                    p = c.points_mm
                     row.append((p[..., 0], p[..., 1], c.height_error_mm * 1e3,
                                 f"Δh = {b:g} mm, {c.camera} camera: PV {c.metrics['max_height_diff_um']:.3g} µm"))
             panels.append(row)

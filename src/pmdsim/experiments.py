@@ -69,15 +69,39 @@ def decode_images(setup: Setup, images: dict) -> ScreenCoordinates:
 
 @dataclass(frozen=True, eq=False)
 class CaseResult:
-    """One reconstruction of one camera's data, with its error metrics."""
+    """One reconstruction of one camera's data, with its error metrics.
+
+    Only the maps needed for outputs are kept (a full-resolution experiment holds many cases).
+
+    Attributes
+    ----------
+    height_mm : ndarray (H, W)
+        Reconstructed height (sample frame), NaN outside the reconstructed FOV.
+    height_error_mm : ndarray (H, W)
+        z_reconstructed − z_true at the reconstructed points, NaN outside.
+    points_mm : ndarray (H, W, 3), float32
+        Reconstructed points (sample frame).
+    valid : ndarray (H, W) bool
+        Reconstructed pixels.
+    """
 
     bulge_mm: float
     camera: str
     metrics: dict
-    reconstruction: Reconstruction
-    registration: Registration
-    decoded: ScreenCoordinates
-    height_error_mm: np.ndarray  # (H, W): z_reconstructed − z_true, NaN outside the FOV
+    method: str
+    seed_pixel: tuple[int, int]
+    converged: bool
+    iterations: int
+    height_mm: np.ndarray
+    height_error_mm: np.ndarray
+    points_mm: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":
+        return cls(float(bulge_mm), camera, metrics, rec.method, tuple(int(v) for v in rec.seed_pixel),
+                   bool(rec.converged), int(rec.iterations), rec.height_mm, height_error_mm,
+                   rec.points.astype(np.float32), rec.reconstructed)
 
     def as_record(self) -> dict:
         """The results.json object: the contract keys first, then the rest of the metrics."""
@@ -90,9 +114,9 @@ class CaseResult:
             "tilt_urad": m["tilt_urad"],
         }
         rec.update({k: v for k, v in m.items() if k not in rec})
-        rec["method"] = self.reconstruction.method
-        rec["seed_pixel"] = [int(v) for v in self.reconstruction.seed_pixel]
-        rec["converged"] = bool(self.reconstruction.converged)
+        rec["method"] = self.method
+        rec["seed_pixel"] = list(self.seed_pixel)
+        rec["converged"] = self.converged
         return rec
 
 
@@ -145,7 +169,7 @@ def run_experiment1_case(bulge_mm: float, camera: str, *, base: Setup | None = N
     true_h = truth.sample.surface.height(p[..., 0], p[..., 1])
     err = np.where(rec.reconstructed, rec.height_mm - true_h, np.nan)
     metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
-    return CaseResult(float(bulge_mm), camera, metrics, rec, reg, decoded, err)
+    return CaseResult.from_reconstruction(bulge_mm, camera, rec, err, metrics)
 
 
 def experiment1(bulges: Iterable[float] = (0.0, 1.0, 2.0, 3.0), cameras: Iterable[str] | None = None, *,

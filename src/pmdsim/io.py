@@ -188,12 +188,11 @@ def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> 
             f.attrs[k] = v if v is not None else ""
         for c in cases:
             g = f.require_group(f"bulge_{c.bulge_mm:g}mm").create_group(c.camera)
-            r = c.reconstruction
             kw = dict(compression="gzip", compression_opts=1)
-            d = g.create_dataset("height_mm", data=r.height_mm, **kw)
+            d = g.create_dataset("height_mm", data=c.height_mm, **kw)
             d.attrs["frame"] = "sample"
             g.create_dataset("height_error_um", data=(c.height_error_mm * 1e3).astype(np.float32), **kw)
-            g.create_dataset("points_mm", data=r.points.astype(np.float32), **kw)
-            g.create_dataset("valid", data=r.reconstructed, **kw)
+            g.create_dataset("points_mm", data=c.points_mm, **kw)
+            g.create_dataset("valid", data=c.valid, **kw)
             for k, v in c.as_record().items():
                 g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v

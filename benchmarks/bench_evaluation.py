@@ -1,0 +1,94 @@
+"""Benchmark the PMD evaluation (issue: phase decoding, registration, reconstruction, Experiment 1).
+
+Prints: decoding a 1920×1200 × 32-image set (2 directions × 4 periods × 4 shifts), stepwise and
+least-squares reconstruction of one full frame (Table 1, Δh = 3 mm, planar screen model), the
+whole full-resolution Experiment 1 (8 reconstructions, images in memory), and peak memory.
+
+    python benchmarks/bench_evaluation.py [--json] [--skip-experiment]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from dataclasses import replace
+
+import numba
+import numpy as np
+
+from pmdsim import __version__
+from pmdsim.experiments import decode_images, evaluate_decoded, experiment1
+from pmdsim.patterns import FringeSequence
+from pmdsim.setup import default_setup
+from pmdsim.simulation import render_images, trace_setup_camera
+
+
+def best_of(fn, repeat):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--skip-experiment", action="store_true")
+    args = ap.parse_args()
+    res = {"pmdsim_version": __version__, "threads": numba.get_num_threads()}
+
+    # A 32-image set: 4 periods per direction.
+    base = default_setup().with_bulge(3.0)
+    seq32 = FringeSequence((720.0, 96.0, 12.0, 2.0), (420.0, 56.0, 8.0, 2.0), n_shifts=4)
+    s32 = replace(base, patterns=replace(base.patterns, sequence=seq32))
+    m = trace_setup_camera(s32, "left")
+    images = {}
+    for spec, img in render_images(s32, "left", m):
+        images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+    n_img = sum(len(v) for v in images.values())
+    decode_images(s32, images)
+    res["decode_32_images_s"], dec32 = best_of(lambda: decode_images(s32, images), 3)
+    res["decode_valid_fraction"] = float(dec32.valid.mean())
+
+    # Reconstruction of one full frame with the default 24-image sequence.
+    m = trace_setup_camera(base, "left", store_points=True)
+    images = {}
+    for spec, img in render_images(base, "left", m):
+        images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+    dec = decode_images(base, images)
+    model = base.with_bulge(0.0)
+    seed = (600, 960)
+    for method in ("stepwise", "least_squares"):
+        evaluate_decoded(model, "left", dec, method=method, seed_pixel=seed)
+        t, (reg, rec) = best_of(lambda: evaluate_decoded(model, "left", dec, method=method, seed_pixel=seed), 3)
+        res[f"{method}_s_incl_registration"] = t
+        res[f"{method}_iterations"] = rec.iterations
+
+    if not args.skip_experiment:
+        t0 = time.perf_counter()
+        cases = experiment1()
+        res["experiment1_s"] = time.perf_counter() - t0
+        res["experiment1_max_height_diff_um"] = {f"{c.bulge_mm:g}_{c.camera}": c.metrics["max_height_diff_um"]
+                                                 for c in cases}
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    if args.json:
+        json.dump(res, sys.stdout)
+        sys.stdout.write("\n")
+        return
+    print(f"pmdsim {__version__}, {res['threads']} threads, 1920×1200 px")
+    print(f"decode {n_img} images              : {res['decode_32_images_s']:6.2f} s")
+    print(f"stepwise (incl. registration)  : {res['stepwise_s_incl_registration']:6.2f} s")
+    print(f"least squares (incl. reg.)     : {res['least_squares_s_incl_registration']:6.2f} s "
+          f"({res['least_squares_iterations']} Gauss–Newton iterations)")
+    if "experiment1_s" in res:
+        print(f"Experiment 1 (8 cases)         : {res['experiment1_s']:6.1f} s")
+    print(f"peak memory (RSS)              : {res['peak_rss_mb']:6.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
