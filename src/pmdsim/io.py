@@ -130,8 +130,11 @@ def read_image(path: str | Path) -> np.ndarray:
             arr = np.array(im)
     except Exception as e:  # PIL raises several types for broken files
         raise ImageSetError(f"cannot read image {str(p)!r}: {e}") from None
-    if arr.ndim != 2:
-        raise ImageSetError(f"image {str(p)!r} is not greyscale (mode {mode}, shape {arr.shape})")
+    if arr.ndim != 2 or mode not in ("L", "I;16", "I;16B", "I;16L", "I"):
+        raise ImageSetError(
+            f"image {str(p)!r} is not an 8- or 16-bit greyscale image (mode {mode}, shape {arr.shape}); "
+            "palette, colour and 1-bit images are not fringe images"
+        )
     if mode in ("I;16", "I;16B", "I;16L", "I") and arr.dtype != np.uint16:
         if arr.min() < 0 or arr.max() > 65535:
             raise ImageSetError(f"image {str(p)!r}: values outside the 16-bit range")
@@ -196,3 +199,42 @@ def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> 
             g.create_dataset("valid", data=c.valid, **kw)
             for k, v in c.as_record().items():
                 g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v
+
+
+def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) -> None:
+    """Write an evaluation: one group per camera with the decoded coordinates, masks, normals
+    and the height map.
+
+    Datasets per camera: ``screen_xy_mm`` (H×W×2, screen frame, NaN where not decoded),
+    ``std_xy_mm`` (predicted σ), ``decoded`` (bool), ``phase_flags`` (uint8,
+    :class:`pmdsim.phase.PhaseFlag`), ``registration_status`` (uint8,
+    :class:`pmdsim.registration.RegistrationStatus`), ``normals`` (H×W×3, unit, sample frame),
+    ``points_mm`` (H×W×3, sample frame), ``height_mm`` (H×W, sample frame, NaN where not
+    reconstructed) and ``reconstructed`` (bool).
+    """
+    from .phase import PhaseFlag
+    from .registration import RegistrationStatus
+
+    kw = dict(compression="gzip", compression_opts=1)
+    with h5py.File(path, "w", track_order=True) as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v if v is not None else ""
+        f.attrs["phase_flags"] = json.dumps({fl.name: int(fl) for fl in PhaseFlag})
+        f.attrs["registration_status"] = json.dumps({s.name: int(s) for s in RegistrationStatus})
+        for cam, (decoded, reg, rec) in results.items():
+            g = f.create_group(cam)
+            g.create_dataset("screen_xy_mm", data=decoded.screen_xy_mm, **kw).attrs["frame"] = "screen"
+            g.create_dataset("std_xy_mm", data=decoded.std_xy_mm, **kw)
+            g.create_dataset("decoded", data=decoded.valid, **kw)
+            g.create_dataset("phase_flags", data=decoded.flags, **kw)
+            g.create_dataset("registration_status", data=reg.status, **kw)
+            g.create_dataset("normals", data=rec.normals, **kw).attrs["frame"] = "sample"
+            g.create_dataset("points_mm", data=rec.points, **kw).attrs["frame"] = "sample"
+            d = g.create_dataset("height_mm", data=rec.height_mm, **kw)
+            d.attrs["frame"] = "sample"
+            d.attrs["description"] = "height along sample +z (docs/conventions.md), NaN where not reconstructed"
+            g.create_dataset("reconstructed", data=rec.reconstructed, **kw)
+            g.attrs["method"] = rec.method
+            g.attrs["seed_pixel"] = list(rec.seed_pixel)
+            g.attrs["converged"] = bool(rec.converged)
+            g.attrs["iterations"] = int(rec.iterations)
