@@ -132,7 +132,7 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageSetError(f"cannot read image {str(p)!r}: {e}") from None
     if arr.ndim != 2 or mode not in ("L", "I;16", "I;16B", "I;16L", "I"):
         raise ImageSetError(
-            f"image {str(p)!r} is not an 8- or 16-bit greyscale image (mode {mode}, shape {arr.shape}); "
+            f"image {str(p)!r} is not greyscale: not an 8- or 16-bit grey image (mode {mode}, shape {arr.shape}); "
             "palette, colour and 1-bit images are not fringe images"
         )
     if mode in ("I;16", "I;16B", "I;16L", "I") and arr.dtype != np.uint16:
