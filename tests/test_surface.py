@@ -176,3 +176,20 @@ def test_plane_fast_path_equals_spline_plane():
     np.testing.assert_allclose(p1, p2, atol=0)
     np.testing.assert_allclose(p1, p3, atol=1e-9)
     np.testing.assert_allclose(p1[:, 2], 0.0)
+
+
+def test_second_derivatives_match_fitpack():
+    """The intersection carries the gradient to the final point with the second derivatives."""
+    from pmdsim.surface import eval2_kernel
+
+    rng = np.random.default_rng(9)
+    gx = np.linspace(0, 300, 6)
+    gy = np.linspace(0, 200, 5)
+    z = rng.normal(size=(5, 6))
+    ref = RectBivariateSpline(gy, gx, z, kx=3, ky=3, s=0)
+    k = SplineSurface(gx, gy, z).kernel
+    for x, y in rng.uniform([0, 0], [300, 200], size=(50, 2)):
+        h, hx, hy, hxx, hxy, hyy = eval2_kernel(k.kind, k.grid_x, k.grid_y, k.coef, x, y)
+        np.testing.assert_allclose([h, hx, hy], [ref.ev(y, x), ref.ev(y, x, dy=1), ref.ev(y, x, dx=1)], atol=1e-10)
+        np.testing.assert_allclose([hxx, hxy, hyy], [ref.ev(y, x, dy=2), ref.ev(y, x, dx=1, dy=1), ref.ev(y, x, dx=2)],
+                                   atol=1e-10)

@@ -216,16 +216,132 @@ def eval_kernel(kind, gx, gy, coef, x, y):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
+def eval2_kernel(kind, gx, gy, coef, x, y):
+    """Height, gradient and second derivatives (h, h_x, h_y, h_xx, h_xy, h_yy) at (x, y)."""
+    if kind == _KIND_PLANE:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    b, sx, sy = _patch(gx, gy, x, y)
+    r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
+    r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
+    r2 = coef[b + 8] + sx * (coef[b + 9] + sx * (coef[b + 10] + sx * coef[b + 11]))
+    r3 = coef[b + 12] + sx * (coef[b + 13] + sx * (coef[b + 14] + sx * coef[b + 15]))
+    d0 = coef[b + 1] + sx * (2.0 * coef[b + 2] + sx * 3.0 * coef[b + 3])
+    d1 = coef[b + 5] + sx * (2.0 * coef[b + 6] + sx * 3.0 * coef[b + 7])
+    d2 = coef[b + 9] + sx * (2.0 * coef[b + 10] + sx * 3.0 * coef[b + 11])
+    d3 = coef[b + 13] + sx * (2.0 * coef[b + 14] + sx * 3.0 * coef[b + 15])
+    e0 = 2.0 * coef[b + 2] + 6.0 * sx * coef[b + 3]
+    e1 = 2.0 * coef[b + 6] + 6.0 * sx * coef[b + 7]
+    e2 = 2.0 * coef[b + 10] + 6.0 * sx * coef[b + 11]
+    e3 = 2.0 * coef[b + 14] + 6.0 * sx * coef[b + 15]
+    h = r0 + sy * (r1 + sy * (r2 + sy * r3))
+    hx = d0 + sy * (d1 + sy * (d2 + sy * d3))
+    hy = r1 + sy * (2.0 * r2 + sy * 3.0 * r3)
+    hxx = e0 + sy * (e1 + sy * (e2 + sy * e3))
+    hxy = d1 + sy * (2.0 * d2 + sy * 3.0 * d3)
+    hyy = 2.0 * r2 + 6.0 * sy * r3
+    return h, hx, hy, hxx, hxy, hyy
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol):
+    """Fallback of :func:`intersect_kernel` where the fixed point does not converge.
+
+    The root lies where the ray is both inside the surface's height bounds and above the grid
+    rectangle: intersect those parameter intervals, march through them to the first sign
+    change of f(t) = o_z + t d_z − h(o_xy + t d_xy) (the first hit along the ray), then refine
+    by Newton steps kept inside the bracket (bisection where Newton leaves it).
+
+    Returns (ok, x, y, z, h_x, h_y, status).
+    """
+    nan = np.nan
+    inv_dz = 1.0 / dz
+    ta = (z_min - oz) * inv_dz
+    tb = (z_max - oz) * inv_dz
+    if ta > tb:
+        ta, tb = tb, ta
+    nxg = gx.shape[0]
+    nyg = gy.shape[0]
+    if dx != 0.0:
+        t1 = (gx[0] - ox) / dx
+        t2 = (gx[nxg - 1] - ox) / dx
+        ta = max(ta, min(t1, t2))
+        tb = min(tb, max(t1, t2))
+    elif ox < gx[0] or ox > gx[nxg - 1]:
+        return False, nan, nan, nan, nan, nan, _OUTSIDE
+    if dy != 0.0:
+        t1 = (gy[0] - oy) / dy
+        t2 = (gy[nyg - 1] - oy) / dy
+        ta = max(ta, min(t1, t2))
+        tb = min(tb, max(t1, t2))
+    elif oy < gy[0] or oy > gy[nyg - 1]:
+        return False, nan, nan, nan, nan, nan, _OUTSIDE
+    ta = max(ta, 0.0)
+    if not ta < tb:
+        return False, nan, nan, nan, nan, nan, _OUTSIDE
+    fa = oz + ta * dz - height_kernel(kind, gx, gy, coef, ox + ta * dx, oy + ta * dy)
+    found = fa == 0.0
+    tlo = ta
+    thi = ta
+    flo = fa
+    n_march = 64
+    for m in range(1, n_march + 1):
+        if found:
+            break
+        tm = ta + (tb - ta) * m / n_march
+        fm = oz + tm * dz - height_kernel(kind, gx, gy, coef, ox + tm * dx, oy + tm * dy)
+        if fm == 0.0 or (fm < 0.0) != (flo < 0.0):
+            thi = tm
+            found = True
+            break
+        tlo = tm
+        flo = fm
+    if not found:
+        return False, nan, nan, nan, nan, nan, _NO_CONVERGENCE
+    t = 0.5 * (tlo + thi) if thi > tlo else tlo
+    scale = abs(dx) + abs(dy) + abs(dz)
+    converged = False
+    for _ in range(_NEWTON_MAX_ITER):
+        if not thi > tlo:
+            converged = True
+            break
+        hv, hx, hy = eval_kernel(kind, gx, gy, coef, ox + t * dx, oy + t * dy)
+        f = oz + t * dz - hv
+        if f == 0.0:
+            converged = True
+            break
+        if (f < 0.0) == (flo < 0.0):
+            tlo = t
+            flo = f
+        else:
+            thi = t
+        df = dz - hx * dx - hy * dy
+        tn = t - f / df if df != 0.0 else 0.5 * (tlo + thi)
+        if not (tlo < tn < thi):
+            tn = 0.5 * (tlo + thi)
+        step = abs(tn - t) * scale
+        t = tn
+        if step <= tol:
+            converged = True
+            break
+    if not converged:
+        return False, nan, nan, nan, nan, nan, _NO_CONVERGENCE
+    x = ox + t * dx
+    y = oy + t * dy
+    z, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)
+    return True, x, y, z, hx, hy, _HIT
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start):
     """Intersection of the ray o + t·d with the height field z = h(x, y) (paper eqs. 9–16).
 
     The paper's fixed-point iteration z ← h(x(z), y(z)) (eq. 13, with x(z), y(z) the ray's
     point at height z, eqs. 14–16) starts at ``z_start`` — the x–y plane z = 0 of eq. (9) when
     ``z_start`` is NaN, or a nearby ray's height as a warm start — and stops when the height
-    has converged to ``tol``: the error of a linearly converging iteration is estimated as
-    step·q/(1 − q), with q = |step_n/step_(n−1)| the observed contraction factor
-    (q ≈ |∇h·d_xy/d_z|). The gradient returned is evaluated within one step of size ≤ ``tol``
-    of the returned point. If it has not converged after ``max_iter`` steps (q ≥ 1: steep surface
+    has converged to ``tol``: with q = |step_n/step_(n−1)| the observed contraction factor
+    (q ≈ |∇h·d_xy/d_z|), the error after one more step is ≈ step·q²/(1 − q); once that is
+    ≤ ``tol``, the final step is taken with the gradient (and second derivatives, which carry
+    the gradient to the returned point) for eq. (17). If it has not converged after ``max_iter`` steps (q ≥ 1: steep surface
     or grazing ray), a fallback takes over: the first sign change of
     f(t) = o_z + t d_z − h(o_xy + t d_xy) within the part of the ray that lies inside the
     surface's height bounds and over its grid rectangle, refined by bracketed Newton steps.
@@ -255,7 +371,7 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
     if not converged:
         step_prev = -1.0  # no previous step yet
         for _ in range(max_iter):
-            znew, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
+            znew = height_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
             x = ax + bx * znew  # eqs. (14)–(16)
             y = ay + by * znew
             step = abs(znew - z)
@@ -263,97 +379,32 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
             if step == 0.0:
                 converged = True
                 break
-            # Error estimate of a linearly converging iteration: |z − z*| ≈ step·q/(1 − q),
-            # with q estimated from the last two steps.
+            # Linear convergence with factor q (estimated from the last two steps): the error
+            # now is ≈ step·q/(1 − q), and after the final step below ≈ step·q²/(1 − q).
             if step_prev > 0.0:
                 q = step / step_prev
-                if q < 0.5 and step * q / (1.0 - q) <= tol:
+                if q < 0.5 and step * q * q / (1.0 - q) <= tol:
                     converged = True
-                    if step > tol:
-                        # The gradient came from the previous point, one step (in z) away:
-                        # evaluate once more at the final point (a further step of eq. 13).
-                        z, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)
-                        x = ax + bx * z
-                        y = ay + by * z
                     break
             step_prev = step
+        if converged:
+            # The final step of eq. (13) also gives the gradient for eq. (17). It is evaluated
+            # at the point before that step and carried to the returned point to first order
+            # with the second derivatives (the remaining gradient error is second order in a
+            # height change that is already ≤ step·q).
+            zf, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, x, y)
+            ddx = bx * (zf - z)
+            ddy = by * (zf - z)
+            hx += hxx * ddx + hxy * ddy
+            hy += hxy * ddx + hyy * ddy
+            z = zf
+            x = ax + bx * z
+            y = ay + by * z
         if not converged:
-            # Fallback. The root lies where the ray is both inside the surface's height bounds
-            # and above the grid rectangle: intersect those parameter intervals, march through
-            # them to the first sign change of f(t) = o_z + t d_z − h(o_xy + t d_xy) (the first
-            # hit along the ray), then refine by Newton steps kept inside the bracket.
-            ta = (z_min - oz) * inv_dz
-            tb = (z_max - oz) * inv_dz
-            if ta > tb:
-                ta, tb = tb, ta
-            nxg = gx.shape[0]
-            nyg = gy.shape[0]
-            if dx != 0.0:
-                t1 = (gx[0] - ox) / dx
-                t2 = (gx[nxg - 1] - ox) / dx
-                ta = max(ta, min(t1, t2))
-                tb = min(tb, max(t1, t2))
-            elif ox < gx[0] or ox > gx[nxg - 1]:
-                return nan, nan, nan, nan, nan, nan, _OUTSIDE
-            if dy != 0.0:
-                t1 = (gy[0] - oy) / dy
-                t2 = (gy[nyg - 1] - oy) / dy
-                ta = max(ta, min(t1, t2))
-                tb = min(tb, max(t1, t2))
-            elif oy < gy[0] or oy > gy[nyg - 1]:
-                return nan, nan, nan, nan, nan, nan, _OUTSIDE
-            ta = max(ta, 0.0)
-            if not ta < tb:
-                return nan, nan, nan, nan, nan, nan, _OUTSIDE
-            fa = oz + ta * dz - height_kernel(kind, gx, gy, coef, ox + ta * dx, oy + ta * dy)
-            found = fa == 0.0
-            tlo = ta
-            thi = ta
-            flo = fa
-            n_march = 64
-            for m in range(1, n_march + 1):
-                if found:
-                    break
-                tm = ta + (tb - ta) * m / n_march
-                fm = oz + tm * dz - height_kernel(kind, gx, gy, coef, ox + tm * dx, oy + tm * dy)
-                if fm == 0.0 or (fm < 0.0) != (flo < 0.0):
-                    thi = tm
-                    found = True
-                    break
-                tlo = tm
-                flo = fm
-            if not found:
-                return nan, nan, nan, nan, nan, nan, _NO_CONVERGENCE
-            t = 0.5 * (tlo + thi) if thi > tlo else tlo
-            scale = abs(dx) + abs(dy) + abs(dz)
-            for _ in range(_NEWTON_MAX_ITER):
-                if not thi > tlo:
-                    converged = True
-                    break
-                hv, hx, hy = eval_kernel(kind, gx, gy, coef, ox + t * dx, oy + t * dy)
-                f = oz + t * dz - hv
-                if f == 0.0:
-                    converged = True
-                    break
-                if (f < 0.0) == (flo < 0.0):
-                    tlo = t
-                    flo = f
-                else:
-                    thi = t
-                df = dz - hx * dx - hy * dy
-                tn = t - f / df if df != 0.0 else 0.5 * (tlo + thi)
-                if not (tlo < tn < thi):
-                    tn = 0.5 * (tlo + thi)
-                step = abs(tn - t) * scale
-                t = tn
-                if step <= tol:
-                    converged = True
-                    break
-            if not converged:
-                return nan, nan, nan, nan, nan, nan, _NO_CONVERGENCE
-            x = ox + t * dx
-            y = oy + t * dy
-            z, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)
+            ok, x, y, z, hx, hy, code = _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz,
+                                                            tol)
+            if not ok:
+                return nan, nan, nan, nan, nan, nan, code
     t = (z - oz) * inv_dz
     if not t > 0.0:
         return t, x, y, z, hx, hy, _PARALLEL
