@@ -140,6 +140,58 @@ class PatternSetup:
 
 
 @dataclass(frozen=True)
+class CalibrationSetup:
+    """The calibration mirror poses (paper §4): a planar front-surface mirror lying on the base
+    table (the sample's pose), lifted parallel to it, and tilted about its x and y axes.
+
+    The paper gives no values; the defaults keep every camera's reflected field of view on the
+    screen (tilting the mirror by θ turns the reflected rays by 2θ; the screens' margins around
+    the cameras' reflected views are ≈ 70 mm at ≈ 500 mm distance, i.e. |θ| ≲ 4°).
+
+    Attributes
+    ----------
+    mirror_lifts_mm : lifts of the mirror, parallel to the table, towards the cameras (along the
+        sample's −z, since the sample's +z points away from the cameras).
+    mirror_tilts_deg : tilt magnitudes; each is applied with + and − sign about the mirror's
+        x axis and about its y axis, through the centre of the mirror.
+    mirror_size_mm : (width, height) of the mirror, centred on the sample's grid centre.
+    observation_stride_px : the calibration uses every stride-th pixel in both directions.
+    """
+
+    mirror_lifts_mm: tuple[float, ...] = (10.0, 20.0, 30.0)
+    mirror_tilts_deg: tuple[float, ...] = (1.0, 2.0, 3.0)
+    mirror_size_mm: tuple[float, float] = (400.0, 400.0)
+    observation_stride_px: int = 8
+
+    def mirror_poses(self, sample: "SampleSetup") -> list[tuple[str, RigidTransform]]:
+        """(label, T_world_mirror) of every pose: base, lifts, then tilts (+/− about x, then y).
+
+        The mirror is the plane z = 0 of its frame over [0, w] × [0, h].
+        """
+        T_ws = sample.T_world_sample
+        cx = 0.5 * (sample.grid_x_mm[0] + sample.grid_x_mm[-1])
+        cy = 0.5 * (sample.grid_y_mm[0] + sample.grid_y_mm[-1])
+        w, h = self.mirror_size_mm
+        # Mirror frame: origin at its corner, centre on the sample's grid centre.
+        T_centre_mirror = RigidTransform(np.eye(3), [-w / 2, -h / 2, 0.0])
+        T_sample_centre = RigidTransform(np.eye(3), [cx, cy, 0.0])
+        out = [("base", T_ws @ T_sample_centre @ T_centre_mirror)]
+        for lift in self.mirror_lifts_mm:
+            out.append((f"lift_{lift:g}mm", T_ws @ RigidTransform(np.eye(3), [cx, cy, -lift]) @ T_centre_mirror))
+        for axis, angles in (("x", lambda t: (t, 0.0, 0.0)), ("y", lambda t: (0.0, t, 0.0))):
+            for tilt in self.mirror_tilts_deg:
+                for sign in (1.0, -1.0):
+                    R = RigidTransform.from_origin_angles([0.0, 0.0, 0.0], angles(sign * tilt))
+                    out.append((f"tilt_{axis}{sign * tilt:+g}deg", T_ws @ T_sample_centre @ R @ T_centre_mirror))
+        return out
+
+    def mirror_surface(self):
+        from .surface import PlaneSurface
+
+        return PlaneSurface((0.0, self.mirror_size_mm[0]), (0.0, self.mirror_size_mm[1]))
+
+
+@dataclass(frozen=True)
 class Setup:
     """A complete measurement setup (paper §2, Table 1)."""
 
@@ -147,6 +199,7 @@ class Setup:
     screen: ScreenSetup
     sample: SampleSetup
     patterns: PatternSetup
+    calibration: CalibrationSetup = field(default_factory=CalibrationSetup)
 
     def with_bulge(self, bulge_mm: float) -> "Setup":
         """The same setup with the screen's central control height set to ``bulge_mm`` (Δh)."""
@@ -202,6 +255,7 @@ class Setup:
             "noise_std": self.patterns.noise_std,
             "seed": self.patterns.seed,
         }
+        cal = self.calibration
         return {
             "format": SETUP_FORMAT,
             "format_version": SETUP_FORMAT_VERSION,
@@ -209,6 +263,12 @@ class Setup:
             "screen": scr,
             "sample": smp,
             "patterns": pat,
+            "calibration": {
+                "mirror_lifts_mm": list(cal.mirror_lifts_mm),
+                "mirror_tilts_deg": list(cal.mirror_tilts_deg),
+                "mirror_size_mm": list(cal.mirror_size_mm),
+                "observation_stride_px": cal.observation_stride_px,
+            },
         }
 
     def to_toml(self) -> str:
@@ -458,8 +518,25 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
     else:
         r.used.add("patterns")
         patterns = d
+    dc = CalibrationSetup()
+    if r.has("calibration"):
+        c = r.table_("calibration")
+        lifts = c.vector("mirror_lifts_mm", None, list(dc.mirror_lifts_mm), min_len=0)
+        tilts = c.vector("mirror_tilts_deg", None, list(dc.mirror_tilts_deg), min_len=0)
+        if any(not 0 < abs(t) < 30 for t in tilts):
+            raise SetupError(f"calibration.mirror_tilts_deg must be non-zero and below 30°, got {list(tilts)}")
+        size = c.vector("mirror_size_mm", 2, list(dc.mirror_size_mm))
+        if min(size) <= 0:
+            raise SetupError(f"calibration.mirror_size_mm must be > 0, got {list(size)}")
+        stride = c.integer("observation_stride_px", dc.observation_stride_px, minimum=1)
+        c.finish()
+        calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride)
+    else:
+        r.used.add("calibration")
+        calibration = dc
+    r.used.add("calibration_report")  # informational table written by `pmdsim calibrate`
     r.finish()
-    setup = Setup(cameras, screen, sample, patterns)
+    setup = Setup(cameras, screen, sample, patterns, calibration)
     try:  # build the surfaces now so that any remaining problem shows here, with its key
         setup.screen.surface
     except ValueError as e:
@@ -500,6 +577,8 @@ _COMMENTS = {
     "bulge_mm sets the central control point (Δh); +z of the screen points away from the sample,\n"
     "so a positive bulge is concave as seen from the sample.",
     "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given.",
+    "calibration": "Calibration mirror poses (paper §4): base = the sample's pose; lifts towards the cameras;\n"
+    "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.",
     "patterns": "Fringes I_k = A + B·cos(2π·c/p − 2πk/N); mean_level A and amplitude B are fractions of full scale;\n"
     "periods coarsest first (the coarsest must cover the screen); noise_std in grey levels.",
 }
