@@ -67,13 +67,17 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Setup TOML file (default: built-in Table 1 setup).")
 @click.option("--bulge-mm", type=float, default=None, help="Central screen control height Δh in mm; + is away from the sample.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@click.option("--calibration-pose", type=click.IntRange(min=0), default=None,
+              help="Image the calibration mirror in this pose (0 = base, see [calibration]) instead of the sample.")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def simulate_cmd(setup_path, bulge_mm, out_dir, force, quiet) -> None:
+def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) -> None:
     """Simulate a measurement: fringe images, manifest.json and mapping.h5 (paper §2)."""
     from .simulation import image_specs, render_images, trace_setup_camera
 
     setup = _load(setup_path, bulge_mm)
+    if calibration_pose is not None:
+        setup = setup.with_mirror_pose(calibration_pose)
     prov = provenance(click.get_current_context().meta.get("pmdsim.command"), setup.to_toml())
     t0 = time.perf_counter()
     with atomic_output_dir(out_dir, force=force) as tmp:
@@ -172,6 +176,73 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {time.perf_counter() - t0:.1f} s", err=True)
 
 
+@main.command("calibrate")
+@click.argument("image_dirs", nargs=-1, required=True, type=click.Path(file_okay=False))
+@click.option("--setup", "setup_path", type=click.Path(dir_okay=False),
+              help="Nominal setup: start values and the calibration poses (default: Table 1).")
+@click.option("--out", "out_path", required=True, type=click.Path(dir_okay=False), help="Calibrated setup (TOML).")
+@click.option("--stride", type=click.IntRange(min=1), default=None,
+              help="Use every stride-th pixel (default: the setup's calibration.observation_stride_px).")
+@click.option("--max-iter", type=click.IntRange(min=1), default=100, show_default=True)
+@click.option("--force", is_flag=True, help="Replace an existing output file.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, quiet) -> None:
+    """Holistic calibration with a planar mirror (paper §4).
+
+    IMAGE_DIRS: one image set per mirror pose, in the order of the setup's calibration poses
+    (base, lifts, tilts; see `pmdsim setup --show`). Cameras (intrinsics, distortion, poses) and
+    the mirror planes are estimated jointly; the screen is held at its nominal pose (the gauge)
+    and modelled as planar. Writes a setup file for `pmdsim evaluate --setup` whose sample frame
+    is the calibrated table plane (pose 0), with the standard deviations in [calibration_report].
+    """
+    from .calibration import calibrate, nominal_state, observations_from_mapping
+    from .experiments import calibrated_setup, calibration_summary
+    from .imageset import decode_camera, load_manifest
+    from .io import atomic_file
+
+    nominal = _load(setup_path, None).with_bulge(0.0)
+    poses = nominal.calibration.mirror_poses(nominal.sample)
+    if len(image_dirs) != len(poses):
+        raise click.UsageError(f"got {len(image_dirs)} image directories, but the setup lists {len(poses)} "
+                               f"calibration poses ({', '.join(l for l, _ in poses)}); give one per pose, in order")
+    if Path(out_path).exists() and not force:
+        raise click.ClickException(f"output {out_path!r} exists; pass --force to replace it")
+    stride = stride or nominal.calibration.observation_stride_px
+    obs = []
+    with click.progressbar(list(enumerate(image_dirs)), label="decoding", file=sys.stderr, hidden=quiet) as bar:
+        for k, d in bar:
+            manifest = load_manifest(d, screen_size_mm=nominal.screen.size_mm)
+            for cam in manifest.cameras:
+                if cam not in nominal.cameras:
+                    raise click.UsageError(f"camera {cam!r} of {d} is not in the setup ({list(nominal.cameras)})")
+                dec = decode_camera(manifest, cam, screen_size_mm=nominal.screen.size_mm)
+                obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=stride))
+    start = nominal_state(nominal, [T for _, T in poses])
+    result = calibrate(obs, start, max_iter=max_iter)
+    if not result.converged:
+        raise click.ClickException(f"the calibration did not converge: {result.reason} "
+                                   f"(RMS {result.rms_px:.4g} px after {result.iterations} iterations); nothing written")
+    model = calibrated_setup(nominal, result)
+    summary = _json_ready(calibration_summary(result, model))
+    report = {"pmdsim_version": __version__,
+              "command": click.get_current_context().meta.get("pmdsim.command") or "",
+              "converged": summary["converged"], "reason": summary["reason"], "iterations": summary["iterations"],
+              "rms_px": summary["rms_px"], "n_residuals": summary["n_residuals"],
+              "condition_number": summary["condition_number"],
+              "std": {name: c["std"] for name, c in summary["cameras"].items()}}
+    from .setup import _dump_toml
+
+    doc = model.to_dict()
+    doc["calibration_report"] = report
+    with atomic_file(out_path, force=force, mode="w") as f:
+        f.write(_dump_toml(doc))
+    for name, c in summary["cameras"].items():
+        click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
+                   f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
+    click.echo(f"calibration converged ({result.reason}); RMS {result.rms_px:.4f} px over {result.n_residuals} "
+               f"residuals; wrote {out_path}", err=True)
+
+
 _METRIC_ROWS = (
     ("max_height_diff_um", "Max. height difference [µm]", 0),
     ("max_dev_plane_um", "Max. deviation from best-fit plane [µm]", 1),
@@ -199,7 +270,7 @@ def format_table(records: list[dict], paper: dict, title: str) -> str:
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1"]))
+@click.argument("number", type=click.Choice(["1", "2"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
@@ -207,12 +278,18 @@ def format_table(records: list[dict], paper: dict, title: str) -> str:
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True,
               help="Surface integration (paper: stepwise).")
 @click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
-@click.option("--write-images", is_flag=True, help="Also write the rendered fringe images (PNG) under OUT/images.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Experiment 2: seed of the start values' errors.")
+@click.option("--write-images", is_flag=True, help="Experiment 1: also write the rendered fringe images under OUT/images.")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, write_images, force, quiet) -> None:
-    """Run one of the paper's experiments: 1 = perfect setup knowledge, planar screen model (Table 2, Fig. 4)."""
-    from .experiments import PAPER_TABLE2, run_experiment1_case
+def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, seed, write_images, force, quiet) -> None:
+    """Run one of the paper's experiments.
+
+    1 = perfect setup knowledge, planar screen model (Table 2, Fig. 4);
+    2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5).
+    """
+    from .experiments import PAPER_TABLE2, PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
     from .io import write_reconstructions_h5
     from .plotting import height_grid_figure
 
@@ -220,38 +297,70 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, w
         bulges = [float(b) for b in bulges_mm.split(",") if b.strip()]
     except ValueError:
         raise click.BadParameter(f"--bulges-mm must be comma-separated numbers, got {bulges_mm!r}") from None
+    if not bulges:
+        raise click.BadParameter("--bulges-mm lists no value")
     base = _load(setup_path, None)
     prov = provenance(click.get_current_context().meta.get("pmdsim.command"), base.to_toml())
     t0 = time.perf_counter()
     cases = []
+    calibrations = []
+    paper = PAPER_TABLE2 if number == "1" else PAPER_TABLE3
     with atomic_output_dir(out_dir, force=force) as tmp:
-        sink = None
-        pool = ThreadPoolExecutor(max_workers=2) if write_images else None
-        futures = []
-        jobs = [(b, c) for b in bulges for c in base.cameras]
-        with click.progressbar(jobs, label="experiment 1", file=sys.stderr, hidden=quiet,
-                               item_show_func=lambda j: f"Δh={j[0]:g} mm {j[1]}" if j else "") as bar:
-            for dh, cam in bar:
-                if pool is not None:
-                    d = tmp / "images" / f"bulge_{dh:g}mm"
-                    d.mkdir(parents=True, exist_ok=True)
-                    sink = lambda spec, img, d=d: futures.append(pool.submit(write_png, d / spec.file, img))
-                cases.append(run_experiment1_case(dh, cam, base=base, downsample=downsample, method=method,
-                                                  image_sink=sink))
-        if pool is not None:
-            for f in futures:
-                f.result()
-            pool.shutdown()
-        records = [c.as_record() for c in cases]
+        if number == "1":
+            sink = None
+            pool = ThreadPoolExecutor(max_workers=2) if write_images else None
+            futures = []
+            jobs = [(b, c) for b in bulges for c in base.cameras]
+            with click.progressbar(jobs, label="experiment 1", file=sys.stderr, hidden=quiet,
+                                   item_show_func=lambda j: f"Δh={j[0]:g} mm {j[1]}" if j else "") as bar:
+                for dh, cam in bar:
+                    if pool is not None:
+                        d = tmp / "images" / f"bulge_{dh:g}mm"
+                        d.mkdir(parents=True, exist_ok=True)
+                        sink = lambda spec, img, d=d: futures.append(pool.submit(write_png, d / spec.file, img))
+                    cases.append(run_experiment1_case(dh, cam, base=base, downsample=downsample, method=method,
+                                                      image_sink=sink))
+            if pool is not None:
+                for f in futures:
+                    f.result()
+                pool.shutdown()
+            records = [c.as_record() for c in cases]
+        else:
+            n_steps = len(bulges) * (len(base.calibration.mirror_poses(base.sample)) * len(base.cameras) + 1
+                                     + len(base.cameras))
+            with click.progressbar(length=n_steps, label="experiment 2", file=sys.stderr, hidden=quiet) as bar:
+                for dh in bulges:
+                    e2 = run_experiment2_bulge(dh, base=base, downsample=downsample, method=method, seed=seed,
+                                               progress=lambda msg: bar.update(1))
+                    if not e2.result.converged:
+                        raise click.ClickException(
+                            f"Δh = {dh:g} mm: the calibration did not converge: {e2.result.reason}")
+                    from .experiments import calibration_summary
+
+                    summary = calibration_summary(e2.result, e2.model)
+                    calibrations.append({"bulge_mm": dh, **summary, "deviation_from_truth": e2.deviation})
+                    for c in e2.cases:
+                        cases.append(c)
+            records = []
+            for c in cases:
+                rec = c.as_record()
+                cal = next(x for x in calibrations if x["bulge_mm"] == c.bulge_mm)
+                rec["frame_turn_deg"] = cal["deviation_from_truth"]["table_turn_deg"]
+                rec["calibration_rms_px"] = cal["rms_px"]
+                rec["calibrated_camera"] = cal["cameras"][c.camera]
+                rec["camera_deviation_from_truth"] = cal["deviation_from_truth"][c.camera]
+                records.append(rec)
+            write_json(tmp / "calibration.json", _json_ready(calibrations))
         cam0 = next(iter(base.cameras.values())).camera.binned(downsample)
-        meta = {**prov, "experiment": 1, "downsample": downsample, "method": method,
+        meta = {**prov, "experiment": int(number), "downsample": downsample, "method": method,
                 "image_size_px": [cam0.width_px, cam0.height_px],
-                "paper_table2": [{"bulge_mm": b, "camera": c, "max_height_diff_um": v[0], "max_dev_plane_um": v[1],
-                                  "tilt_urad": v[2]} for (b, c), v in PAPER_TABLE2.items()]}
-        write_json(tmp / "results.json", records)
+                f"paper_table{2 if number == '1' else 3}": [
+                    {"bulge_mm": b, "camera": c, "max_height_diff_um": v[0], "max_dev_plane_um": v[1], "tilt_urad": v[2]}
+                    for (b, c), v in paper.items()]}
+        write_json(tmp / "results.json", _json_ready(records))
         write_json(tmp / "run.json", meta)
         write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()})
-        shown = [b for b in (0.0, 3.0) if b in bulges] or bulges[:2]
+        shown = ([b for b in (0.0, 3.0) if b in bulges] or bulges[:2]) if number == "1" else [max(bulges)]
         panels = []
         for b in shown:
             row = []
@@ -261,15 +370,36 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, w
                     row.append((p[..., 0], p[..., 1], c.height_error_mm * 1e3,
                                 f"Δh = {b:g} mm, {c.camera} camera: PV {c.metrics['max_height_diff_um']:.3g} µm"))
             panels.append(row)
-        height_grid_figure(tmp / "figure4.png", panels,
-                           suptitle=f"Experiment 1: reconstructed planar sample, height error (sample frame, {method})")
-        table = format_table(records, PAPER_TABLE2,
-                             f"Experiment 1 — perfect setup knowledge, planar screen model; {method} integration, "
+        what = ("perfect setup knowledge, planar screen model" if number == "1"
+                else "simulated holistic calibration, planar screen model")
+        frame = "sample frame" if number == "1" else "calibrated table frame"
+        height_grid_figure(tmp / f"figure{3 + int(number)}.png", panels,
+                           suptitle=f"Experiment {number}: reconstructed planar sample, height error ({frame}, {method})")
+        table = format_table(records, paper,
+                             f"Experiment {number} — {what}; {method} integration, "
                              f"{cam0.width_px}×{cam0.height_px} px per camera")
+        if calibrations:
+            table += "\n" + "\n".join(
+                f"Δh = {c['bulge_mm']:g} mm: calibration RMS {c['rms_px']:.4f} px, {c['iterations']} iterations; "
+                f"calibrated frame turned {c['deviation_from_truth']['table_turn_deg']:.3f}° against the truth"
+                for c in calibrations)
         (tmp / "table.txt").write_text(table + "\n", encoding="utf-8")
     click.echo(table)
-    click.echo(f"wrote results.json, heights.h5, figure4.png, table.txt to {out_dir} in {time.perf_counter() - t0:.1f} s",
-               err=True)
+    click.echo(f"wrote results.json, heights.h5, figure{3 + int(number)}.png, table.txt to {out_dir} "
+               f"in {time.perf_counter() - t0:.1f} s", err=True)
+
+
+def _json_ready(obj):
+    """numpy scalars → Python numbers, recursively (for JSON)."""
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {k: _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -192,3 +192,193 @@ def experiment1(bulges: Iterable[float] = (0.0, 1.0, 2.0, 3.0), cameras: Iterabl
             out.append(run_experiment1_case(dh, cam, base=base, downsample=downsample, method=method,
                                             image_sink=image_sink))
     return out
+
+
+# ============================================================================ Experiment 2
+#: The paper's Table 3 (Experiment 2): (Δh mm, camera) → (max height difference µm,
+#: max deviation from best-fit plane µm, best-fit plane tilt µrad).
+PAPER_TABLE3 = {
+    (0.0, "left"): (0.0, 0.0, 0.0),
+    (0.0, "right"): (0.0, 0.0, 0.1),
+    (1.0, "left"): (2.6, 1.6, 6.3),
+    (1.0, "right"): (2.6, 1.6, 6.5),
+    (2.0, "left"): (7.6, 4.3, 20.1),
+    (2.0, "right"): (7.2, 4.3, 16.7),
+    (3.0, "left"): (8.5, 5.3, 10.5),
+    (3.0, "right"): (8.6, 5.2, 11.0),
+}
+
+#: Errors of the nominal start values of the calibration (never the true values): camera and
+#: mirror positions, angles, focal lengths (fraction), principal points.
+INITIAL_ERRORS = dict(position_mm=5.0, angle_deg=2.0, focal_frac=0.03, pp_px=20.0, mirror_mm=3.0, mirror_deg=1.0)
+
+
+def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress: Progress | None = None,
+                                      screen_surface=None):
+    """Simulate the calibration poses (paper §4) through 8-bit images and decode them.
+
+    For every mirror pose of ``truth.calibration`` and camera: trace with the mirror as the
+    sample, render and quantise the fringe images, decode, and keep every
+    ``observation_stride_px``-th pixel's correspondence (pixel ↔ decoded screen point, with the
+    screen taken as planar unless ``screen_surface`` is given).
+
+    Returns
+    -------
+    list of :class:`pmdsim.calibration.Observations`
+    """
+    from .calibration import observations_from_mapping
+    from .trace import trace_camera
+
+    cal = truth.calibration
+    mirror = cal.mirror_surface()
+    obs = []
+    for k, (label, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
+        for cam, cs in truth.cameras.items():
+            if progress is not None:
+                progress(f"pose {k} ({label}), camera {cam}")
+            m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
+                             truth.screen.surface)
+            images: dict = {}
+            for spec, img in render_images(truth, cam, m):
+                images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+                if image_sink is not None:
+                    image_sink(k, spec, img)
+            dec = decode_images(truth, images)
+            obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
+                                                 screen_surface=screen_surface))
+    return obs
+
+
+def table_frame_from_plane(nominal: Setup, plane_screen) -> "RigidTransform":
+    """``T_world_table``: the calibrated table plane (the base mirror plane, screen frame) as a
+    sample frame in world coordinates, world being defined by the screen at its nominal pose.
+
+    +z is the plane normal oriented like the nominal sample's +z (away from the cameras), the
+    origin the nominal sample origin projected onto the plane, +x the nominal sample x axis
+    projected onto the plane.
+    """
+    from .transform import RigidTransform
+
+    T_ws = nominal.screen.T_world_screen
+    n = T_ws.apply_vector(plane_screen.normal)
+    p0 = T_ws.apply(plane_screen.normal * plane_screen.d_mm)  # a point of the plane
+    T_nom = nominal.sample.T_world_sample
+    z_nom = T_nom.rotation[:, 2]
+    z = n if np.dot(n, z_nom) > 0 else -n
+    o = T_nom.translation - np.dot(T_nom.translation - p0, z) * z
+    x = T_nom.rotation[:, 0] - np.dot(T_nom.rotation[:, 0], z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return RigidTransform(np.column_stack([x, y, z]), o)
+
+
+def calibrated_setup(nominal: Setup, result) -> Setup:
+    """The setup as the calibration knows it: estimated cameras (poses in the world frame of the
+    screen held at its nominal pose — the gauge), planar screen, and the calibrated table plane
+    (mirror pose 0) as the sample frame."""
+    from .setup import Pose
+
+    T_ws = nominal.screen.T_world_screen
+    cams = {name: CameraSetup(cam, Pose.from_transform(T_ws @ T_sc)) for name, (cam, T_sc) in result.cameras.items()}
+    table = table_frame_from_plane(nominal, result.mirrors[0])
+    sample = replace(nominal.sample, pose=Pose.from_transform(table))
+    return replace(nominal, cameras=cams, sample=sample).with_bulge(0.0)
+
+
+def _rotation_angle_deg(r: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def calibration_deviation(truth: Setup, model: Setup) -> dict:
+    """Calibrated minus true parameters per camera, and the calibrated frame's turn."""
+    out = {}
+    for name, cs in model.cameras.items():
+        t, c = truth.cameras[name], cs.camera
+        tc = t.camera
+        out[name] = {
+            "fx_px": c.fx_px - tc.fx_px, "fy_px": c.fy_px - tc.fy_px,
+            "ppx_px": c.ppx_px - tc.ppx_px, "ppy_px": c.ppy_px - tc.ppy_px,
+            "k1": c.k1 - tc.k1, "k2": c.k2 - tc.k2, "p1": c.p1 - tc.p1, "p2": c.p2 - tc.p2,
+            "position_mm": float(np.linalg.norm(cs.T_world_cam.translation - t.T_world_cam.translation)),
+            "rotation_deg": _rotation_angle_deg(cs.T_world_cam.rotation @ t.T_world_cam.rotation.T),
+        }
+    z_true = truth.sample.T_world_sample.rotation[:, 2]
+    z_cal = model.sample.T_world_sample.rotation[:, 2]
+    out["table_turn_deg"] = float(np.degrees(np.arccos(np.clip(np.dot(z_true, z_cal), -1.0, 1.0))))
+    return out
+
+
+def calibration_summary(result, model: Setup) -> dict:
+    """Calibrated parameters (per camera) with their standard deviations, and the fit quality."""
+    cams = {}
+    for name, cs in model.cameras.items():
+        c = cs.camera
+        p = {k: getattr(c, k) for k in ("fx_px", "fy_px", "ppx_px", "ppy_px", "k1", "k2", "p1", "p2")}
+        p["std"] = {k: result.std(f"{name}.{k}") for k in ("fx_px", "fy_px", "ppx_px", "ppy_px", "k1", "k2", "p1", "p2")}
+        p["origin_world_mm"] = list(cs.pose.origin_world_mm)
+        p["angles_deg"] = list(cs.pose.angles_deg)
+        cams[name] = p
+    return {
+        "converged": bool(result.converged),
+        "reason": result.reason,
+        "iterations": int(result.iterations),
+        "rms_px": float(result.rms_px),
+        "n_residuals": int(result.n_residuals),
+        "condition_number": float(result.condition_number),
+        "cameras": cams,
+    }
+
+
+@dataclass(frozen=True, eq=False)
+class Experiment2Bulge:
+    """Experiment 2 at one Δh: the calibration and both cameras' reconstructions."""
+
+    bulge_mm: float
+    result: object  # CalibrationResult
+    model: Setup
+    deviation: dict
+    cases: list
+
+
+def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsample: int = 1,
+                          method: str = "stepwise", seed: int = 0, progress: Progress | None = None,
+                          image_sink=None) -> Experiment2Bulge:
+    """Experiment 2 (paper §4) at one Δh: simulate the calibration poses → calibrate (planar
+    screen model, nominal start values with :data:`INITIAL_ERRORS`) → simulate the planar
+    sample → reconstruct with the calibrated parameters, heights relative to the calibrated
+    table plane (the base mirror pose), seeded at the central pixel with height 0."""
+    from .calibration import calibrate, nominal_state, perturbed_state
+
+    base = default_setup() if base is None else base
+    truth = binned_setup(base, downsample).with_bulge(bulge_mm)
+    nominal = truth.with_bulge(0.0)
+    obs = simulate_calibration_observations(truth, progress=progress,
+                                            image_sink=None if image_sink is None else image_sink)
+    poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
+    rng = np.random.default_rng([seed, int(round(bulge_mm * 1000))])
+    start = perturbed_state(nominal_state(nominal, poses), rng, **INITIAL_ERRORS)
+    if progress is not None:
+        progress(f"Δh = {bulge_mm:g} mm: calibrating")
+    result = calibrate(obs, start)
+    model = calibrated_setup(nominal, result)
+    deviation = calibration_deviation(truth, model)
+    cases = []
+    for cam in truth.cameras:
+        if progress is not None:
+            progress(f"Δh = {bulge_mm:g} mm: reconstructing, camera {cam}")
+        m = trace_setup_camera(truth, cam, store_points=False)
+        images: dict = {}
+        for spec, img in render_images(truth, cam, m):
+            images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+        decoded = decode_images(truth, images)
+        del images
+        c = model.cameras[cam].camera
+        seed_px = (c.height_px // 2, c.width_px // 2)
+        reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0)
+        p = rec.points
+        # The sample is the plane of the base mirror pose: relative to the calibrated table
+        # plane its true height is 0, so the reconstructed height is the error.
+        err = np.where(rec.reconstructed, rec.height_mm, np.nan)
+        metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
+        cases.append(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics))
+    return Experiment2Bulge(float(bulge_mm), result, model, deviation, cases)

@@ -25,7 +25,11 @@ def _panel(fig, ax, x_mm, y_mm, z_um, title, label):
     if ok.sum() < 3:
         ax.set_title(title + " (no data)")
         return
-    sc = ax.scatter(x[ok], y[ok], c=z[ok], s=1.0, marker="s", linewidths=0, cmap="viridis", rasterized=True)
+    if np.isfinite(x).all() and np.isfinite(y).all():
+        # Gap-free: a quadrilateral mesh over the points (curvilinear grid), NaN heights masked.
+        sc = ax.pcolormesh(x, y, np.ma.masked_invalid(z), shading="nearest", cmap="viridis", rasterized=True)
+    else:
+        sc = ax.scatter(x[ok], y[ok], c=z[ok], s=2.0, marker="s", linewidths=0, cmap="viridis", rasterized=True)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")

@@ -213,6 +213,14 @@ class Setup:
             )
         return replace(self, screen=replace(self.screen, bulge_mm=float(bulge_mm)))
 
+    def with_mirror_pose(self, index: int) -> "Setup":
+        """The setup with the sample replaced by the calibration mirror in pose ``index``."""
+        poses = self.calibration.mirror_poses(self.sample)
+        if not 0 <= index < len(poses):
+            raise SetupError(f"calibration pose index must be in 0 … {len(poses) - 1}, got {index}")
+        w, h = self.calibration.mirror_size_mm
+        return replace(self, sample=SampleSetup(Pose.from_transform(poses[index][1]), (0.0, w), (0.0, h)))
+
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (the TOML document's content)."""
         cams = {}
