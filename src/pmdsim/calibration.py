@@ -1,0 +1,1189 @@
+"""Holistic calibration with a planar mirror (paper §4): the numeric core.
+
+Several cameras observe the pattern screen via a planar front-surface mirror placed in K poses.
+Phase decoding gives, per camera c and mirror pose k, correspondences pixel (u, v) ↔ screen
+point q (screen frame, mm; q = (x_q, y_q, 0) for the planar screen model, but any (M, 3) points
+are accepted so that a non-planar screen model can be plugged in). This module estimates jointly
+
+* per camera: the intrinsics fx, fy, ppx, ppy, k1, k2, p1, p2 (k3 is held at its initial value,
+  normally 0) and the pose ``T_screen_cam`` (6 DOF);
+* per mirror pose k: the mirror plane {x : n·x = d} in the screen frame (3 DOF; a 6-DOF mirror
+  pose would be singular, a plane being invariant to in-plane motions).
+
+Gauge
+-----
+**The screen frame is held fixed**: it is the reference of the calibration (the screen is the
+one rigid object seen in every measurement). All camera poses and mirror planes are estimated
+in the screen frame; nothing else needs to be fixed: the data then determine every parameter,
+provided that the mirror planes are not all parallel (with lifts only, moving the cameras along
+the common normal and every plane by half as much is invisible; :func:`calibrate` reports that
+as a :class:`CalibrationDataError`).
+
+Model (forward, analytic, exact for a planar mirror)
+----------------------------------------------------
+The screen point is mirrored across the plane, q' = q − 2 (n·q − d) n (the virtual point: the
+reflected ray through it passes through the camera centre), transformed to the camera,
+p = T_cam_screen(q') = Rᵀ (q' − c) with ``T_screen_cam = (R, c)``, and projected with the
+camera model of :mod:`pmdsim.camera` (eqs. 2–4, OpenCV's distortion). The residual is
+predicted − observed pixel (px).
+
+Parameterisation (per Levenberg–Marquardt step, increments around the current state)
+------------------------------------------------------------------------------------
+camera (14): ``fx_px, fy_px, ppx_px, ppy_px, k1, k2, p1, p2`` additively;
+``rotvec_x/y/z`` (rad) a rotation-vector increment of the camera's orientation expressed in the
+screen frame, R_screen_cam ← exp([δ]×)·R_screen_cam; ``position_x/y/z_mm`` the camera centre
+(the translation of ``T_screen_cam``) additively. mirror (3): ``tilt_a, tilt_b`` (rad)
+n ← normalize(n + a·e1 + b·e2) with (e1, e2) = :meth:`MirrorPlane.tangent_basis`, ``d_mm``
+additively. Internally every parameter is measured in a unit of typical size
+(:data:`PARAMETER_UNITS`: 100 px focal length, 10 px principal point, 0.01 for k1/k2, 0.001 for
+p1/p2, 1 mrad, 1 mm) and the normal equations are Jacobi-scaled to unit diagonal (Marquardt's
+scaling), so that the damping and the reported :attr:`CalibrationResult.condition_number` do not
+depend on units.
+
+Solver
+------
+Levenberg–Marquardt on the dense normal equations (14 parameters per camera + 3 per pose, e.g.
+76): a numba kernel accumulates JᵀJ and Jᵀr per (camera, pose) block with the analytic
+Jacobian (chain rule through mirror, rigid transform, pinhole and distortion). Converged when
+an accepted step changes the cost by less than ``ftol`` (1e-12) relative, when the Gauss–Newton
+model predicts less than that, or when the Gauss–Newton step changes no parameter by more than
+``xtol`` relative (:func:`calibrate`). The conditioning of the Jacobi-scaled JᵀJ is checked at
+the start and after every step: a degenerate set of mirror poses raises
+:class:`CalibrationDataError` naming the badly determined parameters.
+
+Reported uncertainties are from the covariance σ²·(JᵀJ)⁻¹ with σ² = SSR/(m − n), in natural
+units (px, mm, rad, unitless for distortion coefficients), for the increments above — i.e.
+the rotation standard deviations are about the screen axes, the tilt standard deviations are
+rotations of the mirror normal along e1 and e2.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Iterable, Sequence
+
+import numba
+import numpy as np
+
+from .camera import Camera
+from .errors import PmdsimError
+from .transform import RigidTransform, rotvec_to_matrix
+
+__all__ = [
+    "CalibrationError",
+    "CalibrationDataError",
+    "Observations",
+    "observations_from_mapping",
+    "CameraParams",
+    "MirrorPlane",
+    "CalibrationState",
+    "CalibrationResult",
+    "calibrate",
+    "residuals_and_jacobian",
+    "nominal_state",
+    "perturbed_state",
+    "mirror_plane_from_pose",
+    "CAMERA_PARAMETERS",
+    "MIRROR_PARAMETERS",
+    "PARAMETER_UNITS",
+    "MIN_CORRESPONDENCES",
+    "MIN_POSES",
+]
+
+
+# ============================================================================ errors
+class CalibrationError(PmdsimError, RuntimeError):
+    """The calibration did not converge (raised by ``calibrate(..., raise_on_failure=True)``)."""
+
+
+class CalibrationDataError(PmdsimError, ValueError):
+    """Calibration input that cannot give a calibration: too few poses or correspondences,
+    NaN values, unknown cameras or poses, or a degenerate set of mirror poses. The message
+    names the camera, the pose or the badly determined parameters."""
+
+
+# ============================================================================ constants
+#: Names of the 14 per-camera parameters (prefixed ``"<camera>."`` in parameter names).
+CAMERA_PARAMETERS = (
+    "fx_px", "fy_px", "ppx_px", "ppy_px", "k1", "k2", "p1", "p2",
+    "rotvec_x", "rotvec_y", "rotvec_z", "position_x_mm", "position_y_mm", "position_z_mm",
+)
+#: Names of the 3 per-mirror-pose parameters (prefixed ``"mirror<k>."``).
+MIRROR_PARAMETERS = ("tilt_a", "tilt_b", "d_mm")
+#: Internal unit of each parameter (the Jacobian columns are multiplied by these).
+PARAMETER_UNITS = {
+    "fx_px": 100.0, "fy_px": 100.0, "ppx_px": 10.0, "ppy_px": 10.0,
+    "k1": 0.01, "k2": 0.01, "p1": 1e-3, "p2": 1e-3,
+    "rotvec_x": 1e-3, "rotvec_y": 1e-3, "rotvec_z": 1e-3,
+    "position_x_mm": 1.0, "position_y_mm": 1.0, "position_z_mm": 1.0,
+    "tilt_a": 1e-3, "tilt_b": 1e-3, "d_mm": 1.0,
+}
+_INTRINSICS = CAMERA_PARAMETERS[:8]  # the Camera fields among them, in order
+_NC = len(CAMERA_PARAMETERS)
+_NM = len(MIRROR_PARAMETERS)
+_NB = _NC + _NM  # parameters touched by one residual
+_CAM_UNITS = np.array([PARAMETER_UNITS[p] for p in CAMERA_PARAMETERS])
+_MIR_UNITS = np.array([PARAMETER_UNITS[p] for p in MIRROR_PARAMETERS])
+
+#: Fewest correspondences accepted per (camera, mirror pose) block.
+MIN_CORRESPONDENCES = 20
+#: Fewest mirror poses per camera.
+MIN_POSES = 3
+#: Condition number of the Jacobi-scaled normal matrix above which the data are called degenerate.
+DEFAULT_CONDITION_LIMIT = 1e12
+_CHUNK = 2048  # correspondences per work item of the kernels
+
+
+# ============================================================================ kernels
+@numba.njit(cache=True)
+def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, jac):
+    """Residual (predicted − observed, px) of one correspondence and, if ``want_jac``, its
+    Jacobian (2 × 17) w.r.t. the block's parameters in natural units, written to ``jac``.
+
+    intr: (9,) fx, fy, ppx, ppy, k1, k2, p1, p2, k3; rot: (3, 3) R_screen_cam; cen: (3,) camera
+    centre in the screen frame; mir: (4,) n, d; e1, e2: tangent basis of n.
+    Returns (ru, rv, ok) with ok False if the virtual point is not in front of the camera.
+    """
+    nx, ny, nz, dd = mir[0], mir[1], mir[2], mir[3]
+    s = nx * qx + ny * qy + nz * qz - dd
+    # Virtual (mirrored) screen point.
+    wx = qx - 2.0 * s * nx - cen[0]
+    wy = qy - 2.0 * s * ny - cen[1]
+    wz = qz - 2.0 * s * nz - cen[2]
+    # p = Rᵀ w.
+    px = rot[0, 0] * wx + rot[1, 0] * wy + rot[2, 0] * wz
+    py = rot[0, 1] * wx + rot[1, 1] * wy + rot[2, 1] * wz
+    pz = rot[0, 2] * wx + rot[1, 2] * wy + rot[2, 2] * wz
+    if not pz > 0.0:
+        return 0.0, 0.0, False
+    fx, fy, ppx, ppy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2, k3 = intr[4], intr[5], intr[6], intr[7], intr[8]
+    iz = 1.0 / pz
+    x = px * iz
+    y = py * iz
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    ru = fx * xd + ppx - u_obs
+    rv = fy * yd + ppy - v_obs
+    if not want_jac:
+        return ru, rv, True
+    for i in range(2):
+        for j in range(_NB):
+            jac[i, j] = 0.0
+    # Intrinsics.
+    jac[0, 0] = xd
+    jac[1, 1] = yd
+    jac[0, 2] = 1.0
+    jac[1, 3] = 1.0
+    jac[0, 4] = fx * x * r2
+    jac[1, 4] = fy * y * r2
+    jac[0, 5] = fx * x * r2 * r2
+    jac[1, 5] = fy * y * r2 * r2
+    jac[0, 6] = fx * 2.0 * x * y
+    jac[1, 6] = fy * (r2 + 2.0 * y * y)
+    jac[0, 7] = fx * (r2 + 2.0 * x * x)
+    jac[1, 7] = fy * 2.0 * x * y
+    # d(xd, yd)/d(x, y).
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    c = b
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    # G = d(u, v)/d p (2 × 3); dx/dp = (1/z, 0, −x/z), dy/dp = (0, 1/z, −y/z).
+    g00 = fx * a * iz
+    g01 = fx * b * iz
+    g02 = -fx * (a * x + b * y) * iz
+    g10 = fy * c * iz
+    g11 = fy * d * iz
+    g12 = -fy * (c * x + d * y) * iz
+    # H = G Rᵀ = d(u, v)/d w (screen frame): H[i, k] = Σ_j G[i, j] R[k, j].
+    h00 = g00 * rot[0, 0] + g01 * rot[0, 1] + g02 * rot[0, 2]
+    h01 = g00 * rot[1, 0] + g01 * rot[1, 1] + g02 * rot[1, 2]
+    h02 = g00 * rot[2, 0] + g01 * rot[2, 1] + g02 * rot[2, 2]
+    h10 = g10 * rot[0, 0] + g11 * rot[0, 1] + g12 * rot[0, 2]
+    h11 = g10 * rot[1, 0] + g11 * rot[1, 1] + g12 * rot[1, 2]
+    h12 = g10 * rot[2, 0] + g11 * rot[2, 1] + g12 * rot[2, 2]
+    # Rotation increment R ← exp([δ]×) R: dp/dδ = Rᵀ [w]×, so d(u, v)_i/dδ = H_i × w.
+    jac[0, 8] = h01 * wz - h02 * wy
+    jac[0, 9] = h02 * wx - h00 * wz
+    jac[0, 10] = h00 * wy - h01 * wx
+    jac[1, 8] = h11 * wz - h12 * wy
+    jac[1, 9] = h12 * wx - h10 * wz
+    jac[1, 10] = h10 * wy - h11 * wx
+    # Camera centre: dp/dc = −Rᵀ.
+    jac[0, 11] = -h00
+    jac[0, 12] = -h01
+    jac[0, 13] = -h02
+    jac[1, 11] = -h10
+    jac[1, 12] = -h11
+    jac[1, 13] = -h12
+    # Mirror: dq'/dd = 2n, dq'/da = −2 (s e1 + (e1·q) n), likewise b with e2.
+    hn0 = h00 * nx + h01 * ny + h02 * nz
+    hn1 = h10 * nx + h11 * ny + h12 * nz
+    he10 = h00 * e1[0] + h01 * e1[1] + h02 * e1[2]
+    he11 = h10 * e1[0] + h11 * e1[1] + h12 * e1[2]
+    he20 = h00 * e2[0] + h01 * e2[1] + h02 * e2[2]
+    he21 = h10 * e2[0] + h11 * e2[1] + h12 * e2[2]
+    e1q = e1[0] * qx + e1[1] * qy + e1[2] * qz
+    e2q = e2[0] * qx + e2[1] * qy + e2[2] * qz
+    jac[0, 14] = -2.0 * (s * he10 + e1q * hn0)
+    jac[1, 14] = -2.0 * (s * he11 + e1q * hn1)
+    jac[0, 15] = -2.0 * (s * he20 + e2q * hn0)
+    jac[1, 15] = -2.0 * (s * he21 + e2q * hn1)
+    jac[0, 16] = 2.0 * hn0
+    jac[1, 16] = 2.0 * hn1
+    return ru, rv, True
+
+
+@numba.njit(cache=True)
+def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
+               want_normal, jtj, jtr):
+    """Serial work item: correspondences start…end of one block. Accumulates the block's
+    (scaled) JᵀJ (full square) and Jᵀr if ``want_normal``. Returns (SSR, number behind camera)."""
+    jac = np.zeros((2, _NB))
+    acc = np.zeros((_NB, _NB))
+    accr = np.zeros(_NB)
+    ssr = 0.0
+    nbad = 0
+    intr_c = intr[cam]
+    rot_c = rot[cam]
+    cen_c = cen[cam]
+    mir_k = mir[pose]
+    e1_k = e1[pose]
+    e2_k = e2[pose]
+    for k in range(start, end):
+        ru, rv, ok = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr_c, rot_c,
+                                cen_c, mir_k, e1_k, e2_k, want_normal, jac)
+        if not ok:
+            nbad += 1
+            continue
+        ssr += ru * ru + rv * rv
+        if want_normal:
+            for j in range(_NB):
+                jac[0, j] *= units[j]
+                jac[1, j] *= units[j]
+            for i in range(_NB):
+                a0 = jac[0, i]
+                a1 = jac[1, i]
+                accr[i] += a0 * ru + a1 * rv
+                for j in range(_NB):  # full square: contiguous, vectorises better than a triangle
+                    acc[i, j] += a0 * jac[0, j] + a1 * jac[1, j]
+    if want_normal:
+        for i in range(_NB):
+            jtr[i] = accr[i]
+            for j in range(_NB):
+                jtj[i, j] = acc[i, j]
+    return ssr, nbad
+
+
+@numba.njit(cache=True, parallel=True)
+def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units,
+                   want_normal, jtj, jtr, ssr, nbad):
+    for c in numba.prange(c_start.shape[0]):
+        s, b = _chunk_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, intr, rot, cen, mir,
+                          e1, e2, units, want_normal, jtj[c], jtr[c])
+        ssr[c] = s
+        nbad[c] = b
+
+
+@numba.njit(cache=True)
+def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac, ok):
+    """Residuals (N, 2), Jacobian blocks (N, 2, 17) in natural units and validity, per row."""
+    tmp = np.zeros((2, _NB))
+    for k in range(uv.shape[0]):
+        c = cam_idx[k]
+        p = pose_idx[k]
+        ru, rv, good = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr[c], rot[c],
+                                  cen[c], mir[p], e1[p], e2[p], True, tmp)
+        res[k, 0] = ru
+        res[k, 1] = rv
+        ok[k] = good
+        for i in range(2):
+            for j in range(_NB):
+                jac[k, i, j] = tmp[i, j]
+
+
+# ============================================================================ observations
+def _as_points(a, shape_tail, name: str) -> np.ndarray:
+    arr = np.array(a, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != shape_tail:
+        raise CalibrationDataError(f"{name} must have shape (M, {shape_tail}), got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """Correspondences of one camera in one mirror pose: pixel ``uv_px[i]`` sees screen point
+    ``q_screen_mm[i]`` (screen frame, mm) via the mirror.
+
+    Parameters
+    ----------
+    camera : str
+        Camera name (a key of :attr:`CalibrationState.cameras`).
+    pose_index : int
+        Index k of the mirror pose (into :attr:`CalibrationState.mirrors`).
+    uv_px : array_like (M, 2)
+        Pixel coordinates (u, v); (0, 0) is the centre of the top-left pixel.
+    q_screen_mm : array_like (M, 3)
+        Screen points (x_q, y_q, z) in the screen frame; z = 0 for the planar screen model.
+
+    Raises
+    ------
+    CalibrationDataError
+        On wrong shapes, mismatched lengths or non-finite values.
+    """
+
+    camera: str
+    pose_index: int
+    uv_px: np.ndarray
+    q_screen_mm: np.ndarray
+
+    def __post_init__(self) -> None:
+        where = f"observations of camera {self.camera!r}, mirror pose {self.pose_index}"
+        if int(self.pose_index) != self.pose_index or self.pose_index < 0:
+            raise CalibrationDataError(f"{where}: pose_index must be a non-negative integer")
+        uv = _as_points(self.uv_px, 2, f"{where}: uv_px")
+        q = _as_points(self.q_screen_mm, 3, f"{where}: q_screen_mm")
+        if uv.shape[0] != q.shape[0]:
+            raise CalibrationDataError(
+                f"{where}: uv_px has {uv.shape[0]} rows but q_screen_mm has {q.shape[0]}"
+            )
+        bad = ~(np.isfinite(uv).all(axis=1) & np.isfinite(q).all(axis=1))
+        if bad.any():
+            raise CalibrationDataError(
+                f"{where}: {int(bad.sum())} of {uv.shape[0]} correspondences contain NaN or infinite "
+                f"values (first at row {int(np.argmax(bad))}); drop invalid pixels before calibrating "
+                f"(observations_from_mapping does this with the valid mask)"
+            )
+        uv.setflags(write=False)
+        q.setflags(write=False)
+        object.__setattr__(self, "pose_index", int(self.pose_index))
+        object.__setattr__(self, "uv_px", uv)
+        object.__setattr__(self, "q_screen_mm", q)
+
+    @property
+    def n(self) -> int:
+        """Number of correspondences M."""
+        return self.uv_px.shape[0]
+
+
+def observations_from_mapping(
+    camera: str,
+    pose_index: int,
+    screen_xy_mm: np.ndarray,
+    valid: np.ndarray,
+    stride: int = 8,
+    screen_surface=None,
+) -> Observations:
+    """Correspondences from a decoded pixel → screen mapping, subsampled every ``stride`` pixels.
+
+    Parameters
+    ----------
+    camera, pose_index
+        As in :class:`Observations`.
+    screen_xy_mm : ndarray (H, W, 2)
+        Pattern coordinates (x_q, y_q) per pixel (e.g. :attr:`pmdsim.trace.Mapping.screen_xy_mm`
+        or decoded phases converted to mm).
+    valid : ndarray of bool (H, W)
+        Pixels whose pattern coordinates are valid.
+    stride : int
+        Pixels u, v ≡ 0 (mod stride) are used.
+    screen_surface : surface with ``height(x, y)``, optional
+        The screen model; q's z is its height at (x_q, y_q). None: the plane z = 0.
+
+    Raises
+    ------
+    CalibrationDataError
+        On wrong shapes, or if a pixel marked valid has non-finite coordinates.
+    """
+    where = f"camera {camera!r}, mirror pose {pose_index}"
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    ok = np.asarray(valid, dtype=bool)
+    if xy.ndim != 3 or xy.shape[2] != 2:
+        raise CalibrationDataError(f"{where}: screen_xy_mm must have shape (H, W, 2), got {xy.shape}")
+    if ok.shape != xy.shape[:2]:
+        raise CalibrationDataError(f"{where}: valid must have shape {xy.shape[:2]}, got {ok.shape}")
+    s = int(stride)
+    if s != stride or s < 1:
+        raise CalibrationDataError(f"stride must be a positive integer, got {stride!r}")
+    sub_xy = xy[::s, ::s]
+    sub_ok = ok[::s, ::s]
+    nonfinite = sub_ok & ~np.isfinite(sub_xy).all(axis=-1)
+    if nonfinite.any():
+        raise CalibrationDataError(
+            f"{where}: {int(nonfinite.sum())} pixels marked valid have NaN or infinite screen "
+            f"coordinates; mark them invalid"
+        )
+    vv, uu = np.nonzero(sub_ok)
+    uv = np.stack([uu * s, vv * s], axis=-1).astype(float)
+    xyq = sub_xy[vv, uu]
+    z = np.zeros(len(uv)) if screen_surface is None else np.asarray(
+        screen_surface.height(xyq[:, 0], xyq[:, 1]), dtype=float)
+    return Observations(camera, int(pose_index), uv, np.column_stack([xyq, z]))
+
+
+# ============================================================================ parameters
+@dataclass(frozen=True, eq=False)
+class CameraParams:
+    """One camera's calibration parameters: intrinsics and pose ``T_screen_cam``."""
+
+    camera: Camera
+    T_screen_cam: RigidTransform
+
+    @property
+    def position_mm(self) -> np.ndarray:
+        """Camera centre in the screen frame."""
+        return self.T_screen_cam.translation
+
+
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = a - np.dot(a, n) * n
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+@dataclass(frozen=True, eq=False)
+class MirrorPlane:
+    """A mirror plane {x : n·x = d} in the screen frame (n is normalised on construction)."""
+
+    normal: np.ndarray
+    d_mm: float
+
+    def __post_init__(self) -> None:
+        n = np.array(self.normal, dtype=float).reshape(-1)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or not math.isfinite(float(self.d_mm)):
+            raise CalibrationDataError(f"MirrorPlane needs a finite normal (3,) and d, got {self.normal!r}, {self.d_mm!r}")
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            raise CalibrationDataError("MirrorPlane normal must not be zero")
+        n = n / norm
+        n.setflags(write=False)
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "d_mm", float(self.d_mm))
+
+    def tangent_basis(self) -> tuple[np.ndarray, np.ndarray]:
+        """(e1, e2): the orthonormal tangent vectors of the tilt increments tilt_a, tilt_b."""
+        return _tangent_basis(self.normal)
+
+    def reflect(self, points_mm) -> np.ndarray:
+        """Mirror points (..., 3) across the plane: q' = q − 2 (n·q − d) n."""
+        q = np.asarray(points_mm, dtype=float)
+        s = q @ self.normal - self.d_mm
+        return q - 2.0 * s[..., None] * self.normal
+
+    def oriented_towards(self, point_mm) -> "MirrorPlane":
+        """The same plane with the normal pointing to the side of ``point_mm``."""
+        if float(np.dot(self.normal, point_mm)) - self.d_mm < 0:
+            return MirrorPlane(-self.normal, -self.d_mm)
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationState:
+    """All calibration parameters: cameras by name (in parameter order) and mirror planes by
+    pose index (in the screen frame)."""
+
+    cameras: dict[str, CameraParams]
+    mirrors: tuple[MirrorPlane, ...]
+
+    def __post_init__(self) -> None:
+        cams = dict(self.cameras)
+        mirrors = tuple(self.mirrors)
+        for name, cp in cams.items():
+            if not isinstance(name, str) or not isinstance(cp, CameraParams):
+                raise TypeError(f"CalibrationState.cameras must map names (str) to CameraParams, got {name!r}: {type(cp).__name__}")
+        for k, mp in enumerate(mirrors):
+            if not isinstance(mp, MirrorPlane):
+                raise TypeError(f"CalibrationState.mirrors[{k}] must be a MirrorPlane, got {type(mp).__name__}")
+        object.__setattr__(self, "cameras", cams)
+        object.__setattr__(self, "mirrors", mirrors)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.cameras)
+
+    def parameter_names(self) -> list[str]:
+        """Names of the parameter vector, e.g. ``left.fx_px``, ``mirror3.d_mm``."""
+        names = [f"{c}.{p}" for c in self.cameras for p in CAMERA_PARAMETERS]
+        names += [f"mirror{k}.{p}" for k in range(len(self.mirrors)) for p in MIRROR_PARAMETERS]
+        return names
+
+    @property
+    def n_parameters(self) -> int:
+        return _NC * len(self.cameras) + _NM * len(self.mirrors)
+
+    def updated(self, delta) -> "CalibrationState":
+        """The state moved by the increment ``delta`` (natural units, in :meth:`parameter_names`
+        order; see the module docstring for what each increment means)."""
+        delta = np.asarray(delta, dtype=float)
+        if delta.shape != (self.n_parameters,):
+            raise ValueError(f"delta must have shape ({self.n_parameters},), got {delta.shape}")
+        cams = {}
+        for i, (name, cp) in enumerate(self.cameras.items()):
+            dc = delta[_NC * i : _NC * (i + 1)]
+            c = cp.camera
+            cam = replace(c, **{f: float(getattr(c, f) + dc[j]) for j, f in enumerate(_INTRINSICS)})
+            rot = _orthonormalize(rotvec_to_matrix(dc[8:11]) @ cp.T_screen_cam.rotation)
+            cams[name] = CameraParams(cam, RigidTransform(rot, cp.T_screen_cam.translation + dc[11:14]))
+        off = _NC * len(self.cameras)
+        mirrors = []
+        for k, m in enumerate(self.mirrors):
+            dm = delta[off + _NM * k : off + _NM * (k + 1)]
+            e1, e2 = m.tangent_basis()
+            mirrors.append(MirrorPlane(m.normal + dm[0] * e1 + dm[1] * e2, m.d_mm + dm[2]))
+        return CalibrationState(cams, tuple(mirrors))
+
+    # kernel arrays ---------------------------------------------------------------------
+    def _arrays(self):
+        cps = list(self.cameras.values())
+        intr = np.array([[cp.camera.fx_px, cp.camera.fy_px, cp.camera.ppx_px, cp.camera.ppy_px,
+                          cp.camera.k1, cp.camera.k2, cp.camera.p1, cp.camera.p2, cp.camera.k3]
+                         for cp in cps]).reshape(-1, 9)
+        rot = np.array([cp.T_screen_cam.rotation for cp in cps]).reshape(-1, 3, 3)
+        cen = np.array([cp.T_screen_cam.translation for cp in cps]).reshape(-1, 3)
+        mir = np.array([np.r_[m.normal, m.d_mm] for m in self.mirrors]).reshape(-1, 4)
+        basis = [m.tangent_basis() for m in self.mirrors]
+        e1 = np.array([b[0] for b in basis]).reshape(-1, 3)
+        e2 = np.array([b[1] for b in basis]).reshape(-1, 3)
+        return intr, rot, cen, mir, e1, e2
+
+
+def _orthonormalize(r: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(r)
+    out = u @ vt
+    if np.linalg.det(out) < 0:  # cannot happen for a near-rotation; keep it proper regardless
+        u[:, -1] *= -1
+        out = u @ vt
+    return out
+
+
+# ============================================================================ packed data
+class _Data:
+    """Observations concatenated in block order, with the chunk table of the kernels."""
+
+    def __init__(self, blocks: list[tuple[int, int, np.ndarray, np.ndarray]], block_keys):
+        self.block_keys = block_keys  # [(camera name, pose index)]
+        self.uv = np.ascontiguousarray(np.concatenate([b[2] for b in blocks]))
+        self.q = np.ascontiguousarray(np.concatenate([b[3] for b in blocks]))
+        starts, ends, cams, poses, cblock = [], [], [], [], []
+        off = 0
+        self.block_rows = []
+        for bi, (ci, k, uv, _) in enumerate(blocks):
+            m = uv.shape[0]
+            self.block_rows.append((off, off + m))
+            for s in range(off, off + m, _CHUNK):
+                starts.append(s)
+                ends.append(min(s + _CHUNK, off + m))
+                cams.append(ci)
+                poses.append(k)
+                cblock.append(bi)
+            off += m
+        self.c_start = np.array(starts, dtype=np.int64)
+        self.c_end = np.array(ends, dtype=np.int64)
+        self.c_cam = np.array(cams, dtype=np.int64)
+        self.c_pose = np.array(poses, dtype=np.int64)
+        self.c_block = np.array(cblock, dtype=np.int64)
+        self.n_rows = off
+
+
+def _pack(observations: Iterable[Observations], state: CalibrationState, min_correspondences: int) -> _Data:
+    obs = list(observations)
+    if not obs:
+        raise CalibrationDataError("no observations given")
+    for o in obs:
+        if not isinstance(o, Observations):
+            raise CalibrationDataError(f"observations must be Observations objects, got {type(o).__name__}")
+    names = state.camera_names
+    if not names:
+        raise CalibrationDataError("the initial state has no cameras")
+    n_m = len(state.mirrors)
+    merged: dict[tuple[str, int], list[Observations]] = {}
+    for o in obs:
+        if o.camera not in state.cameras:
+            raise CalibrationDataError(
+                f"observations name camera {o.camera!r}, which is not in the initial state (cameras: {names})"
+            )
+        if o.pose_index >= n_m:
+            raise CalibrationDataError(
+                f"observations of camera {o.camera!r} name mirror pose {o.pose_index}, but the initial "
+                f"state has only {n_m} mirror planes (poses 0…{n_m - 1})"
+            )
+        merged.setdefault((o.camera, o.pose_index), []).append(o)
+    total = sum(o.n for o in obs)
+    if total == 0:
+        raise CalibrationDataError(
+            "all correspondences are invalid: no camera sees the screen via the mirror in any pose "
+            "(check the valid masks, the decoding and the mirror poses)"
+        )
+    problems = []
+    for (cam, k), lst in sorted(merged.items(), key=lambda kv: (names.index(kv[0][0]), kv[0][1])):
+        m = sum(o.n for o in lst)
+        if m < min_correspondences:
+            problems.append(
+                f"camera {cam!r}, mirror pose {k}: only {m} valid correspondences (need ≥ "
+                f"{min_correspondences}); the reflection probably misses the screen or the decoding "
+                f"failed — drop this pose for this camera or fix its data"
+            )
+    if problems:
+        raise CalibrationDataError("; ".join(problems))
+    for cam in names:
+        poses = sorted(k for (c, k) in merged if c == cam)
+        if len(poses) < MIN_POSES:
+            raise CalibrationDataError(
+                f"camera {cam!r} has observations in only {len(poses)} mirror pose(s) {poses}; the "
+                f"holistic calibration needs at least {MIN_POSES} per camera (better many, tilted "
+                f"about two different axes)"
+            )
+    seen = {k for (_, k) in merged}
+    unseen = [k for k in range(n_m) if k not in seen]
+    if unseen:
+        raise CalibrationDataError(
+            f"mirror pose(s) {unseen} of the initial state have no observations, so their planes "
+            f"are undetermined; remove them from the state"
+        )
+    blocks, keys = [], []
+    for (cam, k), lst in sorted(merged.items(), key=lambda kv: (names.index(kv[0][0]), kv[0][1])):
+        blocks.append((names.index(cam), k, np.concatenate([o.uv_px for o in lst]),
+                       np.concatenate([o.q_screen_mm for o in lst])))
+        keys.append((cam, k))
+    return _Data(blocks, keys)
+
+
+def _units(state: CalibrationState) -> np.ndarray:
+    return np.concatenate([np.tile(_CAM_UNITS, len(state.cameras)), np.tile(_MIR_UNITS, len(state.mirrors))])
+
+
+def _block_index(state: CalibrationState, ci: int, k: int) -> np.ndarray:
+    nc = _NC * len(state.cameras)
+    return np.r_[np.arange(_NC * ci, _NC * (ci + 1)), np.arange(nc + _NM * k, nc + _NM * (k + 1))]
+
+
+def _evaluate(data: _Data, state: CalibrationState, want_normal: bool):
+    """Cost (SSR), per-block SSR, points behind camera per block and, if wanted, the scaled
+    normal equations (A = JᵀJ, g = Jᵀr in internal units)."""
+    intr, rot, cen, mir, e1, e2 = state._arrays()
+    nch = data.c_start.shape[0]
+    if want_normal:
+        jtj = np.empty((nch, _NB, _NB))
+        jtr = np.empty((nch, _NB))
+    else:
+        jtj = np.empty((nch, 1, 1))
+        jtr = np.empty((nch, 1))
+    ssr = np.empty(nch)
+    nbad = np.empty(nch, dtype=np.int64)
+    units = np.concatenate([_CAM_UNITS, _MIR_UNITS])
+    _chunks_kernel(data.c_start, data.c_end, data.c_cam, data.c_pose, data.uv, data.q, intr, rot, cen,
+                   mir, e1, e2, units, want_normal, jtj, jtr, ssr, nbad)
+    nblk = len(data.block_keys)
+    block_ssr = np.bincount(data.c_block, weights=ssr, minlength=nblk)
+    block_bad = np.bincount(data.c_block, weights=nbad, minlength=nblk).astype(int)
+    if not want_normal:
+        return float(block_ssr.sum()), block_ssr, block_bad, None, None
+    n = state.n_parameters
+    a = np.zeros((n, n))
+    g = np.zeros(n)
+    names = state.camera_names
+    # Sum the chunks of each (camera, pose) block, then scatter.
+    for b, (cam, k) in enumerate(data.block_keys):
+        sel = data.c_block == b
+        blk = jtj[sel].sum(axis=0)
+        blk = 0.5 * (blk + blk.T)
+        idx = _block_index(state, names.index(cam), k)
+        a[np.ix_(idx, idx)] += blk
+        g[idx] += jtr[sel].sum(axis=0)
+    return float(block_ssr.sum()), block_ssr, block_bad, a, g
+
+
+def residuals_and_jacobian(observations: Iterable[Observations], state: CalibrationState):
+    """Residuals and the dense analytic Jacobian (for small observation sets and tests).
+
+    Returns
+    -------
+    r : ndarray (2M,)
+        Residuals (predicted − observed, px), ordered (u₀, v₀, u₁, v₁, …) over the
+        observations in the given order.
+    J : ndarray (2M, n)
+        dr/dΔ for the increments of :meth:`CalibrationState.updated` (natural units).
+    names : list[str]
+        Parameter names (columns of J).
+
+    Rows whose virtual point lies behind the camera are NaN.
+    """
+    obs = list(observations)
+    names = state.camera_names
+    cam_idx, pose_idx, uv, q = [], [], [], []
+    for o in obs:
+        if o.camera not in state.cameras:
+            raise CalibrationDataError(f"camera {o.camera!r} is not in the state (cameras: {names})")
+        if o.pose_index >= len(state.mirrors):
+            raise CalibrationDataError(f"mirror pose {o.pose_index} is not in the state ({len(state.mirrors)} mirrors)")
+        cam_idx.append(np.full(o.n, names.index(o.camera), dtype=np.int64))
+        pose_idx.append(np.full(o.n, o.pose_index, dtype=np.int64))
+        uv.append(o.uv_px)
+        q.append(o.q_screen_mm)
+    cam_idx = np.concatenate(cam_idx) if obs else np.zeros(0, dtype=np.int64)
+    pose_idx = np.concatenate(pose_idx) if obs else np.zeros(0, dtype=np.int64)
+    uv = np.ascontiguousarray(np.concatenate(uv)) if obs else np.zeros((0, 2))
+    q = np.ascontiguousarray(np.concatenate(q)) if obs else np.zeros((0, 3))
+    m = uv.shape[0]
+    res = np.empty((m, 2))
+    jb = np.empty((m, 2, _NB))
+    ok = np.empty(m, dtype=np.bool_)
+    _rows_kernel(cam_idx, pose_idx, uv, q, *state._arrays(), res, jb, ok)
+    n = state.n_parameters
+    jac = np.zeros((m, 2, n))
+    nc = _NC * len(state.cameras)
+    rows = np.arange(m)
+    for j in range(_NC):
+        jac[rows, :, _NC * cam_idx + j] = jb[:, :, j]
+    for j in range(_NM):
+        jac[rows, :, nc + _NM * pose_idx + j] = jb[:, :, _NC + j]
+    res[~ok] = np.nan
+    jac[~ok] = np.nan
+    return res.reshape(-1), jac.reshape(2 * m, n), state.parameter_names()
+
+
+# ============================================================================ result
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Outcome of :func:`calibrate`.
+
+    Attributes
+    ----------
+    cameras : dict[str, tuple[Camera, RigidTransform]]
+        Estimated intrinsics and ``T_screen_cam`` per camera.
+    mirrors : list[MirrorPlane]
+        Estimated mirror plane per pose (screen frame; normals point towards the cameras).
+    converged : bool
+    reason : str
+        Which convergence criterion was met, or why the calibration failed.
+    iterations : int
+        Accepted Levenberg–Marquardt steps (Jacobian evaluations after the first).
+    rms_px : float
+        RMS of all residual components (px).
+    rms_px_by_camera_pose : dict[(str, int), float]
+        RMS per (camera, mirror pose) block.
+    n_residuals : int
+        Number of residual components m (2 per correspondence).
+    parameter_names : tuple[str, ...]
+    parameter_std : ndarray (n,)
+        Standard deviations (natural units) from σ²(JᵀJ)⁻¹, σ² = SSR/(m − n).
+    covariance : ndarray (n, n)
+        The covariance matrix (natural units).
+    condition_number : float
+        Condition number of the Jacobi-scaled JᵀJ at the solution.
+    rms_history_px : tuple[float, ...]
+        RMS residual at the start and after every accepted step.
+    """
+
+    cameras: dict
+    mirrors: list
+    converged: bool
+    reason: str
+    iterations: int
+    rms_px: float
+    rms_px_by_camera_pose: dict
+    n_residuals: int
+    parameter_names: tuple
+    parameter_std: np.ndarray
+    covariance: np.ndarray
+    condition_number: float
+    rms_history_px: tuple = ()
+
+    @property
+    def state(self) -> CalibrationState:
+        """The estimate as a :class:`CalibrationState` (e.g. to restart from it)."""
+        return CalibrationState({k: CameraParams(c, t) for k, (c, t) in self.cameras.items()},
+                                tuple(self.mirrors))
+
+    def std(self, name: str) -> float:
+        """Standard deviation of one parameter by name (e.g. ``"left.fx_px"``)."""
+        return float(self.parameter_std[self.parameter_names.index(name)])
+
+    def to_dict(self) -> dict:
+        """Plain data (dicts, lists, floats, strings): JSON-serialisable."""
+        cams = {}
+        for name, (c, t) in self.cameras.items():
+            origin, angles = t.as_origin_angles()
+            rv = _matrix_to_rotvec(t.rotation)
+            cams[name] = {
+                "image_size_px": [c.width_px, c.height_px],
+                "fx_px": c.fx_px, "fy_px": c.fy_px, "ppx_px": c.ppx_px, "ppy_px": c.ppy_px,
+                "k1": c.k1, "k2": c.k2, "p1": c.p1, "p2": c.p2, "k3": c.k3,
+                "T_screen_cam": {
+                    "origin_mm": origin.tolist(),
+                    "angles_deg": angles.tolist(),
+                    "rotvec_rad": rv.tolist(),
+                    "matrix": t.as_matrix().tolist(),
+                },
+            }
+        rms = {}
+        for (cam, k), v in self.rms_px_by_camera_pose.items():
+            rms.setdefault(cam, {})[str(k)] = float(v)
+        return {
+            "frame": "screen (held fixed)",
+            "cameras": cams,
+            "mirrors": [{"normal": m.normal.tolist(), "d_mm": m.d_mm} for m in self.mirrors],
+            "converged": bool(self.converged),
+            "reason": self.reason,
+            "iterations": int(self.iterations),
+            "rms_px": float(self.rms_px),
+            "rms_px_by_camera_pose": rms,
+            "n_residuals": int(self.n_residuals),
+            "n_parameters": len(self.parameter_names),
+            "parameter_std": {n: float(s) for n, s in zip(self.parameter_names, self.parameter_std)},
+            "condition_number": float(self.condition_number),
+        }
+
+
+def _matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
+    c = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
+    theta = math.acos(c)
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if theta < 1e-8:
+        return 0.5 * w
+    if theta > math.pi - 1e-6:  # near π: axis from the symmetric part
+        b = (r + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(b)))
+        axis = b[:, i] / math.sqrt(b[i, i])
+        if np.dot(axis, w) < 0:
+            axis = -axis
+        return theta * axis
+    return theta / (2.0 * math.sin(theta)) * w
+
+
+# ============================================================================ solver
+def _scaled(a: np.ndarray, g: np.ndarray):
+    dg = np.sqrt(np.diag(a))
+    dg = np.where(dg > 0, dg, 1.0)
+    return a / np.outer(dg, dg), g / dg, dg
+
+
+def _degeneracy_message(names, a_s, limit, cond) -> str:
+    """Name the (nearly) free parameter combinations: eigenvectors of the scaled JᵀJ whose
+    eigenvalues are below λ_max / limit, with their dominant components."""
+    w, v = np.linalg.eigh(a_s)
+    small = np.nonzero(w < w[-1] / limit)[0]
+    if small.size == 0:
+        small = np.array([0])
+    combos = []
+    undetermined: set[str] = set()
+    for i in small[:4]:
+        vec = v[:, i]
+        big = np.abs(vec) >= 0.15 * np.max(np.abs(vec))
+        order = [j for j in np.argsort(-np.abs(vec)) if big[j]][:10]
+        combos.append("[" + " ".join(f"{vec[j]:+.2f}·{names[j]}" for j in order) + "]")
+        undetermined.update(names[j] for j in np.nonzero(big)[0])
+    return (
+        f"the mirror poses do not determine all parameters: the Jacobi-scaled normal matrix JᵀJ has "
+        f"condition number {cond:.3g} (limit {limit:.3g}), {small.size} (nearly) free parameter "
+        f"combination(s) (eigenvectors, internal units): " + "; ".join(combos)
+        + f". Badly determined: {', '.join(sorted(undetermined, key=names.index))}. Typical cause: "
+        f"all mirror planes parallel (only lifts, no tilts) — add mirror poses tilted about the "
+        f"mirror's x and y axes"
+    )
+
+
+def _condition(a_s: np.ndarray) -> float:
+    w = np.linalg.eigvalsh(a_s)
+    if w[0] <= 0:
+        return math.inf
+    return float(w[-1] / w[0])
+
+
+def _rel_step(delta: np.ndarray, state: CalibrationState) -> float:
+    """max |δ_j| / ref_j: focal length for intrinsics in px, 1 for distortion and angles, the
+    camera distance for positions and mirror distances."""
+    refs = []
+    pos = [float(np.linalg.norm(cp.T_screen_cam.translation)) for cp in state.cameras.values()]
+    scale_mm = max(max(pos), 1.0)
+    for cp in state.cameras.values():
+        f = max(cp.camera.fx_px, cp.camera.fy_px)
+        refs += [f, f, f, f, 1, 1, 1, 1, 1, 1, 1, scale_mm, scale_mm, scale_mm]
+    for _ in state.mirrors:
+        refs += [1, 1, scale_mm]
+    return float(np.max(np.abs(delta) / np.array(refs, dtype=float)))
+
+
+def calibrate(
+    observations: Iterable[Observations],
+    initial_state: CalibrationState,
+    *,
+    max_iter: int = 100,
+    ftol: float = 1e-12,
+    xtol: float = 1e-10,
+    min_correspondences: int = MIN_CORRESPONDENCES,
+    condition_limit: float = DEFAULT_CONDITION_LIMIT,
+    raise_on_failure: bool = False,
+) -> CalibrationResult:
+    """Holistic calibration with a planar mirror (paper §4) by Levenberg–Marquardt.
+
+    Parameters
+    ----------
+    observations : iterable of Observations
+        Correspondences per (camera, mirror pose); several objects for the same block are merged.
+    initial_state : CalibrationState
+        Start values (e.g. :func:`nominal_state`); its cameras define the parameter order, its
+        mirrors the pose indices. k3 of each camera stays fixed at its initial value.
+    max_iter : int
+        Maximum number of accepted steps.
+    ftol : float
+        Converged when an accepted step changes the cost (SSR) by less than ``ftol`` relative,
+        or when the model predicts less than that.
+    xtol : float
+        Converged when a step changes every parameter by less than ``xtol`` relative to its
+        reference size (the focal length for intrinsics in px, 1 for distortion coefficients and
+        angles in rad, the largest camera distance for lengths).
+    min_correspondences : int
+        Fewest correspondences per (camera, pose) block.
+    condition_limit : float
+        Largest acceptable condition number of the Jacobi-scaled JᵀJ (checked at the start and at
+        the solution); above it the pose set is reported as degenerate.
+    raise_on_failure : bool
+        Raise :class:`CalibrationError` instead of returning ``converged=False``.
+
+    Returns
+    -------
+    CalibrationResult
+        ``converged`` False (with the ``reason``) if the iteration stopped before a criterion
+        was met.
+
+    Raises
+    ------
+    CalibrationDataError
+        Unusable input, with the camera / pose / parameters named: no observations or none
+        valid; a camera or pose index not in the state; a (camera, pose) block with fewer than
+        ``min_correspondences``; a camera seen in fewer than 3 poses; a mirror of the state
+        without observations; correspondences behind a camera at the initial state; or a
+        degenerate pose set (condition number above ``condition_limit`` at the start or at the
+        solution — the message names the badly determined parameter combinations).
+    CalibrationError
+        Not converged and ``raise_on_failure``.
+    """
+    if int(max_iter) != max_iter or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    state = initial_state
+    data = _pack(observations, state, int(min_correspondences))
+    names = state.parameter_names()
+    n = len(names)
+    m = 2 * data.n_rows
+    if m <= n:
+        raise CalibrationDataError(f"{m} residuals cannot determine {n} parameters")
+    units = _units(state)
+
+    cost, block_ssr, block_bad, a, g = _evaluate(data, state, True)
+    if block_bad.any():
+        bad = [f"camera {c!r} pose {k}: {b}" for (c, k), b in zip(data.block_keys, block_bad) if b]
+        raise CalibrationDataError(
+            "the initial state puts the virtual (mirrored) screen points of some correspondences "
+            "behind the camera (" + "; ".join(bad) + "); the initial camera poses or mirror planes are "
+            "too far off"
+        )
+    a_s, g_s, dg = _scaled(a, g)
+    cond = _condition(a_s)
+    if not cond <= condition_limit:
+        raise CalibrationDataError("at the initial state, " + _degeneracy_message(names, a_s, condition_limit, cond))
+
+    lam = 1e-3
+    nu = 2.0
+    converged = False
+    reason = ""
+    iterations = 0
+    eye = np.eye(n)
+    history = [math.sqrt(cost / m)]
+    while True:
+        if cost == 0.0:
+            converged, reason = True, "zero residuals"
+            break
+        # Convergence tests on the undamped (Gauss–Newton) step: independent of the damping.
+        try:
+            step_gn = np.linalg.solve(a_s, -g_s)
+        except np.linalg.LinAlgError:
+            step_gn = np.linalg.lstsq(a_s, -g_s, rcond=None)[0]
+        pred_gn = float(-(g_s @ step_gn))
+        rel_gn = _rel_step(step_gn / dg * units, state)
+        if rel_gn <= xtol:
+            converged, reason = True, (f"step size: the Gauss–Newton step changes no parameter by more "
+                                       f"than {rel_gn:.2g} (relative) ≤ xtol = {xtol:g}")
+            break
+        if pred_gn <= ftol * cost:
+            converged, reason = True, (f"relative cost change: the Gauss–Newton model predicts "
+                                       f"{pred_gn / cost:.2g} ≤ ftol = {ftol:g}")
+            break
+        if iterations >= max_iter:
+            reason = (f"maximum number of iterations ({max_iter}) reached before convergence; rms "
+                      f"{math.sqrt(cost / m):.3g} px, Gauss–Newton step {rel_gn:.2g} (relative), "
+                      f"predicted relative cost change {pred_gn / cost:.2g}")
+            break
+        # Levenberg–Marquardt step (Marquardt scaling: λ·diag(JᵀJ) = λ·I after Jacobi scaling).
+        accepted = False
+        rel_change = math.nan
+        while lam <= 1e20:
+            try:
+                chol = np.linalg.cholesky(a_s + lam * eye)
+            except np.linalg.LinAlgError:
+                lam = max(lam, 1e-12) * nu
+                nu *= 2.0
+                continue
+            step_s = np.linalg.solve(chol.T, np.linalg.solve(chol, -g_s))
+            pred = -(2.0 * g_s @ step_s + step_s @ a_s @ step_s)
+            new_cost = math.inf
+            try:
+                trial = state.updated(step_s / dg * units)
+            except ValueError:  # e.g. a focal length ≤ 0: reject the step
+                trial = None
+            if trial is not None:
+                c_new, _, bad_new, _, _ = _evaluate(data, trial, False)
+                if not bad_new.any():  # no virtual point behind a camera
+                    new_cost = c_new
+            rho = (cost - new_cost) / pred if pred > 0 else -1.0
+            if rho > 1e-4 and new_cost < cost:
+                rel_change = (cost - new_cost) / cost
+                state, cost = trial, new_cost
+                iterations += 1
+                history.append(math.sqrt(cost / m))
+                lam = max(lam * (0.1 if rho > 0.25 else 0.5), 1e-15)
+                nu = 2.0
+                accepted = True
+                break
+            lam = max(lam, 1e-12) * nu
+            nu *= 2.0
+        if not accepted:
+            reason = (f"no step reduces the cost any more (damping λ = {lam:.3g}) although the "
+                      f"convergence criteria are not met; rms {math.sqrt(cost / m):.3g} px")
+            break
+        cost, block_ssr, block_bad, a, g = _evaluate(data, state, True)
+        a_s, g_s, dg = _scaled(a, g)
+        cond = _condition(a_s)
+        if not cond <= condition_limit:
+            raise CalibrationDataError(
+                f"after {iterations} iterations, " + _degeneracy_message(names, a_s, condition_limit, cond))
+        if rel_change < ftol:
+            converged, reason = True, f"relative cost change {rel_change:.2g} < ftol = {ftol:g}"
+            break
+
+    cond = _condition(a_s)
+    if not cond <= condition_limit:
+        raise CalibrationDataError(_degeneracy_message(names, a_s, condition_limit, cond))
+    # Covariance in natural units: Cov = σ² (JᵀJ)⁻¹, JᵀJ = D A_s D in internal units.
+    sigma2 = cost / (m - n)
+    a_s_inv = np.linalg.inv(a_s)
+    scale = units / dg
+    cov = sigma2 * a_s_inv * np.outer(scale, scale)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+    block_n = [e - s for s, e in data.block_rows]
+    rms_by = {key: math.sqrt(ssr / (2 * k)) for key, ssr, k in zip(data.block_keys, block_ssr, block_n)}
+    ref = np.mean([cp.T_screen_cam.translation for cp in state.cameras.values()], axis=0)
+    result = CalibrationResult(
+        cameras={k: (cp.camera, cp.T_screen_cam) for k, cp in state.cameras.items()},
+        mirrors=[mp.oriented_towards(ref) for mp in state.mirrors],
+        converged=converged,
+        reason=reason,
+        iterations=iterations,
+        rms_px=math.sqrt(cost / m),
+        rms_px_by_camera_pose=rms_by,
+        n_residuals=m,
+        parameter_names=tuple(names),
+        parameter_std=std,
+        covariance=cov,
+        condition_number=cond,
+        rms_history_px=tuple(history),
+    )
+    if raise_on_failure and not converged:
+        raise CalibrationError(f"the calibration did not converge: {reason}")
+    return result
+
+
+# ============================================================================ initialisation
+def _as_T(pose) -> RigidTransform:
+    if isinstance(pose, RigidTransform):
+        return pose
+    t = getattr(pose, "T_world_x", None)
+    if isinstance(t, RigidTransform):
+        return t
+    raise TypeError(f"mirror poses must be RigidTransform T_world_mirror or setup.Pose, got {type(pose).__name__}")
+
+
+def mirror_plane_from_pose(T_world_mirror, T_world_screen: RigidTransform) -> MirrorPlane:
+    """The plane z = 0 of the mirror frame, in the screen frame (n = mirror +z)."""
+    T = _as_T(T_world_mirror)
+    T_screen_mirror = T_world_screen.inv() @ T
+    n = T_screen_mirror.rotation[:, 2]
+    return MirrorPlane(n, float(n @ T_screen_mirror.translation))
+
+
+def nominal_state(setup, mirror_poses: Sequence) -> CalibrationState:
+    """Initial state from a setup's nominal cameras and screen and nominal mirror poses.
+
+    Parameters
+    ----------
+    setup : pmdsim.setup.Setup
+        Its cameras (intrinsics and ``T_world_cam``) and screen pose ``T_world_screen``.
+    mirror_poses : sequence of RigidTransform (T_world_mirror) or setup.Pose
+        The mirror is the plane z = 0 of its frame.
+
+    Returns
+    -------
+    CalibrationState
+        Cameras with T_screen_cam = T_world_screen⁻¹ ∘ T_world_cam; mirror planes in the screen
+        frame with normals pointing towards the cameras.
+    """
+    T_ws = setup.screen.T_world_screen
+    T_sw = T_ws.inv()
+    cams = {name: CameraParams(cs.camera, T_sw @ cs.T_world_cam) for name, cs in setup.cameras.items()}
+    ref = np.mean([cp.T_screen_cam.translation for cp in cams.values()], axis=0)
+    mirrors = tuple(mirror_plane_from_pose(p, T_ws).oriented_towards(ref) for p in mirror_poses)
+    return CalibrationState(cams, mirrors)
+
+
+def _random_unit(rng: np.random.Generator, dim: int) -> np.ndarray:
+    v = rng.normal(size=dim)
+    return v / np.linalg.norm(v)
+
+
+def perturbed_state(
+    state: CalibrationState,
+    rng: np.random.Generator,
+    position_mm: float = 5.0,
+    angle_deg: float = 2.0,
+    focal_frac: float = 0.03,
+    pp_px: float = 20.0,
+    mirror_mm: float = 3.0,
+    mirror_deg: float = 1.0,
+    *,
+    reset_distortion: bool = True,
+) -> CalibrationState:
+    """A copy of ``state`` with errors of the given sizes in random directions (for tests and
+    experiments: a calibration must not start from the true values).
+
+    Each camera centre moves by ``position_mm`` in a random direction and rotates by
+    ``angle_deg`` about a random axis; fx and fy change by ±``focal_frac`` (independent random
+    signs); the principal point moves by ``pp_px`` in a random direction; distortion
+    coefficients k1, k2, p1, p2 are set to 0 (``reset_distortion``; k3 is kept). Each mirror
+    plane moves by ±``mirror_mm`` along its normal and its normal tilts by ``mirror_deg`` in a
+    random direction.
+    """
+    cams = {}
+    for name, cp in state.cameras.items():
+        c = cp.camera
+        sx, sy = rng.choice([-1.0, 1.0], size=2)
+        dpp = pp_px * _random_unit(rng, 2)
+        kw = dict(k1=0.0, k2=0.0, p1=0.0, p2=0.0) if reset_distortion else {}
+        cam = replace(c, fx_px=float(c.fx_px * (1 + sx * focal_frac)), fy_px=float(c.fy_px * (1 + sy * focal_frac)),
+                      ppx_px=float(c.ppx_px + dpp[0]), ppy_px=float(c.ppy_px + dpp[1]), **kw)
+        rot = rotvec_to_matrix(math.radians(angle_deg) * _random_unit(rng, 3)) @ cp.T_screen_cam.rotation
+        pos = cp.T_screen_cam.translation + position_mm * _random_unit(rng, 3)
+        cams[name] = CameraParams(cam, RigidTransform(_orthonormalize(rot), pos))
+    mirrors = []
+    for mp in state.mirrors:
+        e1, e2 = mp.tangent_basis()
+        phi = rng.uniform(0, 2 * math.pi)
+        t = math.tan(math.radians(mirror_deg))
+        n = mp.normal + t * (math.cos(phi) * e1 + math.sin(phi) * e2)
+        mirrors.append(MirrorPlane(n, mp.d_mm + rng.choice([-1.0, 1.0]) * mirror_mm))
+    return CalibrationState(cams, tuple(mirrors))
