@@ -7,6 +7,7 @@ OpenCV's 5-coefficient model (k1, k2, p1, p2, k3); the paper's eq. (3) is the ca
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, fields, replace
 
 import numba
@@ -80,6 +81,14 @@ def _undistort_kernel(xyd, k1, k2, k3, p1, p2, tol, max_iter, out, ok):
         out[i, 0] = x
         out[i, 1] = y
         ok[i] = c
+
+
+@functools.lru_cache(maxsize=4)
+def _sensor_rays_cached(camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
+    d, ok = camera.view_rays(camera.pixel_grid())
+    d.setflags(write=False)
+    ok.setflags(write=False)
+    return d, ok
 
 
 @dataclass(frozen=True)
@@ -261,5 +270,9 @@ class Camera:
         return np.stack([u, v], axis=-1).astype(float)
 
     def sensor_rays(self) -> tuple[np.ndarray, np.ndarray]:
-        """View rays of every pixel of the sensor: d_cam (H, W, 3) and converged (H, W)."""
-        return self.view_rays(self.pixel_grid())
+        """View rays of every pixel of the sensor: d_cam (H, W, 3) and converged (H, W).
+
+        The paper precomputes them per camera (§2.2); so does pmdsim: the arrays of the last few
+        cameras are cached (read-only).
+        """
+        return _sensor_rays_cached(self)

@@ -98,18 +98,22 @@ def register(
     if ok.shape != camera.shape:
         raise ValueError(f"decoded must have shape {camera.shape}, got {ok.shape}")
     d_cam, converged = camera.sensor_rays() if rays is None else rays
+    x = xy[..., 0]
+    y = xy[..., 1]
+    x0, x1, y0, y1 = screen_model.bounds_mm
+    with np.errstate(invalid="ignore"):
+        inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)  # False for NaN
     status = np.full(camera.shape, RegistrationStatus.VALID, dtype=np.uint8)
+    status[~inside] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
+    status[~converged] = RegistrationStatus.UNDISTORT_FAILED
     status[~ok] = RegistrationStatus.NOT_DECODED
-    status[ok & ~converged] = RegistrationStatus.UNDISTORT_FAILED
-    inside = np.zeros(camera.shape, dtype=bool)
-    fin = np.isfinite(xy).all(axis=-1)
-    inside[fin] = screen_model.contains(xy[fin][:, 0], xy[fin][:, 1])
-    status[(status == RegistrationStatus.VALID) & ~inside] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
     valid = status == RegistrationStatus.VALID
 
-    q_screen = np.full(camera.shape + (3,), np.nan)
-    q_screen[valid, :2] = xy[valid]
-    q_screen[valid, 2] = screen_model.height(xy[valid][:, 0], xy[valid][:, 1])
+    # Screen points (x_p, y_p, h_p(x_p, y_p)) of the screen model; evaluated on the full grid
+    # (invalid pixels at a dummy in-bounds point) and masked afterwards.
+    h = screen_model.height(np.where(valid, x, x0), np.where(valid, y, y0))
+    q_screen = np.stack([x, y, h], axis=-1)
+    q_screen[~valid] = np.nan
     T_ref_world = T_world_ref.inv()
     T_ref_screen = T_ref_world @ T_world_screen
     T_ref_cam = T_ref_world @ T_world_cam
