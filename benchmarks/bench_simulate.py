@@ -48,7 +48,8 @@ def main() -> None:
 
     setup = default_setup().with_bulge(args.bulge_mm)
     cam = setup.cameras["left"]
-    t_rays, rays = best_of(cam.camera.sensor_rays, 3)
+    # View rays (distortion inverted per pixel), computed afresh (sensor_rays() caches them).
+    t_rays, rays = best_of(lambda: cam.camera.view_rays(cam.camera.pixel_grid()), 3)
     n = rays[0].shape[0] * rays[0].shape[1]
 
     def mapping():

@@ -332,12 +332,15 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start):
+def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start,
+                     hx_hint=np.nan, hy_hint=np.nan):
     """Intersection of the ray o + t·d with the height field z = h(x, y) (paper eqs. 9–16).
 
     The paper's fixed-point iteration z ← h(x(z), y(z)) (eq. 13, with x(z), y(z) the ray's
     point at height z, eqs. 14–16) starts at ``z_start`` — the x–y plane z = 0 of eq. (9) when
-    ``z_start`` is NaN, or a nearby ray's height as a warm start — and stops when the height
+    ``z_start`` is NaN, or a nearby ray's height as a warm start, optionally with that ray's
+    surface gradient (``hx_hint``, ``hy_hint``) to estimate the contraction factor — and stops
+    when the height
     has converged to ``tol``: with q = |step_n/step_(n−1)| the observed contraction factor
     (q ≈ |∇h·d_xy/d_z|), the error after one more step is ≈ step·q²/(1 − q); once that is
     ≤ ``tol``, the final step is taken with the gradient (and second derivatives, which carry
@@ -370,6 +373,9 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
     converged = kind == _KIND_PLANE
     if not converged:
         step_prev = -1.0  # no previous step yet
+        q_hint = 2.0 * abs(hx_hint * bx + hy_hint * by) + 1e-6
+        if not (np.isfinite(q_hint) and np.isfinite(z_start)):
+            q_hint = 1.0  # no hint: wait for two steps
         for _ in range(max_iter):
             znew = height_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
             x = ax + bx * znew  # eqs. (14)–(16)
@@ -379,13 +385,19 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
             if step == 0.0:
                 converged = True
                 break
-            # Linear convergence with factor q (estimated from the last two steps): the error
-            # now is ≈ step·q/(1 − q), and after the final step below ≈ step·q²/(1 − q).
+            # Linear convergence with factor q: the error now is ≈ step·q/(1 − q), and after
+            # the final step below ≈ step·q²/(1 − q). q is estimated from the last two steps,
+            # or — after the first step of a warm start — from the neighbouring ray's surface
+            # gradient (q = |h_x·d_x/d_z + h_y·d_y/d_z| at the fixed point), with a safety
+            # factor of 2.
             if step_prev > 0.0:
                 q = step / step_prev
                 if q < 0.5 and step * q * q / (1.0 - q) <= tol:
                     converged = True
                     break
+            elif q_hint < 0.25 and step * q_hint * q_hint / (1.0 - q_hint) <= tol:
+                converged = True
+                break
             step_prev = step
         if converged:
             # The final step of eq. (13) also gives the gradient for eq. (17). It is evaluated

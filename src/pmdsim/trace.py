@@ -70,9 +70,21 @@ def _trace_run(
     ox = t_sc[0]
     oy = t_sc[1]
     oz = t_sc[2]
+    # The transforms as local scalars: the compiler cannot hoist array loads past the stores
+    # into the output arrays (it cannot prove they do not alias).
+    a00, a01, a02 = r_sc[0, 0], r_sc[0, 1], r_sc[0, 2]
+    a10, a11, a12 = r_sc[1, 0], r_sc[1, 1], r_sc[1, 2]
+    a20, a21, a22 = r_sc[2, 0], r_sc[2, 1], r_sc[2, 2]
+    b00, b01, b02 = r_ps[0, 0], r_ps[0, 1], r_ps[0, 2]
+    b10, b11, b12 = r_ps[1, 0], r_ps[1, 1], r_ps[1, 2]
+    b20, b21, b22 = r_ps[2, 0], r_ps[2, 1], r_ps[2, 2]
+    c0, c1, c2 = t_ps[0], t_ps[1], t_ps[2]
     if True:
         zs_prev = np.nan
-        zp_prev = np.nan
+        zp_prev = np.nan  # screen height of the previous pixel …
+        zp_prev2 = np.nan  # … and of the one before (for a linear extrapolation)
+        gx_prev = np.nan  # screen gradient at the previous pixel
+        gy_prev = np.nan
         k_end = min(n, (run + 1) * run_length)
         for k in range(run * run_length, k_end):
             screen_xy[k, 0] = np.nan
@@ -88,9 +100,9 @@ def _trace_run(
             b = d_cam[k, 1]
             c = d_cam[k, 2]
             # Direction in the sample frame.
-            vx = r_sc[0, 0] * a + r_sc[0, 1] * b + r_sc[0, 2] * c
-            vy = r_sc[1, 0] * a + r_sc[1, 1] * b + r_sc[1, 2] * c
-            vz = r_sc[2, 0] * a + r_sc[2, 1] * b + r_sc[2, 2] * c
+            vx = a00 * a + a01 * b + a02 * c
+            vy = a10 * a + a11 * b + a12 * c
+            vz = a20 * a + a21 * b + a22 * c
             t, px, py, pz, hx, hy, st = intersect_kernel(
                 s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, ox, oy, oz, vx, vy, vz, tol, max_iter, zs_prev
             )
@@ -107,14 +119,17 @@ def _trace_run(
             ry = vy - f * ny
             rz = vz - f
             # Origin and direction of the reflected ray in the screen frame.
-            qox = r_ps[0, 0] * px + r_ps[0, 1] * py + r_ps[0, 2] * pz + t_ps[0]
-            qoy = r_ps[1, 0] * px + r_ps[1, 1] * py + r_ps[1, 2] * pz + t_ps[1]
-            qoz = r_ps[2, 0] * px + r_ps[2, 1] * py + r_ps[2, 2] * pz + t_ps[2]
-            wx = r_ps[0, 0] * rx + r_ps[0, 1] * ry + r_ps[0, 2] * rz
-            wy = r_ps[1, 0] * rx + r_ps[1, 1] * ry + r_ps[1, 2] * rz
-            wz = r_ps[2, 0] * rx + r_ps[2, 1] * ry + r_ps[2, 2] * rz
-            t2, qx, qy, qz, _gx, _gy, st2 = intersect_kernel(
-                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, zp_prev
+            qox = b00 * px + b01 * py + b02 * pz + c0
+            qoy = b10 * px + b11 * py + b12 * pz + c1
+            qoz = b20 * px + b21 * py + b22 * pz + c2
+            wx = b00 * rx + b01 * ry + b02 * rz
+            wy = b10 * rx + b11 * ry + b12 * rz
+            wz = b20 * rx + b21 * ry + b22 * rz
+            # Warm start: the screen height extrapolated linearly from the two previous pixels.
+            z_guess = 2.0 * zp_prev - zp_prev2 if np.isfinite(zp_prev2) else zp_prev
+            t2, qx, qy, qz, sgx, sgy, st2 = intersect_kernel(
+                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, z_guess,
+                gx_prev, gy_prev,
             )
             if store:
                 p_sample[k, 0] = px
@@ -123,8 +138,12 @@ def _trace_run(
             if st2 != 0:
                 status[k] = screen_codes[st2]
                 zp_prev = np.nan
+                zp_prev2 = np.nan
                 continue
+            zp_prev2 = zp_prev
             zp_prev = qz
+            gx_prev = sgx
+            gy_prev = sgy
             status[k] = 0
             screen_xy[k, 0] = qx
             screen_xy[k, 1] = qy
