@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-__all__ = ["PatternFrame", "FringeSequence", "render", "render_sequence"]
+__all__ = ["PatternFrame", "FringeSequence", "render", "render_period", "render_sequence"]
 
 DIRECTIONS = ("x", "y")
 
@@ -158,6 +158,81 @@ def render(
     out = np.empty(ok.shape, dtype=np.uint8 if bit_depth == 8 else np.uint16)
     _render_kernel(xy, ok, frame.axis, frame.period_mm, frame.shift_rad, sequence.mean_level,
                    sequence.amplitude, full, noise, out)
+    return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _render_stack_rows(v0, v1, screen_xy, valid, axis, period, cos_d, sin_d, mean, amp, full_scale, noise, out):
+    w = valid.shape[1]
+    n = cos_d.shape[0]
+    two_pi_over_p = 2.0 * np.pi / period
+    for v in range(v0, v1):
+        for u in range(w):
+            if not valid[v, u]:
+                for k in range(n):
+                    out[k, v, u] = 0
+                continue
+            phi = two_pi_over_p * screen_xy[v, u, axis]
+            c = np.cos(phi)
+            s = np.sin(phi)
+            for k in range(n):
+                # cos(φ − δ_k) = cos φ cos δ_k + sin φ sin δ_k: one sine and cosine per pixel.
+                val = full_scale * (mean + amp * (c * cos_d[k] + s * sin_d[k]))
+                if noise.shape[0] > 0:
+                    val += noise[k, v, u]
+                q = np.floor(val + 0.5)
+                if q < 0.0:
+                    q = 0.0
+                elif q > full_scale:
+                    q = full_scale
+                out[k, v, u] = q
+
+
+@numba.njit(cache=True, parallel=True)
+def _render_stack_kernel(screen_xy, valid, axis, period, cos_d, sin_d, mean, amp, full_scale, noise, out):
+    h = valid.shape[0]
+    rows = 16
+    for b in numba.prange((h + rows - 1) // rows):
+        _render_stack_rows(b * rows, min(h, (b + 1) * rows), screen_xy, valid, axis, period, cos_d, sin_d, mean,
+                           amp, full_scale, noise, out)
+
+
+def render_period(
+    screen_xy_mm: np.ndarray,
+    valid: np.ndarray,
+    direction: str,
+    period_mm: float,
+    sequence: FringeSequence,
+    *,
+    bit_depth: int = 8,
+    noise_std: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Render all N phase-shifted images of one direction and period at once: (N, H, W).
+
+    Same model and quantisation as :func:`render` (one sine and cosine per pixel instead of N
+    cosines). With noise, the N noise fields are drawn from ``rng`` in shift order.
+    """
+    if bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    ok = np.asarray(valid, dtype=bool)
+    if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
+        raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    n = sequence.n_shifts
+    delta = 2.0 * np.pi * np.arange(n) / n
+    full = float(2**bit_depth - 1)
+    if noise_std > 0:
+        if rng is None:
+            raise ValueError("noise_std > 0 needs a seeded rng for reproducible images")
+        noise = np.stack([rng.normal(0.0, noise_std, size=ok.shape) for _ in range(n)])
+    else:
+        noise = np.empty((0, 0, 0))
+    out = np.empty((n,) + ok.shape, dtype=np.uint8 if bit_depth == 8 else np.uint16)
+    _render_stack_kernel(xy, ok, DIRECTIONS.index(direction), float(period_mm), np.cos(delta), np.sin(delta),
+                         sequence.mean_level, sequence.amplitude, full, noise, out)
     return out
 
 

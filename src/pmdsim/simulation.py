@@ -11,7 +11,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .patterns import PatternFrame, render
+from .patterns import PatternFrame, render_period
 from .setup import Setup
 from .trace import Mapping, trace_camera
 
@@ -73,7 +73,10 @@ def render_images(setup: Setup, camera: str, mapping: Mapping) -> Iterator[tuple
     p = setup.patterns
     cam_index = list(setup.cameras).index(camera)
     rng = np.random.default_rng([p.seed, cam_index]) if p.noise_std > 0 else None
+    stack = None
     for spec in image_specs(setup, camera):
-        img = render(mapping.screen_xy_mm, mapping.valid, spec.frame, p.sequence,
-                     bit_depth=p.bit_depth, noise_std=p.noise_std, rng=rng)
-        yield spec, img
+        f = spec.frame
+        if f.shift_index == 0:  # frames come in display order: all shifts of a period together
+            stack = render_period(mapping.screen_xy_mm, mapping.valid, f.direction, f.period_mm, p.sequence,
+                                  bit_depth=p.bit_depth, noise_std=p.noise_std, rng=rng)
+        yield spec, stack[f.shift_index]
