@@ -48,12 +48,15 @@ def test_bulge_is_absorbed_by_the_calibration(exp2):
     assert e.result.converged, e.result.reason
     for c in e.cases:
         e1 = run_experiment1_case(3.0, c.camera, downsample=DOWNSAMPLE)
-        # Far below Experiment 1's errors (≈ 220 µm there) …
-        assert c.metrics["max_height_diff_um"] < 0.2 * e1.metrics["max_height_diff_um"]
-        # … no longer a tilt but a wave-like shape (paper: "not tilted, but … wave-like errors"):
-        paper_tilt = PAPER_TABLE3[(3.0, c.camera)][2]
-        assert 0.5 <= c.metrics["tilt_urad"] / paper_tilt <= 2.0
-        assert c.metrics["max_dev_plane_um"] > 0.3 * c.metrics["max_height_diff_um"]
+        # Far below Experiment 1's errors (≈ 200 µm and ≈ 1100 µrad there) …
+        assert c.metrics["max_height_diff_um"] < 0.1 * e1.metrics["max_height_diff_um"]
+        assert c.metrics["tilt_urad"] < 0.1 * e1.metrics["tilt_urad"]
+        # … of the paper's magnitude (Table 3: 8.5 µm, 5.3 µm at 3 mm) …
+        assert 1.0 <= c.metrics["max_height_diff_um"] <= 20.0
+        for key, paper in zip(("max_height_diff_um", "max_dev_plane_um"), PAPER_TABLE3[(3.0, c.camera)][:2]):
+            assert 0.5 <= c.metrics[key] / paper <= 2.0, (key, c.metrics[key], paper)
+        # … and no longer a tilt but a wave-like shape (paper: "not tilted, but … wave-like errors").
+        assert c.metrics["max_dev_plane_um"] > 0.4 * c.metrics["max_height_diff_um"]
     # The calibrated frame turns by about a degree against the true world frame.
     assert 0.8 < e.deviation["table_turn_deg"] < 1.4
     # The bulge is absorbed mostly by the camera poses (tens of mm) and principal points.

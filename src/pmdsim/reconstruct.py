@@ -304,19 +304,28 @@ def _bisector_slopes(px, py, pz, ox, oy, oz, qx, qy, qz):
 
 @numba.njit(cache=True, error_model="numpy")
 def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
-    """Breadth-first stepwise integration.
+    """Layered (wavefront) stepwise integration.
 
     ``state`` (H, W, 4) holds per pixel [t, g_x, g_y, flag] with flag −1 = not valid,
-    0 = valid and not yet reconstructed, 1 = reconstructed (t: ray parameter of the point,
-    g: slopes there); it is packed so that one step touches few cache lines. Returns
-    (largest corrector count, largest final |Δz|, number of steps that missed ``tol``);
-    the count is −1 if the seed's normal is unusable."""
+    0 = valid and not yet reached, 2 = in the wavefront being solved, 1 = reconstructed
+    (t: ray parameter of the point, g: slopes there). The wavefront k + 1 is every valid,
+    unreached 4-neighbour of wavefront k; each of its pixels is solved from *all* its
+    reconstructed 4-neighbours at once (the pixels of one wavefront are never 4-adjacent, as
+    the pixel grid is bipartite, so the order within a wavefront does not matter). Returns
+    (largest corrector count, largest final |Δz|, number of pixels that missed ``tol``); the
+    count is −1 if the seed's normal is unusable."""
     H = state.shape[0]
     W = state.shape[1]
     ox = o[0]
     oy = o[1]
     oz = o[2]
-    queue = np.empty(H * W, dtype=np.int64)
+    cur = np.empty(H * W, dtype=np.int64)
+    nxt = np.empty(H * W, dtype=np.int64)
+    nbr_t = np.empty(4)
+    nbr_gx = np.empty(4)
+    nbr_gy = np.empty(4)
+    nbr_v = np.empty(4, dtype=np.int64)
+    nbr_u = np.empty(4, dtype=np.int64)
     # Seed.
     t = (z0 - oz) / d[sv, su, 2]
     px = ox + t * d[sv, su, 0]
@@ -328,39 +337,56 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     state[sv, su, 1] = gx
     state[sv, su, 2] = gy
     state[sv, su, 3] = 1.0
-    queue[0] = sv * W + su
-    head = 0
-    tail = 1
+    cur[0] = sv * W + su
+    n_cur = 1
     max_used = 0
     max_change = 0.0
     n_unconverged = 0
-    while head < tail:
-        idx = queue[head]
-        head += 1
-        va = idx // W
-        ua = idx - va * W
-        ta = state[va, ua, 0]
-        gax = state[va, ua, 1]
-        gay = state[va, ua, 2]
-        # p_a relative to the camera centre (the ray origin).
-        rax = ta * d[va, ua, 0]
-        ray = ta * d[va, ua, 1]
-        raz = ta * d[va, ua, 2]
-        for k in range(4):
-            vb = va + nb_dv[k]
-            ub = ua + nb_du[k]
-            if vb < 0 or vb >= H or ub < 0 or ub >= W:
-                continue
-            if state[vb, ub, 3] != 0.0:
-                continue
+    while n_cur > 0:
+        # The next wavefront: valid, unreached neighbours of the current one.
+        n_nxt = 0
+        for i in range(n_cur):
+            idx = cur[i]
+            va = idx // W
+            ua = idx - va * W
+            for k in range(4):
+                vb = va + nb_dv[k]
+                ub = ua + nb_du[k]
+                if vb < 0 or vb >= H or ub < 0 or ub >= W:
+                    continue
+                if state[vb, ub, 3] != 0.0:
+                    continue
+                state[vb, ub, 3] = 2.0
+                nxt[n_nxt] = vb * W + ub
+                n_nxt += 1
+        # Solve each pixel b of the wavefront from all its reconstructed neighbours a_i:
+        # Σ_i [z_b − z_ai − G_i·(xy_b − xy_ai)] = 0, G_i = ½(g_ai + g_b) (trapezoidal rule),
+        # linear in t_b for fixed G_i; predictor G_i = g_ai, then correctors.
+        n_solved = 0
+        for i in range(n_nxt):
+            idx = nxt[i]
+            vb = idx // W
+            ub = idx - vb * W
+            m = 0
+            for k in range(4):
+                va = vb + nb_dv[k]
+                ua = ub + nb_du[k]
+                if va < 0 or va >= H or ua < 0 or ua >= W:
+                    continue
+                if state[va, ua, 3] != 1.0:
+                    continue
+                nbr_v[m] = va
+                nbr_u[m] = ua
+                nbr_t[m] = state[va, ua, 0]
+                nbr_gx[m] = state[va, ua, 1]
+                nbr_gy[m] = state[va, ua, 2]
+                m += 1
             dx = d[vb, ub, 0]
             dy = d[vb, ub, 1]
             dz = d[vb, ub, 2]
             qx = q[vb, ub, 0]
             qy = q[vb, ub, 1]
             qz = q[vb, ub, 2]
-            Gx = gax  # predictor: the slope at a only
-            Gy = gay
             ok = False
             z_prev = 0.0
             change = np.inf
@@ -368,10 +394,21 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
             tb = 0.0
             gbx = 0.0
             gby = 0.0
+            have_gb = False
             for it in range(max_iter + 1):
-                # Intersect ray b with the plane through p_a of slope G:
-                # (t_b d_z − r_a,z) = G · (t_b d_xy − r_a,xy)
-                tb = (raz - (Gx * rax + Gy * ray)) / (dz - (Gx * dx + Gy * dy))
+                num = 0.0
+                den = 0.0
+                for j in range(m):
+                    Gx = nbr_gx[j] if not have_gb else 0.5 * (nbr_gx[j] + gbx)
+                    Gy = nbr_gy[j] if not have_gb else 0.5 * (nbr_gy[j] + gby)
+                    ta = nbr_t[j]
+                    rax = ta * d[nbr_v[j], nbr_u[j], 0]
+                    ray = ta * d[nbr_v[j], nbr_u[j], 1]
+                    raz = ta * d[nbr_v[j], nbr_u[j], 2]
+                    # (t_b d_z − r_a,z) − G·(t_b d_xy − r_a,xy) = 0 summed over the neighbours.
+                    num += raz - (Gx * rax + Gy * ray)
+                    den += dz - (Gx * dx + Gy * dy)
+                tb = num / den
                 if not (tb > 0.0) or not np.isfinite(tb):
                     ok = False
                     break
@@ -381,16 +418,16 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
                     ok = False
                     break
                 ok = True
+                have_gb = True
                 if it > 0:
                     change = abs(bz - z_prev)
                     used = it
                     if change < tol:
                         break
                 z_prev = bz
-                Gx = 0.5 * (gax + gbx)  # corrector: trapezoidal rule
-                Gy = 0.5 * (gay + gby)
             if not ok:
-                continue  # another reconstructed neighbour may reach b later
+                state[vb, ub, 3] = 0.0  # may be reached again from a later wavefront
+                continue
             if change >= tol:
                 n_unconverged += 1
             if used > max_used:
@@ -400,9 +437,14 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
             state[vb, ub, 0] = tb
             state[vb, ub, 1] = gbx
             state[vb, ub, 2] = gby
+            cur[n_solved] = idx  # reuse cur as the list of solved pixels of this wavefront
+            n_solved += 1
+        for i in range(n_solved):
+            idx = cur[i]
+            vb = idx // W
+            ub = idx - vb * W
             state[vb, ub, 3] = 1.0
-            queue[tail] = vb * W + ub
-            tail += 1
+        n_cur = n_solved
     return max_used, max_change, n_unconverged
 
 
@@ -457,26 +499,30 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     Starting from the seed pixel, whose height is given, the reconstruction expands over valid
     4-connected neighbours, driven by the normals at the border of the current reconstruction.
 
-    **Expansion order.** Breadth-first from the seed: pixels are taken from a FIFO queue; for
-    the pixel a taken from the queue its neighbours are visited in the order up (row − 1),
-    down (row + 1), left (column − 1), right (column + 1), and every valid neighbour b that is
-    not yet reconstructed is solved from a alone and appended to the queue. So each pixel is
-    reached from exactly one neighbour — the first reconstructed neighbour in breadth-first
-    order — along a shortest 4-connected path from the seed.
+    **Expansion order.** In wavefronts from the seed: wavefront k + 1 is every valid,
+    not yet reconstructed 4-neighbour of wavefront k (so wavefront k holds the pixels at
+    4-connected distance k from the seed). Each pixel of a wavefront is solved from *all* its
+    reconstructed 4-neighbours together (one or two for a full grid: those of the previous
+    wavefront), so the result does not depend on the order in which neighbours are visited,
+    and where the measured slope field is not exactly a gradient (a wrong screen model, noise)
+    the errors of the different paths are averaged instead of following one arbitrary path.
+    A pixel whose step fails (see below) stays unreconstructed in its wavefront and may be
+    reached again from a later one.
 
-    **One step a → b.** The height of b solves the trapezoidal rule
+    **One step.** The height of b solves the trapezoidal rule for its reconstructed
+    neighbours a_i, summed:
 
-        z_b − z_a = ½ (g_a + g_b) · (xy_b − xy_a)
+        Σ_i [ z_b − z_ai − ½ (g_ai + g_b) · (xy_b − xy_ai) ] = 0
 
     with p_b = o + t_b·d_b on b's view ray and g = (−n_x/n_z, −n_y/n_z) the slopes of the
-    bisector normal (see :func:`normals_from_registration`). For a fixed mean slope G the
-    equation is linear in t_b (p_b is the intersection of b's ray with the plane through p_a of
-    slope G). The predictor uses G = g_a; each corrector recomputes g_b at the new p_b and uses
-    G = ½(g_a + g_b), until the height changes by less than :data:`STEP_TOL_MM` (at most
-    :data:`STEP_MAX_ITER` correctors; the last iterate is kept either way). The rule is exact
-    for height functions of degree ≤ 2 (planes, paraboloids). A step that fails (the ray misses the plane in front of
-    the camera, or the normal is undefined or perpendicular to z) is skipped and b may still be
-    reached from another neighbour later.
+    bisector normal (see :func:`normals_from_registration`). For fixed mean slopes G_i the
+    equation is linear in t_b (for one neighbour: p_b is the intersection of b's ray with the
+    plane through p_a of slope G). The predictor uses G_i = g_ai; each corrector recomputes g_b
+    at the new p_b and uses G_i = ½(g_ai + g_b), until the height changes by less than
+    :data:`STEP_TOL_MM` (at most :data:`STEP_MAX_ITER` correctors; the last iterate is kept
+    either way). The rule is exact for height functions of degree ≤ 2 (planes, paraboloids).
+    A step that fails (the ray misses the plane in front of the camera, or the normal is
+    undefined or perpendicular to z) is skipped and b may be reached from a later wavefront.
 
     Parameters
     ----------
