@@ -64,6 +64,10 @@ def atomic_output_dir(target: str | Path, *, force: bool = False) -> Iterator[Pa
     existing ``target`` is left untouched.
     """
     target = Path(target)
+    if target.name in ("", ".", "..") or Path.cwd().resolve().is_relative_to(target.resolve()):
+        raise OutputExistsError(
+            f"output {str(target)!r} is the current directory or one of its parents; name a new directory"
+        )
     _check_target(target, force)
     parent = target.parent if str(target.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)

@@ -8,6 +8,7 @@ Units are in the key names (mm, deg, px); conventions in docs/conventions.md.
 
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -316,15 +317,36 @@ def default_setup() -> Setup:
 
 
 # ============================================================================ parsing
+#: The keys each table of a setup file may hold (for typo hints in error messages).
+_KNOWN_KEYS = {
+    "": ("format", "format_version", "cameras", "screen", "sample", "patterns", "calibration", "calibration_report"),
+    "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg"),
+    "distortion": ("k1", "k2", "p1", "p2", "k3"),
+    "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
+    "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm"),
+    "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
+                 "seed"),
+    "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px"),
+}
+
+
 class _Reader:
     """Typed access to a TOML table with key paths in error messages."""
 
-    def __init__(self, table: Any, path: str):
+    def __init__(self, table: Any, path: str, known: tuple[str, ...] | None = None):
         if not isinstance(table, dict):
             raise SetupError(f"{path or 'setup'} must be a table, got {type(table).__name__}")
         self.table = table
         self.path = path
         self.used: set[str] = set()
+        self.known = known
+
+    def _typo_hint(self, missing: str) -> str:
+        if self.known is None:
+            return ""
+        unknown = [k for k in self.table if k not in self.known]
+        close = difflib.get_close_matches(missing, unknown, n=1, cutoff=0.75)
+        return f" (found unknown key {self.key(close[0])}: a misspelling of {missing}?)" if close else ""
 
     def key(self, k: str) -> str:
         return f"{self.path}.{k}" if self.path else k
@@ -336,7 +358,7 @@ class _Reader:
         self.used.add(k)
         if k not in self.table:
             if default is ...:
-                raise SetupError(f"missing key {self.key(k)}")
+                raise SetupError(f"missing key {self.key(k)}{self._typo_hint(k)}")
             return default
         return self.table[k]
 
@@ -409,13 +431,16 @@ class _Reader:
             rows.append(tuple(row))
         return tuple(rows)
 
-    def table_(self, k: str) -> "_Reader":
-        return _Reader(self.raw(k), self.key(k))
+    def table_(self, k: str, kind: str | None = None) -> "_Reader":
+        return _Reader(self.raw(k), self.key(k), _KNOWN_KEYS.get(kind if kind is not None else k))
 
     def finish(self) -> None:
         unknown = sorted(set(self.table) - self.used)
         if unknown:
-            raise SetupError(f"unknown key {self.key(unknown[0])} (known keys here: {sorted(self.used)})")
+            known = sorted(self.known if self.known is not None else self.used)
+            close = difflib.get_close_matches(unknown[0], known, n=1, cutoff=0.6)
+            hint = f"did you mean {self.key(close[0])}? " if close else ""
+            raise SetupError(f"unknown key {self.key(unknown[0])} ({hint}known keys here: {known})")
 
 
 _MAX_IMAGE_SIDE_PX = 2**31 - 1  # the PNG format's limit on width and height
@@ -443,7 +468,7 @@ def _camera(r: _Reader) -> CameraSetup:
     pp = r.vector("principal_point_px", 2)
     dist = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0}
     if r.has("distortion"):
-        d = r.table_("distortion")
+        d = r.table_("distortion", "distortion")
         for k in dist:
             dist[k] = d.number(k, 0.0)
         d.finish()
@@ -464,20 +489,20 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         Naming the key and the problem (missing or unknown keys, wrong types or shapes,
         non-finite values, non-increasing grids, non-positive sizes or focal lengths, …).
     """
-    r = _Reader(doc, "")
+    r = _Reader(doc, "", _KNOWN_KEYS[""])
     fmt = r.raw("format", SETUP_FORMAT)
     if fmt != SETUP_FORMAT:
         raise SetupError(f"{source}: format must be {SETUP_FORMAT!r}, got {fmt!r}")
     r.integer("format_version", SETUP_FORMAT_VERSION, choices=(SETUP_FORMAT_VERSION,))
 
-    cams_r = r.table_("cameras")
+    cams_r = _Reader(r.raw("cameras"), "cameras")
     if not cams_r.table:
         raise SetupError("cameras must define at least one camera, e.g. [cameras.left]")
     cameras = {}
     for name in cams_r.table:
         if not (name.isascii() and name.isidentifier()):  # a bare TOML key, file and HDF5 group name
             raise SetupError(f"camera name {name!r} must be a plain identifier (letters, digits, _)")
-        cameras[name] = _camera(cams_r.table_(name))
+        cameras[name] = _camera(cams_r.table_(name, "camera"))
 
     s = r.table_("screen")
     screen_pose = _pose(s)

@@ -1,0 +1,38 @@
+"""Error messages that guide the user: misspelt keys, dangerous output paths."""
+
+import tomllib
+
+import pytest
+from click.testing import CliRunner
+
+from pmdsim.cli import main
+from pmdsim.errors import SetupError
+from pmdsim.setup import default_setup, parse_setup
+
+
+def _doc():
+    return tomllib.loads(default_setup().to_toml())
+
+
+def test_misspelt_required_key_is_named():
+    d = _doc()
+    d["cameras"]["left"]["focal_lenght_px"] = d["cameras"]["left"].pop("focal_length_px")
+    with pytest.raises(SetupError) as e:
+        parse_setup(d)
+    msg = str(e.value)
+    assert "missing key cameras.left.focal_length_px" in msg and "focal_lenght_px" in msg
+
+
+def test_misspelt_optional_key_gets_a_suggestion():
+    d = _doc()
+    d["screen"]["bulge"] = 1.0
+    with pytest.raises(SetupError, match=r"unknown key screen\.bulge \(did you mean screen\.bulge_mm\?"):
+        parse_setup(d)
+
+
+def test_output_into_the_current_directory_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "keep.txt").write_text("precious")
+    r = CliRunner().invoke(main, ["simulate", "--out", ".", "--force", "--quiet"])
+    assert r.exit_code == 2 and "current directory" in r.output
+    assert (tmp_path / "keep.txt").read_text() == "precious"
