@@ -109,6 +109,16 @@ def _render_kernel(screen_xy, valid, axis, period, shift, mean, amp, full_scale,
             out[v, u] = q
 
 
+def _check_render_args(screen_xy_mm, valid, bit_depth):
+    if bit_depth not in (8, 16):
+        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    ok = np.asarray(valid, dtype=bool)
+    if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
+        raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    return xy, ok
+
+
 def render(
     screen_xy_mm: np.ndarray,
     valid: np.ndarray,
@@ -142,12 +152,7 @@ def render(
     ndarray (H, W), uint8 or uint16
         Rounded to the nearest grey level and clipped to [0, 2**bit_depth − 1].
     """
-    if bit_depth not in (8, 16):
-        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
-    xy = np.asarray(screen_xy_mm, dtype=float)
-    ok = np.asarray(valid, dtype=bool)
-    if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
-        raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    xy, ok = _check_render_args(screen_xy_mm, valid, bit_depth)
     full = float(2**bit_depth - 1)
     if noise_std > 0:
         if rng is None:
@@ -213,14 +218,9 @@ def render_period(
     Same model and quantisation as :func:`render` (one sine and cosine per pixel instead of N
     cosines). With noise, the N noise fields are drawn from ``rng`` in shift order.
     """
-    if bit_depth not in (8, 16):
-        raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
     if direction not in DIRECTIONS:
         raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
-    xy = np.asarray(screen_xy_mm, dtype=float)
-    ok = np.asarray(valid, dtype=bool)
-    if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
-        raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    xy, ok = _check_render_args(screen_xy_mm, valid, bit_depth)
     n = sequence.n_shifts
     delta = 2.0 * np.pi * np.arange(n) / n
     full = float(2**bit_depth - 1)

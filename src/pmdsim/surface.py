@@ -192,30 +192,6 @@ def height_kernel(kind, gx, gy, coef, x, y):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def eval_kernel(kind, gx, gy, coef, x, y):
-    """Height and exact gradient (h, ∂h/∂x, ∂h/∂y) at (x, y) (eq. 8 and its derivatives).
-
-    Outside the grid the edge patches extrapolate; callers check bounds themselves.
-    """
-    if kind == _KIND_PLANE:
-        return 0.0, 0.0, 0.0
-    b, sx, sy = _patch(gx, gy, x, y)
-    # Row a: Σ_b c[a, b] sx^b and its x-derivative.
-    r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
-    r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
-    r2 = coef[b + 8] + sx * (coef[b + 9] + sx * (coef[b + 10] + sx * coef[b + 11]))
-    r3 = coef[b + 12] + sx * (coef[b + 13] + sx * (coef[b + 14] + sx * coef[b + 15]))
-    d0 = coef[b + 1] + sx * (2.0 * coef[b + 2] + sx * 3.0 * coef[b + 3])
-    d1 = coef[b + 5] + sx * (2.0 * coef[b + 6] + sx * 3.0 * coef[b + 7])
-    d2 = coef[b + 9] + sx * (2.0 * coef[b + 10] + sx * 3.0 * coef[b + 11])
-    d3 = coef[b + 13] + sx * (2.0 * coef[b + 14] + sx * 3.0 * coef[b + 15])
-    h = r0 + sy * (r1 + sy * (r2 + sy * r3))
-    hx = d0 + sy * (d1 + sy * (d2 + sy * d3))
-    hy = r1 + sy * (2.0 * r2 + sy * 3.0 * r3)
-    return h, hx, hy
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
 def eval2_kernel(kind, gx, gy, coef, x, y):
     """Height, gradient and second derivatives (h, h_x, h_y, h_xx, h_xy, h_yy) at (x, y)."""
     if kind == _KIND_PLANE:
@@ -240,6 +216,17 @@ def eval2_kernel(kind, gx, gy, coef, x, y):
     hxy = d1 + sy * (2.0 * d2 + sy * 3.0 * d3)
     hyy = 2.0 * r2 + 6.0 * sy * r3
     return h, hx, hy, hxx, hxy, hyy
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def eval_kernel(kind, gx, gy, coef, x, y):
+    """Height and exact gradient (h, ∂h/∂x, ∂h/∂y) at (x, y) (eq. 8 and its derivatives).
+
+    Outside the grid the edge patches extrapolate; callers check bounds themselves. (The
+    second derivatives that :func:`eval2_kernel` also computes are dropped by the compiler.)
+    """
+    h, hx, hy, _hxx, _hxy, _hyy = eval2_kernel(kind, gx, gy, coef, x, y)
+    return h, hx, hy
 
 
 @numba.njit(cache=True, error_model="numpy")
