@@ -475,13 +475,13 @@ def _points_normals(o, d, q, z, points, normals):
             normals[v, u, 2] = nz
 
 
-def _run_stepwise(o, d, q, valid, seed, z0):
+def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
     H, W = valid.shape
     state = np.full((H, W, 4), np.nan)
     state[..., 3] = np.where(valid, 0.0, -1.0)
     max_used, max_change, n_unconv = _stepwise_kernel(
-        o, d, q, state, seed[0], seed[1], z0, STEP_TOL_MM, STEP_MAX_ITER, _NB_DV, _NB_DU)
+        o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
     if max_used < 0:
         raise ReconstructionError(
             f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
@@ -1143,7 +1143,9 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     H, W = valid.shape
 
     # Start from the stepwise solution; pixels it could not reach start at the seed height.
-    z, done, _, _, _ = _run_stepwise(o, d, q, valid, seed, z0)
+    # The stepwise solution is only the start of the Gauss–Newton iteration: its correctors
+    # need not converge far below the final tolerance.
+    z, done, _, _, _ = _run_stepwise(o, d, q, valid, seed, z0, tol=max(tol_mm, 1e-9))
     z = np.where(S, z, np.nan)
     z[S & ~done] = z0
     z[seed] = z0
