@@ -19,6 +19,21 @@ provided that the mirror planes are not all parallel (with lifts only, moving th
 the common normal and every plane by half as much is invisible; :func:`calibrate` reports that
 as a :class:`CalibrationDataError`).
 
+Non-planar screen (optional, paper §5)
+--------------------------------------
+With a :class:`ScreenModel` (``calibrate(..., screen_model=...)``) the screen is the pmdsim
+not-a-knot spline surface over a control grid, and its free control heights are estimated
+jointly: the correspondences' decoded (x_q, y_q) are used and their z is the model's height
+h(x_q, y_q) = Σ_ji Z_ji w_j(y_q) w_i(x_q) (w: the cardinal basis splines of the grid axes; the
+1-D weights are computed once per correspondence). ∂r/∂Z_ji = (∂r/∂q_z)·w_j(y_q)·w_i(x_q), with
+∂r/∂q_z by the chain rule through the mirroring, the rigid transform and the projection.
+**Gauge**: the screen frame stays the reference and its x–y plane is the plane of the screen's
+rigid frame — the border control heights are held (normally 0) and only interior control points
+may be free, since a piston or tilt of the screen cannot be separated from the camera poses and
+mirror planes (:class:`ScreenModel` rejects free border points). A free height that fewer than
+``min_correspondences`` correspondences see with basis weight ≥ :data:`SCREEN_WEIGHT_MIN` is
+reported by name (:class:`CalibrationDataError`), as are combinations the condition check finds.
+
 Model (forward, analytic, exact for a planar mirror)
 ----------------------------------------------------
 The screen point is mirrored across the plane, q' = q − 2 (n·q − d) n (the virtual point: the
@@ -34,9 +49,11 @@ camera (14): ``fx_px, fy_px, ppx_px, ppy_px, k1, k2, p1, p2`` additively;
 screen frame, R_screen_cam ← exp([δ]×)·R_screen_cam; ``position_x/y/z_mm`` the camera centre
 (the translation of ``T_screen_cam``) additively. mirror (3): ``tilt_a, tilt_b`` (rad)
 n ← normalize(n + a·e1 + b·e2) with (e1, e2) = :meth:`MirrorPlane.tangent_basis`, ``d_mm``
-additively. Internally every parameter is measured in a unit of typical size
+additively. screen (F, optional): the free control heights ``screen.h[j,i]_mm`` additively
+(row j ↔ y_j, column i ↔ x_i), in the order of ``np.nonzero(free)``, after all mirrors.
+Internally every parameter is measured in a unit of typical size
 (:data:`PARAMETER_UNITS`: 100 px focal length, 10 px principal point, 0.01 for k1/k2, 0.001 for
-p1/p2, 1 mrad, 1 mm) and the normal equations are Jacobi-scaled to unit diagonal (Marquardt's
+p1/p2, 1 mrad, 1 mm; :data:`SCREEN_HEIGHT_UNIT_MM` = 0.1 mm for screen heights) and the normal equations are Jacobi-scaled to unit diagonal (Marquardt's
 scaling), so that the damping and the reported :attr:`CalibrationResult.condition_number` do not
 depend on units.
 
@@ -74,6 +91,7 @@ __all__ = [
     "CalibrationError",
     "CalibrationDataError",
     "Observations",
+    "ScreenModel",
     "observations_from_mapping",
     "CameraParams",
     "MirrorPlane",
@@ -87,6 +105,8 @@ __all__ = [
     "CAMERA_PARAMETERS",
     "MIRROR_PARAMETERS",
     "PARAMETER_UNITS",
+    "SCREEN_HEIGHT_UNIT_MM",
+    "SCREEN_WEIGHT_MIN",
     "MIN_CORRESPONDENCES",
     "MIN_POSES",
 ]
@@ -122,10 +142,18 @@ PARAMETER_UNITS = {
 _INTRINSICS = CAMERA_PARAMETERS[:8]  # the Camera fields among them, in order
 _NC = len(CAMERA_PARAMETERS)
 _NM = len(MIRROR_PARAMETERS)
-_NB = _NC + _NM  # parameters touched by one residual
+_NB = _NC + _NM  # parameters touched by one residual (besides the screen heights)
+_NJ = _NB + 1  # width of the kernel's Jacobian buffer: the 17 block columns, then ∂r/∂q_z
 _CAM_UNITS = np.array([PARAMETER_UNITS[p] for p in CAMERA_PARAMETERS])
 _MIR_UNITS = np.array([PARAMETER_UNITS[p] for p in MIRROR_PARAMETERS])
 
+#: Internal unit of the free screen heights ``screen.h[j,i]_mm`` (mm).
+SCREEN_HEIGHT_UNIT_MM = 0.1
+#: A correspondence "sees" a free screen control height (j, i) if its basis weight
+#: |w_i(x_q)·w_j(y_q)| is at least this (the weight is 1 at the control point; the not-a-knot
+#: basis decays by about 4× per grid interval); :func:`calibrate` needs ``min_correspondences``
+#: such correspondences per free height.
+SCREEN_WEIGHT_MIN = 0.1
 #: Fewest correspondences accepted per (camera, mirror pose) block.
 MIN_CORRESPONDENCES = 20
 #: Fewest mirror poses per camera.
@@ -139,7 +167,8 @@ _CHUNK = 2048  # correspondences per work item of the kernels
 @numba.njit(cache=True)
 def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, jac):
     """Residual (predicted − observed, px) of one correspondence and, if ``want_jac``, its
-    Jacobian (2 × 17) w.r.t. the block's parameters in natural units, written to ``jac``.
+    Jacobian (2 × 17) w.r.t. the block's parameters in natural units, written to ``jac[:, :17]``,
+    and the derivative ∂r/∂q_z w.r.t. the screen point's height, written to ``jac[:, 17]``.
 
     intr: (9,) fx, fy, ppx, ppy, k1, k2, p1, p2, k3; rot: (3, 3) R_screen_cam; cen: (3,) camera
     centre in the screen frame; mir: (4,) n, d; e1, e2: tangent basis of n.
@@ -171,7 +200,7 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     if not want_jac:
         return ru, rv, True
     for i in range(2):
-        for j in range(_NB):
+        for j in range(_NJ):
             jac[i, j] = 0.0
     # Intrinsics.
     jac[0, 0] = xd
@@ -235,17 +264,29 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     jac[1, 15] = -2.0 * (s * he21 + e2q * hn1)
     jac[0, 16] = 2.0 * hn0
     jac[1, 16] = 2.0 * hn1
+    # Screen point height: dq'/dq_z = (I − 2 n nᵀ) e_z = e_z − 2 n_z n.
+    jac[0, _NB] = h02 - 2.0 * nz * hn0
+    jac[1, _NB] = h12 - 2.0 * nz * hn1
     return ru, rv, True
 
 
 @numba.njit(cache=True)
-def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
+def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj, h_unit,
                want_normal, jtj, jtr):
     """Serial work item: correspondences start…end of one block. Accumulates the block's
-    (scaled) JᵀJ (full square) and Jᵀr if ``want_normal``. Returns (SSR, number behind camera)."""
-    jac = np.zeros((2, _NB))
-    acc = np.zeros((_NB, _NB))
-    accr = np.zeros(_NB)
+    (scaled) JᵀJ (full square, the 17 block parameters then the F free screen heights) and Jᵀr
+    if ``want_normal``. Returns (SSR, number behind camera).
+
+    Screen heights (F = ``fi.shape[0]`` may be 0): the column of free height f = (fj[f], fi[f])
+    is (∂r/∂q_z)·wy[k, fj[f]]·wx[k, fi[f]] — rank one per correspondence, which the
+    accumulation exploits."""
+    nf = fi.shape[0]
+    npar = _NB + nf
+    jac = np.zeros((2, _NJ))
+    acc = np.zeros((npar, npar))
+    accr = np.zeros(npar)
+    sw = np.zeros(nf)
+    jd = np.zeros(_NB)
     ssr = 0.0
     nbad = 0
     intr_c = intr[cam]
@@ -271,28 +312,49 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
                 accr[i] += a0 * ru + a1 * rv
                 for j in range(_NB):  # full square: contiguous, vectorises better than a triangle
                     acc[i, j] += a0 * jac[0, j] + a1 * jac[1, j]
+            if nf > 0:
+                dz0 = jac[0, _NB] * h_unit
+                dz1 = jac[1, _NB] * h_unit
+                for f in range(nf):
+                    sw[f] = wy[k, fj[f]] * wx[k, fi[f]]
+                gz = dz0 * ru + dz1 * rv
+                cz = dz0 * dz0 + dz1 * dz1
+                for i in range(_NB):
+                    jd[i] = jac[0, i] * dz0 + jac[1, i] * dz1
+                for f in range(nf):
+                    sf = sw[f]
+                    accr[_NB + f] += gz * sf
+                    for i in range(_NB):
+                        acc[i, _NB + f] += jd[i] * sf
+                    csf = cz * sf
+                    for g in range(nf):
+                        acc[_NB + f, _NB + g] += csf * sw[g]
     if want_normal:
-        for i in range(_NB):
+        for f in range(nf):
+            for i in range(_NB):
+                acc[_NB + f, i] = acc[i, _NB + f]
+        for i in range(npar):
             jtr[i] = accr[i]
-            for j in range(_NB):
+            for j in range(npar):
                 jtj[i, j] = acc[i, j]
     return ssr, nbad
 
 
 @numba.njit(cache=True, parallel=True)
-def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units,
-                   want_normal, jtj, jtr, ssr, nbad):
+def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj,
+                   h_unit, want_normal, jtj, jtr, ssr, nbad):
     for c in numba.prange(c_start.shape[0]):
         s, b = _chunk_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, intr, rot, cen, mir,
-                          e1, e2, units, want_normal, jtj[c], jtr[c])
+                          e1, e2, units, wx, wy, fi, fj, h_unit, want_normal, jtj[c], jtr[c])
         ssr[c] = s
         nbad[c] = b
 
 
 @numba.njit(cache=True)
 def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac, ok):
-    """Residuals (N, 2), Jacobian blocks (N, 2, 17) in natural units and validity, per row."""
-    tmp = np.zeros((2, _NB))
+    """Residuals (N, 2), Jacobian blocks (N, 2, 18) in natural units (17 block columns, then
+    ∂r/∂q_z) and validity, per row."""
+    tmp = np.zeros((2, _NJ))
     for k in range(uv.shape[0]):
         c = cam_idx[k]
         p = pose_idx[k]
@@ -302,7 +364,7 @@ def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac
         res[k, 1] = rv
         ok[k] = good
         for i in range(2):
-            for j in range(_NB):
+            for j in range(_NJ):
                 jac[k, i, j] = tmp[i, j]
 
 
@@ -327,8 +389,11 @@ class Observations:
         Index k of the mirror pose (into :attr:`CalibrationState.mirrors`).
     uv_px : array_like (M, 2)
         Pixel coordinates (u, v); (0, 0) is the centre of the top-left pixel.
-    q_screen_mm : array_like (M, 3)
+    q_screen_mm : array_like (M, 3) or (M, 2)
         Screen points (x_q, y_q, z) in the screen frame; z = 0 for the planar screen model.
+        (M, 2): the decoded pattern coordinates (x_q, y_q) only, stored with z = 0. When
+        :func:`calibrate` is given a :class:`ScreenModel`, only (x_q, y_q) are used and z is the
+        model's height h(x_q, y_q).
 
     Raises
     ------
@@ -346,7 +411,10 @@ class Observations:
         if int(self.pose_index) != self.pose_index or self.pose_index < 0:
             raise CalibrationDataError(f"{where}: pose_index must be a non-negative integer")
         uv = _as_points(self.uv_px, 2, f"{where}: uv_px")
-        q = _as_points(self.q_screen_mm, 3, f"{where}: q_screen_mm")
+        q_in = np.asarray(self.q_screen_mm, dtype=float)
+        if q_in.ndim == 2 and q_in.shape[1] == 2:
+            q_in = np.column_stack([q_in, np.zeros(q_in.shape[0])])
+        q = _as_points(q_in, 3, f"{where}: q_screen_mm")
         if uv.shape[0] != q.shape[0]:
             raise CalibrationDataError(
                 f"{where}: uv_px has {uv.shape[0]} rows but q_screen_mm has {q.shape[0]}"
@@ -425,6 +493,167 @@ def observations_from_mapping(
     return Observations(camera, int(pose_index), uv, np.column_stack([xyq, z]))
 
 
+# ============================================================================ screen model
+def _basis_weights(grid: np.ndarray, coef: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Values (M, n) of the n cardinal not-a-knot basis splines of ``grid`` at ``v`` (M,)
+    (``coef`` from :func:`pmdsim.surface.cardinal_spline_coefficients`; the edge intervals
+    extrapolate, as in :func:`pmdsim.surface._interval`)."""
+    n = grid.size
+    i = np.clip(np.searchsorted(grid, v, side="right") - 1, 0, n - 2)
+    t = v - grid[i]
+    c = coef[i]  # (M, 4, n)
+    return c[:, 0] + t[:, None] * (c[:, 1] + t[:, None] * (c[:, 2] + t[:, None] * c[:, 3]))
+
+
+@dataclass(frozen=True, eq=False)
+class ScreenModel:
+    """A non-planar pattern screen for the calibration: the pmdsim not-a-knot spline surface
+    over a control grid (the same surface as ``SplineSurface(grid_x_mm, grid_y_mm, heights_mm)``,
+    paper §2.3, eq. 8), with some control heights estimated (paper §5, the open question).
+
+    Parameters
+    ----------
+    grid_x_mm, grid_y_mm : array_like (n_x,), (n_y,)
+        Grid lines of the screen frame, strictly increasing, ≥ 2 each (normally the screen's
+        bounds and its control lines, e.g. ``[0, 354, 708]`` × ``[0, 199, 398]``).
+    heights_mm : array_like (n_y, n_x)
+        Control heights (row j ↔ y_j, column i ↔ x_i): the start values of the free ones, the
+        fixed values of the others.
+    free : array_like of bool (n_y, n_x)
+        The control heights to estimate; only interior points may be free.
+
+    Gauge
+    -----
+    The screen frame is the calibration's reference and its x–y plane is the plane of the
+    screen's rigid frame (its border): **the border control heights are held** at their given
+    values (normally 0). A piston or tilt of the screen surface (which the border heights would
+    carry) is indistinguishable from moving all camera poses and mirror planes, so a ``free``
+    mask with a border point set is rejected (:class:`CalibrationDataError`).
+
+    Raises
+    ------
+    CalibrationDataError
+        On bad grids or shapes, non-finite heights, or free border points (named).
+    """
+
+    grid_x_mm: np.ndarray
+    grid_y_mm: np.ndarray
+    heights_mm: np.ndarray
+    free: np.ndarray
+
+    def __post_init__(self) -> None:
+        grids = []
+        for name in ("grid_x_mm", "grid_y_mm"):
+            g = np.array(getattr(self, name), dtype=float).reshape(-1) if np.ndim(getattr(self, name)) <= 1 else None
+            if g is None or g.size < 2 or not np.all(np.isfinite(g)) or not np.all(np.diff(g) > 0):
+                raise CalibrationDataError(
+                    f"ScreenModel.{name} must be a strictly increasing 1-D array of ≥ 2 finite values, "
+                    f"got {getattr(self, name)!r}")
+            g.setflags(write=False)
+            grids.append(g)
+        gx, gy = grids
+        shape = (gy.size, gx.size)
+        z = np.array(self.heights_mm, dtype=float)
+        if z.shape != shape:
+            raise CalibrationDataError(f"ScreenModel.heights_mm must have shape (n_y, n_x) = {shape}, got {z.shape}")
+        if not np.all(np.isfinite(z)):
+            raise CalibrationDataError("ScreenModel.heights_mm contains NaN or infinite values")
+        free = np.array(self.free)
+        if free.shape != shape or free.dtype != bool:
+            raise CalibrationDataError(f"ScreenModel.free must be a bool array of shape (n_y, n_x) = {shape}, "
+                                       f"got {free.dtype} {free.shape}")
+        border = free.copy()
+        border[1:-1, 1:-1] = False
+        if border.any():
+            names = [_screen_name(j, i) for j, i in zip(*np.nonzero(border))]
+            raise CalibrationDataError(
+                f"ScreenModel: border control heights cannot be estimated ({', '.join(names)} are free): "
+                f"the gauge of the calibration is the screen frame, whose x–y plane is the plane of the "
+                f"rigid screen frame (the border); a piston or tilt of the screen surface cannot be "
+                f"separated from the camera poses and mirror planes. Hold the border heights (free=False) "
+                f"and free interior control points only")
+        z.setflags(write=False)
+        free.setflags(write=False)
+        object.__setattr__(self, "grid_x_mm", gx)
+        object.__setattr__(self, "grid_y_mm", gy)
+        object.__setattr__(self, "heights_mm", z)
+        object.__setattr__(self, "free", free)
+
+    @classmethod
+    def flat(cls, grid_x_mm, grid_y_mm) -> "ScreenModel":
+        """A flat start (all heights 0) with every interior control point free: 3 × 3 → 1 free
+        height, 5 × 5 → 9, 9 × 9 → 49."""
+        gx = np.asarray(grid_x_mm, dtype=float)
+        gy = np.asarray(grid_y_mm, dtype=float)
+        free = np.zeros((gy.size, gx.size), dtype=bool)
+        free[1:-1, 1:-1] = True
+        return cls(gx, gy, np.zeros(free.shape), free)
+
+    @classmethod
+    def from_surface(cls, surface, free=None) -> "ScreenModel":
+        """From a :class:`pmdsim.surface.SplineSurface` (e.g. a setup's ``screen.surface``);
+        ``free`` defaults to all interior control points."""
+        z = np.asarray(surface.heights_mm, dtype=float)
+        if free is None:
+            free = np.zeros(z.shape, dtype=bool)
+            free[1:-1, 1:-1] = True
+        return cls(surface.grid_x_mm, surface.grid_y_mm, z, free)
+
+    @property
+    def n_free(self) -> int:
+        """Number F of estimated control heights."""
+        return int(self.free.sum())
+
+    @property
+    def free_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """(j, i) of the free control heights in parameter order (row-major)."""
+        return np.nonzero(self.free)
+
+    def free_names(self) -> list[str]:
+        """Parameter names of the free heights, ``screen.h[j,i]_mm`` (row j ↔ y_j, column i ↔ x_i)."""
+        return [_screen_name(j, i) for j, i in zip(*self.free_index)]
+
+    @property
+    def free_heights_mm(self) -> np.ndarray:
+        """The free control heights (F,) in parameter order."""
+        return self.heights_mm[self.free]
+
+    def with_free_heights(self, values_mm) -> "ScreenModel":
+        """A copy with the free heights replaced by ``values_mm`` (F,)."""
+        z = np.array(self.heights_mm)
+        z[self.free] = np.asarray(values_mm, dtype=float)
+        return ScreenModel(self.grid_x_mm, self.grid_y_mm, z, self.free)
+
+    @property
+    def surface(self):
+        """The screen surface as a :class:`pmdsim.surface.SplineSurface` (e.g. for the ray tracer)."""
+        from .surface import SplineSurface
+
+        return SplineSurface(self.grid_x_mm, self.grid_y_mm, self.heights_mm)
+
+    def basis_weights(self, x_mm, y_mm) -> tuple[np.ndarray, np.ndarray]:
+        """The 1-D cardinal basis values (wx (M, n_x), wy (M, n_y)) at the points: the height is
+        h(x, y) = Σ_j Σ_i heights_mm[j, i]·wy[:, j]·wx[:, i]. (The not-a-knot cardinal basis
+        splines have global support — they decay by about 4× per grid interval — so every
+        control height has a nonzero weight everywhere.)"""
+        from .surface import cardinal_spline_coefficients
+
+        x = np.asarray(x_mm, dtype=float).reshape(-1)
+        y = np.asarray(y_mm, dtype=float).reshape(-1)
+        wx = _basis_weights(self.grid_x_mm, cardinal_spline_coefficients(self.grid_x_mm), x)
+        wy = _basis_weights(self.grid_y_mm, cardinal_spline_coefficients(self.grid_y_mm), y)
+        return wx, wy
+
+    def height(self, x_mm, y_mm) -> np.ndarray:
+        """h(x, y) (mm) at the points (flattened)."""
+        wx, wy = self.basis_weights(x_mm, y_mm)
+        return np.einsum("mi,mi->m", wy @ self.heights_mm, wx)
+
+
+def _screen_name(j: int, i: int) -> str:
+    return f"screen.h[{j},{i}]_mm"
+
+
 # ============================================================================ parameters
 @dataclass(frozen=True, eq=False)
 class CameraParams:
@@ -484,11 +713,13 @@ class MirrorPlane:
 
 @dataclass(frozen=True, eq=False)
 class CalibrationState:
-    """All calibration parameters: cameras by name (in parameter order) and mirror planes by
-    pose index (in the screen frame)."""
+    """All calibration parameters: cameras by name (in parameter order), mirror planes by
+    pose index (in the screen frame) and, optionally, the screen model whose free control
+    heights are estimated (None: the correspondences' q are used as given, e.g. the plane z = 0)."""
 
     cameras: dict[str, CameraParams]
     mirrors: tuple[MirrorPlane, ...]
+    screen: ScreenModel | None = None
 
     def __post_init__(self) -> None:
         cams = dict(self.cameras)
@@ -499,6 +730,8 @@ class CalibrationState:
         for k, mp in enumerate(mirrors):
             if not isinstance(mp, MirrorPlane):
                 raise TypeError(f"CalibrationState.mirrors[{k}] must be a MirrorPlane, got {type(mp).__name__}")
+        if self.screen is not None and not isinstance(self.screen, ScreenModel):
+            raise TypeError(f"CalibrationState.screen must be a ScreenModel or None, got {type(self.screen).__name__}")
         object.__setattr__(self, "cameras", cams)
         object.__setattr__(self, "mirrors", mirrors)
 
@@ -507,14 +740,22 @@ class CalibrationState:
         return list(self.cameras)
 
     def parameter_names(self) -> list[str]:
-        """Names of the parameter vector, e.g. ``left.fx_px``, ``mirror3.d_mm``."""
+        """Names of the parameter vector, e.g. ``left.fx_px``, ``mirror3.d_mm``, then the free
+        screen heights ``screen.h[j,i]_mm``."""
         names = [f"{c}.{p}" for c in self.cameras for p in CAMERA_PARAMETERS]
         names += [f"mirror{k}.{p}" for k in range(len(self.mirrors)) for p in MIRROR_PARAMETERS]
+        if self.screen is not None:
+            names += self.screen.free_names()
         return names
 
     @property
+    def n_screen(self) -> int:
+        """Number of free screen heights (0 without a screen model)."""
+        return 0 if self.screen is None else self.screen.n_free
+
+    @property
     def n_parameters(self) -> int:
-        return _NC * len(self.cameras) + _NM * len(self.mirrors)
+        return _NC * len(self.cameras) + _NM * len(self.mirrors) + self.n_screen
 
     def updated(self, delta) -> "CalibrationState":
         """The state moved by the increment ``delta`` (natural units, in :meth:`parameter_names`
@@ -535,7 +776,11 @@ class CalibrationState:
             dm = delta[off + _NM * k : off + _NM * (k + 1)]
             e1, e2 = m.tangent_basis()
             mirrors.append(MirrorPlane(m.normal + dm[0] * e1 + dm[1] * e2, m.d_mm + dm[2]))
-        return CalibrationState(cams, tuple(mirrors))
+        screen = self.screen
+        if screen is not None and screen.n_free:
+            off += _NM * len(self.mirrors)
+            screen = screen.with_free_heights(screen.free_heights_mm + delta[off:])
+        return CalibrationState(cams, tuple(mirrors), screen)
 
     # kernel arrays ---------------------------------------------------------------------
     def _arrays(self):
@@ -565,10 +810,11 @@ def _orthonormalize(r: np.ndarray) -> np.ndarray:
 class _Data:
     """Observations concatenated in block order, with the chunk table of the kernels."""
 
-    def __init__(self, blocks: list[tuple[int, int, np.ndarray, np.ndarray]], block_keys):
+    def __init__(self, blocks: list[tuple[int, int, np.ndarray, np.ndarray]], block_keys, screen=None):
         self.block_keys = block_keys  # [(camera name, pose index)]
         self.uv = np.ascontiguousarray(np.concatenate([b[2] for b in blocks]))
         self.q = np.ascontiguousarray(np.concatenate([b[3] for b in blocks]))
+        self.wx, self.wy, self.fi, self.fj = _screen_arrays(screen, self.q)
         starts, ends, cams, poses, cblock = [], [], [], [], []
         off = 0
         self.block_rows = []
@@ -588,6 +834,48 @@ class _Data:
         self.c_pose = np.array(poses, dtype=np.int64)
         self.c_block = np.array(cblock, dtype=np.int64)
         self.n_rows = off
+
+
+def _screen_arrays(screen: ScreenModel | None, q: np.ndarray):
+    """Per-correspondence 1-D basis weights (wx (M, n_x), wy (M, n_y)) and the (i, j) indices of
+    the free heights — computed once, as the correspondences do not move. Dummies without a
+    screen model."""
+    if screen is None:
+        return np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    wx, wy = screen.basis_weights(q[:, 0], q[:, 1])
+    fj, fi = screen.free_index
+    return (np.ascontiguousarray(wx), np.ascontiguousarray(wy), np.ascontiguousarray(fi, dtype=np.int64),
+            np.ascontiguousarray(fj, dtype=np.int64))
+
+
+def _screen_q(q: np.ndarray, wx: np.ndarray, wy: np.ndarray, screen: ScreenModel | None) -> np.ndarray:
+    """The correspondences' screen points with z = h(x_q, y_q) of the screen model (q as given
+    without one)."""
+    if screen is None:
+        return q
+    out = np.array(q)
+    out[:, 2] = np.einsum("mi,mi->m", wy @ screen.heights_mm, wx)
+    return out
+
+
+def _screen_coverage(data: "_Data", screen: ScreenModel, min_correspondences: int) -> None:
+    """Raise naming the free heights that no (or too few) correspondences see: fewer than
+    ``min_correspondences`` with basis weight |w_i(x_q)·w_j(y_q)| ≥ :data:`SCREEN_WEIGHT_MIN`."""
+    if screen is None or screen.n_free == 0:
+        return
+    problems = []
+    for name, i, j in zip(screen.free_names(), data.fi, data.fj):
+        count = int(np.count_nonzero(np.abs(data.wy[:, j] * data.wx[:, i]) >= SCREEN_WEIGHT_MIN))
+        if count < min_correspondences:
+            problems.append(f"{name} at (x, y) = ({screen.grid_x_mm[i]:g}, {screen.grid_y_mm[j]:g}) mm: "
+                            f"{count} correspondences")
+    if problems:
+        raise CalibrationDataError(
+            f"the data do not determine {len(problems)} free screen control height(s): fewer than "
+            f"{min_correspondences} correspondences have basis weight ≥ {SCREEN_WEIGHT_MIN:g} for "
+            + "; ".join(problems)
+            + ". The cameras do not see these control points via the mirror: hold them (free=False), "
+            f"use a coarser screen grid, or add mirror poses whose reflections reach them")
 
 
 def _pack(observations: Iterable[Observations], state: CalibrationState, min_correspondences: int) -> _Data:
@@ -650,11 +938,14 @@ def _pack(observations: Iterable[Observations], state: CalibrationState, min_cor
         blocks.append((names.index(cam), k, np.concatenate([o.uv_px for o in lst]),
                        np.concatenate([o.q_screen_mm for o in lst])))
         keys.append((cam, k))
-    return _Data(blocks, keys)
+    data = _Data(blocks, keys, state.screen)
+    _screen_coverage(data, state.screen, min_correspondences)
+    return data
 
 
 def _units(state: CalibrationState) -> np.ndarray:
-    return np.concatenate([np.tile(_CAM_UNITS, len(state.cameras)), np.tile(_MIR_UNITS, len(state.mirrors))])
+    return np.concatenate([np.tile(_CAM_UNITS, len(state.cameras)), np.tile(_MIR_UNITS, len(state.mirrors)),
+                           np.full(state.n_screen, SCREEN_HEIGHT_UNIT_MM)])
 
 
 def _block_index(state: CalibrationState, ci: int, k: int) -> np.ndarray:
@@ -667,17 +958,22 @@ def _evaluate(data: _Data, state: CalibrationState, want_normal: bool):
     normal equations (A = JᵀJ, g = Jᵀr in internal units)."""
     intr, rot, cen, mir, e1, e2 = state._arrays()
     nch = data.c_start.shape[0]
+    nf = state.n_screen
+    if nf != data.fi.shape[0]:
+        raise ValueError("the state's screen model does not match the packed data")
+    q = _screen_q(data.q, data.wx, data.wy, state.screen)
     if want_normal:
-        jtj = np.empty((nch, _NB, _NB))
-        jtr = np.empty((nch, _NB))
+        jtj = np.empty((nch, _NB + nf, _NB + nf))
+        jtr = np.empty((nch, _NB + nf))
     else:
         jtj = np.empty((nch, 1, 1))
         jtr = np.empty((nch, 1))
     ssr = np.empty(nch)
     nbad = np.empty(nch, dtype=np.int64)
     units = np.concatenate([_CAM_UNITS, _MIR_UNITS])
-    _chunks_kernel(data.c_start, data.c_end, data.c_cam, data.c_pose, data.uv, data.q, intr, rot, cen,
-                   mir, e1, e2, units, want_normal, jtj, jtr, ssr, nbad)
+    _chunks_kernel(data.c_start, data.c_end, data.c_cam, data.c_pose, data.uv, q, intr, rot, cen,
+                   mir, e1, e2, units, data.wx, data.wy, data.fi, data.fj, SCREEN_HEIGHT_UNIT_MM, want_normal,
+                   jtj, jtr, ssr, nbad)
     nblk = len(data.block_keys)
     block_ssr = np.bincount(data.c_block, weights=ssr, minlength=nblk)
     block_bad = np.bincount(data.c_block, weights=nbad, minlength=nblk).astype(int)
@@ -687,12 +983,13 @@ def _evaluate(data: _Data, state: CalibrationState, want_normal: bool):
     a = np.zeros((n, n))
     g = np.zeros(n)
     names = state.camera_names
+    screen_idx = np.arange(n - nf, n)
     # Sum the chunks of each (camera, pose) block, then scatter.
     for b, (cam, k) in enumerate(data.block_keys):
         sel = data.c_block == b
         blk = jtj[sel].sum(axis=0)
         blk = 0.5 * (blk + blk.T)
-        idx = _block_index(state, names.index(cam), k)
+        idx = np.r_[_block_index(state, names.index(cam), k), screen_idx]
         a[np.ix_(idx, idx)] += blk
         g[idx] += jtr[sel].sum(axis=0)
     return float(block_ssr.sum()), block_ssr, block_bad, a, g
@@ -730,8 +1027,10 @@ def residuals_and_jacobian(observations: Iterable[Observations], state: Calibrat
     uv = np.ascontiguousarray(np.concatenate(uv)) if obs else np.zeros((0, 2))
     q = np.ascontiguousarray(np.concatenate(q)) if obs else np.zeros((0, 3))
     m = uv.shape[0]
+    wx, wy, fi, fj = _screen_arrays(state.screen, q)
+    q = np.ascontiguousarray(_screen_q(q, wx, wy, state.screen))
     res = np.empty((m, 2))
-    jb = np.empty((m, 2, _NB))
+    jb = np.empty((m, 2, _NJ))
     ok = np.empty(m, dtype=np.bool_)
     _rows_kernel(cam_idx, pose_idx, uv, q, *state._arrays(), res, jb, ok)
     n = state.n_parameters
@@ -742,6 +1041,10 @@ def residuals_and_jacobian(observations: Iterable[Observations], state: Calibrat
         jac[rows, :, _NC * cam_idx + j] = jb[:, :, j]
     for j in range(_NM):
         jac[rows, :, nc + _NM * pose_idx + j] = jb[:, :, _NC + j]
+    # Free screen heights: ∂r/∂Z_ji = (∂r/∂q_z)·w_j(y_q)·w_i(x_q).
+    off = n - state.n_screen
+    for f, (i, j) in enumerate(zip(fi, fj)):
+        jac[:, :, off + f] = jb[:, :, _NB] * (wy[:, j] * wx[:, i])[:, None]
     res[~ok] = np.nan
     jac[~ok] = np.nan
     return res.reshape(-1), jac.reshape(2 * m, n), state.parameter_names()
@@ -778,6 +1081,10 @@ class CalibrationResult:
         Condition number of the Jacobi-scaled JᵀJ at the solution.
     rms_history_px : tuple[float, ...]
         RMS residual at the start and after every accepted step.
+    screen_model : ScreenModel or None
+        The screen model with the estimated free control heights (None if the calibration had
+        none); their standard deviations are the ``screen.h[j,i]_mm`` entries of
+        :attr:`parameter_std` (or :attr:`screen_std_mm`).
     """
 
     cameras: dict
@@ -793,12 +1100,24 @@ class CalibrationResult:
     covariance: np.ndarray
     condition_number: float
     rms_history_px: tuple = ()
+    screen_model: ScreenModel | None = None
 
     @property
     def state(self) -> CalibrationState:
         """The estimate as a :class:`CalibrationState` (e.g. to restart from it)."""
         return CalibrationState({k: CameraParams(c, t) for k, (c, t) in self.cameras.items()},
-                                tuple(self.mirrors))
+                                tuple(self.mirrors), self.screen_model)
+
+    @property
+    def screen_std_mm(self) -> np.ndarray | None:
+        """(n_y, n_x) standard deviations of the screen control heights (0 where held); None
+        without a screen model."""
+        if self.screen_model is None:
+            return None
+        out = np.zeros(self.screen_model.heights_mm.shape)
+        for name, (j, i) in zip(self.screen_model.free_names(), zip(*self.screen_model.free_index)):
+            out[j, i] = self.std(name)
+        return out
 
     def std(self, name: str) -> float:
         """Standard deviation of one parameter by name (e.g. ``"left.fx_px"``)."""
@@ -824,8 +1143,15 @@ class CalibrationResult:
         rms = {}
         for (cam, k), v in self.rms_px_by_camera_pose.items():
             rms.setdefault(cam, {})[str(k)] = float(v)
+        screen = None
+        if self.screen_model is not None:
+            sm = self.screen_model
+            screen = {"grid_x_mm": sm.grid_x_mm.tolist(), "grid_y_mm": sm.grid_y_mm.tolist(),
+                      "heights_mm": sm.heights_mm.tolist(), "free": sm.free.tolist(),
+                      "heights_std_mm": self.screen_std_mm.tolist()}
         return {
             "frame": "screen (held fixed)",
+            "screen": screen,
             "cameras": cams,
             "mirrors": [{"normal": m.normal.tolist(), "d_mm": m.d_mm} for m in self.mirrors],
             "converged": bool(self.converged),
@@ -885,6 +1211,9 @@ def _degeneracy_message(names, a_s, limit, cond) -> str:
         + f". Badly determined: {', '.join(sorted(undetermined, key=names.index))}. Typical cause: "
         f"all mirror planes parallel (only lifts, no tilts) — add mirror poses tilted about the "
         f"mirror's x and y axes"
+        + ("; or free screen control heights (screen.h) that the correspondences cover too "
+           "sparsely — hold them or use a coarser screen grid" if any(n.startswith("screen.") for n in undetermined)
+           else "")
     )
 
 
@@ -906,6 +1235,7 @@ def _rel_step(delta: np.ndarray, state: CalibrationState) -> float:
         refs += [f, f, f, f, 1, 1, 1, 1, 1, 1, 1, scale_mm, scale_mm, scale_mm]
     for _ in state.mirrors:
         refs += [1, 1, scale_mm]
+    refs += [1] * state.n_screen  # screen heights: 1 mm
     return float(np.max(np.abs(delta) / np.array(refs, dtype=float)))
 
 
@@ -913,6 +1243,7 @@ def calibrate(
     observations: Iterable[Observations],
     initial_state: CalibrationState,
     *,
+    screen_model: ScreenModel | None = None,
     max_iter: int = 100,
     ftol: float = 1e-12,
     xtol: float = 1e-10,
@@ -929,6 +1260,10 @@ def calibrate(
     initial_state : CalibrationState
         Start values (e.g. :func:`nominal_state`); its cameras define the parameter order, its
         mirrors the pose indices. k3 of each camera stays fixed at its initial value.
+    screen_model : ScreenModel, optional
+        Non-planar screen: the correspondences' z is the model's height h(x_q, y_q) and its
+        free control heights are estimated jointly (start values: its ``heights_mm``). Replaces
+        ``initial_state.screen``; None keeps that (normally None: q is used as given).
     max_iter : int
         Maximum number of accepted steps.
     ftol : float
@@ -960,13 +1295,19 @@ def calibrate(
         ``min_correspondences``; a camera seen in fewer than 3 poses; a mirror of the state
         without observations; correspondences behind a camera at the initial state; or a
         degenerate pose set (condition number above ``condition_limit`` at the start or at the
-        solution — the message names the badly determined parameter combinations).
+        solution — the message names the badly determined parameter combinations); free screen
+        heights that fewer than ``min_correspondences`` correspondences see with basis weight
+        ≥ :data:`SCREEN_WEIGHT_MIN` (named).
     CalibrationError
         Not converged and ``raise_on_failure``.
     """
     if int(max_iter) != max_iter or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
     state = initial_state
+    if screen_model is not None:
+        if not isinstance(screen_model, ScreenModel):
+            raise TypeError(f"screen_model must be a ScreenModel, got {type(screen_model).__name__}")
+        state = replace(state, screen=screen_model)
     data = _pack(observations, state, int(min_correspondences))
     names = state.parameter_names()
     n = len(names)
@@ -1093,6 +1434,7 @@ def calibrate(
         covariance=cov,
         condition_number=cond,
         rms_history_px=tuple(history),
+        screen_model=state.screen,
     )
     if raise_on_failure and not converged:
         raise CalibrationError(f"the calibration did not converge: {reason}")
