@@ -11,14 +11,12 @@ each), and peak memory.
 from __future__ import annotations
 
 import argparse
-import json
-import resource
-import sys
 import time
 
 import numba
 import numpy as np
 
+from _common import best_of, dump_json, peak_rss_mb
 from pmdsim import __version__
 from pmdsim.calibration import calibrate, nominal_state, perturbed_state
 from pmdsim.experiments import INITIAL_ERRORS, run_experiment2_bulge, simulate_calibration_observations
@@ -55,10 +53,9 @@ def main() -> None:
     res["experiment2_s"] = time.perf_counter() - t0
     res["experiment2_bulges_mm"] = bulges
     res["experiment2_max_height_diff_um"] = per
-    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    res["peak_rss_mb"] = peak_rss_mb()
     if args.json:
-        json.dump(res, sys.stdout)
-        sys.stdout.write("\n")
+        dump_json(res)
         return
     print(f"pmdsim {__version__}, {res['threads']} threads, 1920×1200 px, 16 poses × 2 cameras")
     print(f"simulate + render + decode calibration data : {res['simulate_decode_16x2_s']:6.1f} s")

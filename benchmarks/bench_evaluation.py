@@ -10,29 +10,19 @@ whole full-resolution Experiment 1 (8 reconstructions, images in memory), and pe
 from __future__ import annotations
 
 import argparse
-import json
-import resource
-import sys
 import time
 from dataclasses import replace
 
 import numba
 import numpy as np
 
+from _common import best_of, dump_json, peak_rss_mb
 from pmdsim import __version__
 from pmdsim.experiments import decode_images, evaluate_decoded, experiment1
 from pmdsim.patterns import FringeSequence
 from pmdsim.setup import default_setup
 from pmdsim.simulation import render_images, trace_setup_camera
 
-
-def best_of(fn, repeat):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def main() -> None:
@@ -75,10 +65,9 @@ def main() -> None:
         res["experiment1_s"] = time.perf_counter() - t0
         res["experiment1_max_height_diff_um"] = {f"{c.bulge_mm:g}_{c.camera}": c.metrics["max_height_diff_um"]
                                                  for c in cases}
-    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    res["peak_rss_mb"] = peak_rss_mb()
     if args.json:
-        json.dump(res, sys.stdout)
-        sys.stdout.write("\n")
+        dump_json(res)
         return
     print(f"pmdsim {__version__}, {res['threads']} threads, 1920×1200 px")
     print(f"decode {n_img} images              : {res['decode_32_images_s']:6.2f} s")

@@ -11,9 +11,6 @@ the 24-image render+write time for one camera, and peak memory.
 from __future__ import annotations
 
 import argparse
-import json
-import resource
-import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -22,21 +19,13 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from _common import best_of, dump_json, peak_rss_mb
 from pmdsim import __version__
 from pmdsim.io import write_png
 from pmdsim.setup import default_setup
 from pmdsim.simulation import render_images
 from pmdsim.trace import trace_camera
 
-
-def best_of(fn, repeat):
-    best = np.inf
-    out = None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def main() -> None:
@@ -83,7 +72,7 @@ def main() -> None:
 
         t_seq, _ = best_of(render_and_write, 2)
 
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = peak_rss_mb()
     result = {
         "pmdsim_version": __version__,
         "threads": numba.get_num_threads(),
@@ -101,8 +90,7 @@ def main() -> None:
         "peak_rss_mb": peak_mb,
     }
     if args.json:
-        json.dump(result, sys.stdout)
-        sys.stdout.write("\n")
+        dump_json(result)
         return
     print(f"pmdsim {__version__}, {result['threads']} threads, {n} pixels, bulge {args.bulge_mm} mm")
     print(f"view rays (once per camera) : {t_rays * 1e3:8.1f} ms")
