@@ -243,6 +243,75 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
                f"residuals; wrote {out_path}", err=True)
 
 
+@main.command("experiment3", hidden=True)
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
+@click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
+@click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
+@click.option("--grids", default="3,5,9", show_default=True,
+              help="Free-form screen models: comma-separated n for n×n control grids (the planar model is always run).")
+@click.option("--force", is_flag=True)
+@click.option("--quiet", is_flag=True)
+def experiment3_cmd(out_dir, setup_path, downsample, bulges_mm, grids, force, quiet) -> None:
+    """Experiment 3 (work in progress; run as `pmdsim experiment 3`): calibrate the screen's shape.
+
+    For every Δh and screen model (planar, n×n free-form grids) calibrate and reconstruct the
+    planar sample; errors against the number of free screen heights.
+    """
+    from dataclasses import replace
+
+    import numpy as np
+
+    from .experiments import binned_setup, run_experiment2_bulge, simulate_calibration_observations
+    from .io import write_reconstructions_h5
+
+    bulges = [float(b) for b in bulges_mm.split(",") if b.strip()]
+    sizes = [int(g) for g in grids.split(",") if g.strip()]
+    base = _load(setup_path, None)
+    prov = provenance(click.get_current_context().meta.get("pmdsim.command"), base.to_toml())
+    t0 = time.perf_counter()
+    records, cases = [], []
+    jobs = [(b, g) for b in bulges for g in [None, *sizes]]
+    with atomic_output_dir(out_dir, force=force) as tmp:
+        with click.progressbar(jobs, label="experiment 3", file=sys.stderr, hidden=quiet) as bar:
+            obs_by_bulge = {}
+            for dh, g in bar:
+                if dh not in obs_by_bulge:
+                    obs_by_bulge = {dh: simulate_calibration_observations(binned_setup(base, downsample).with_bulge(dh))}
+                e = run_experiment2_bulge(dh, base=base, downsample=downsample, screen_grid=g,
+                                          observations=obs_by_bulge[dh])
+                if not e.result.converged:
+                    raise click.ClickException(f"Δh = {dh:g} mm, screen model {g}: calibration did not converge: "
+                                               f"{e.result.reason}")
+                label = "planar" if g is None else f"{g}x{g}"
+                sm = e.result.screen_model
+                for c in e.cases:
+                    rec = c.as_record()
+                    rec["screen_model"] = label
+                    rec["free_parameters"] = 0 if sm is None else int(sm.n_free)
+                    rec["calibration_rms_px"] = float(e.result.rms_px)
+                    rec["frame_turn_deg"] = float(e.deviation["table_turn_deg"])
+                    if sm is not None:
+                        rec["screen_central_height_mm"] = float(np.ravel(sm.height(
+                            0.5 * (sm.grid_x_mm[0] + sm.grid_x_mm[-1]), 0.5 * (sm.grid_y_mm[0] + sm.grid_y_mm[-1])))[0])
+                    records.append(rec)
+                    cases.append(replace(c, camera=f"{c.camera}_{label}"))
+        write_json(tmp / "results.json", _json_ready(records))
+        write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()})
+        lines = [f"Experiment 3 — calibrated screen models; {len(records)} reconstructions",
+                 f"{'Δh mm':>6s} {'model':>7s} {'free':>5s} {'camera':>6s} {'max.diff µm':>12s} {'dev µm':>9s} "
+                 f"{'tilt µrad':>10s} {'calib RMS px':>13s} {'centre h mm':>12s}"]
+        for r in records:
+            ch = r.get("screen_central_height_mm")
+            lines.append(f"{r['bulge_mm']:6g} {r['screen_model']:>7s} {r['free_parameters']:5d} {r['camera']:>6s} "
+                         f"{r['max_height_diff_um']:12.4f} {r['max_dev_plane_um']:9.4f} {r['tilt_urad']:10.2f} "
+                         f"{r['calibration_rms_px']:13.5f} {'' if ch is None else f'{ch:12.6f}'}")
+        table = "\n".join(lines)
+        (tmp / "table.txt").write_text(table + "\n", encoding="utf-8")
+    click.echo(table)
+    click.echo(f"wrote results.json, heights.h5, table.txt to {out_dir} in {time.perf_counter() - t0:.1f} s", err=True)
+
+
 _METRIC_ROWS = (
     ("max_height_diff_um", "Max. height difference [µm]", 0),
     ("max_dev_plane_um", "Max. deviation from best-fit plane [µm]", 1),
@@ -270,7 +339,7 @@ def format_table(records: list[dict], paper: dict, title: str) -> str:
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1", "2"]))
+@click.argument("number", type=click.Choice(["1", "2", "3"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
@@ -292,6 +361,11 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     from .experiments import PAPER_TABLE2, PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
     from .io import write_reconstructions_h5
     from .plotting import height_grid_figure
+
+    if number == "3":
+        ctx = click.get_current_context()
+        return ctx.invoke(experiment3_cmd, out_dir=out_dir, setup_path=setup_path, downsample=downsample,
+                          bulges_mm=bulges_mm, grids="3,5,9", force=force, quiet=quiet)
 
     try:
         bulges = [float(b) for b in bulges_mm.split(",") if b.strip()]

@@ -282,7 +282,15 @@ def calibrated_setup(nominal: Setup, result) -> Setup:
     cams = {name: CameraSetup(cam, Pose.from_transform(T_ws @ T_sc)) for name, (cam, T_sc) in result.cameras.items()}
     table = table_frame_from_plane(nominal, result.mirrors[0])
     sample = replace(nominal.sample, pose=Pose.from_transform(table))
-    return replace(nominal, cameras=cams, sample=sample).with_bulge(0.0)
+    sm = getattr(result, "screen_model", None)
+    if sm is None:
+        return replace(nominal, cameras=cams, sample=sample).with_bulge(0.0)
+    # A calibrated free-form screen: its grid and estimated control heights.
+    screen = replace(nominal.screen, grid_x_mm=tuple(float(v) for v in sm.grid_x_mm),
+                     grid_y_mm=tuple(float(v) for v in sm.grid_y_mm),
+                     heights_mm=tuple(tuple(float(v) for v in row) for row in np.asarray(sm.heights_mm)),
+                     bulge_mm=None)
+    return replace(nominal, cameras=cams, sample=sample, screen=screen)
 
 
 def _rotation_angle_deg(r: np.ndarray) -> float:
@@ -342,24 +350,38 @@ class Experiment2Bulge:
 
 def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsample: int = 1,
                           method: str = "stepwise", seed: int = 0, progress: Progress | None = None,
-                          image_sink=None) -> Experiment2Bulge:
+                          image_sink=None, screen_grid: int | None = None,
+                          observations=None) -> Experiment2Bulge:
     """Experiment 2 (paper §4) at one Δh: simulate the calibration poses → calibrate (planar
     screen model, nominal start values with :data:`INITIAL_ERRORS`) → simulate the planar
     sample → reconstruct with the calibrated parameters, heights relative to the calibrated
-    table plane (the base mirror pose), seeded at the central pixel with height 0."""
-    from .calibration import calibrate, nominal_state, perturbed_state
+    table plane (the base mirror pose), seeded at the central pixel with height 0.
+
+    ``screen_grid`` = n (odd, ≥ 3) calibrates the screen as a free-form n × n spline grid
+    (border heights held: the rigid frame's plane is the gauge; interior heights free) and
+    reconstructs with the calibrated screen — the paper's future work (§5); None: planar.
+    """
+    from .calibration import ScreenModel, calibrate, nominal_state, perturbed_state
 
     base = default_setup() if base is None else base
     truth = binned_setup(base, downsample).with_bulge(bulge_mm)
     nominal = truth.with_bulge(0.0)
-    obs = simulate_calibration_observations(truth, progress=progress,
-                                            image_sink=None if image_sink is None else image_sink)
+    # ``observations`` lets several screen models share one simulated calibration data set.
+    obs = observations if observations is not None else simulate_calibration_observations(
+        truth, progress=progress, image_sink=image_sink)
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
     rng = np.random.default_rng([seed, int(round(bulge_mm * 1000))])
     start = perturbed_state(nominal_state(nominal, poses), rng, **INITIAL_ERRORS)
     if progress is not None:
         progress(f"Δh = {bulge_mm:g} mm: calibrating")
-    result = calibrate(obs, start)
+    screen_model = None
+    if screen_grid is not None:
+        if int(screen_grid) != screen_grid or screen_grid < 3:
+            raise ValueError(f"screen_grid must be an integer ≥ 3, got {screen_grid!r}")
+        scr = nominal.screen
+        screen_model = ScreenModel.flat(np.linspace(scr.grid_x_mm[0], scr.grid_x_mm[-1], int(screen_grid)),
+                                        np.linspace(scr.grid_y_mm[0], scr.grid_y_mm[-1], int(screen_grid)))
+    result = calibrate(obs, start, screen_model=screen_model)
     model = calibrated_setup(nominal, result)
     deviation = calibration_deviation(truth, model)
     cases = []
@@ -374,7 +396,8 @@ def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsam
         del images
         c = model.cameras[cam].camera
         seed_px = (c.height_px // 2, c.width_px // 2)
-        reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0)
+        reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
+                                    screen_model=None if screen_model is None else model.screen.surface)
         p = rec.points
         # The sample is the plane of the base mirror pose: relative to the calibrated table
         # plane its true height is 0, so the reconstructed height is the error.

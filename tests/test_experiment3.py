@@ -1,0 +1,68 @@
+"""Experiment 3 (beyond the paper, §5): calibrating the screen's shape removes the bulge error.
+
+Truths: the true central height Δh of the simulated screen, and the 8-bit floor of
+Experiment 1 (Δh = 0, perfect knowledge). Downsampled 8×8 for speed; full resolution in
+`pmdsim experiment 3`.
+"""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from pmdsim.cli import main
+from pmdsim.experiments import binned_setup, run_experiment1_case, run_experiment2_bulge, simulate_calibration_observations
+from pmdsim.setup import default_setup
+
+DS = 8
+
+
+@pytest.fixture(scope="module")
+def obs3():
+    return simulate_calibration_observations(binned_setup(default_setup(), DS).with_bulge(3.0))
+
+
+def test_free_screen_3x3_reaches_the_8bit_floor(obs3):
+    e = run_experiment2_bulge(3.0, downsample=DS, screen_grid=3, observations=obs3)
+    assert e.result.converged, e.result.reason
+    sm = e.result.screen_model
+    assert sm.n_free == 1
+    centre = float(sm.height(354.0, 199.0)[0])
+    assert abs(centre - 3.0) < 1e-3  # within 1 µm of the true Δh
+    floor = {c: run_experiment1_case(0.0, c, downsample=DS).metrics["max_height_diff_um"] for c in ("left", "right")}
+    for c in e.cases:
+        assert c.metrics["max_height_diff_um"] < 0.1
+        assert c.metrics["max_height_diff_um"] < floor[c.camera] + 0.05
+    # The calibrated frame no longer turns.
+    assert e.deviation["table_turn_deg"] < 0.01
+
+
+def test_planar_model_on_the_same_data_is_far_worse(obs3):
+    planar = run_experiment2_bulge(3.0, downsample=DS, observations=obs3)
+    free = run_experiment2_bulge(3.0, downsample=DS, screen_grid=3, observations=obs3)
+    assert free.result.rms_px < 0.1 * planar.result.rms_px
+    for p, f in zip(planar.cases, free.cases):
+        assert f.metrics["max_height_diff_um"] < 0.05 * p.metrics["max_height_diff_um"]
+
+
+def test_free_screen_costs_nothing_on_a_flat_screen():
+    obs0 = simulate_calibration_observations(binned_setup(default_setup(), DS))
+    planar = run_experiment2_bulge(0.0, downsample=DS, observations=obs0)
+    free = run_experiment2_bulge(0.0, downsample=DS, screen_grid=5, observations=obs0)
+    for p, f in zip(planar.cases, free.cases):
+        assert f.metrics["max_height_diff_um"] <= p.metrics["max_height_diff_um"] + 0.05
+    assert abs(float(free.result.screen_model.height(354.0, 199.0)[0])) < 1e-3
+
+
+def test_cli_experiment3_contract(tmp_path):
+    out = tmp_path / "e3"
+    r = CliRunner().invoke(main, ["experiment", "3", "--out", str(out), "--downsample", "8", "--bulges-mm", "3",
+                                  "--quiet"])
+    assert r.exit_code == 0, r.output
+    recs = json.loads((out / "results.json").read_text())
+    assert {x["screen_model"] for x in recs} == {"planar", "3x3", "5x5", "9x9"}
+    for x in recs:
+        assert {"bulge_mm", "camera", "max_height_diff_um", "max_dev_plane_um", "tilt_urad", "screen_model",
+                "free_parameters"} <= set(x)
+    free = {x["screen_model"]: x["free_parameters"] for x in recs}
+    assert free == {"planar": 0, "3x3": 1, "5x5": 9, "9x9": 49}
