@@ -16,6 +16,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from pmdsim.transform import rotation_angle_rad
+
 from pmdsim.calibration import (
     CalibrationDataError,
     CalibrationError,
@@ -100,10 +102,6 @@ def true_values(setup, poses):
     return cams, planes
 
 
-def rotation_angle(r: np.ndarray) -> float:
-    return math.acos(min(1.0, max(-1.0, (np.trace(r) - 1.0) / 2.0)))
-
-
 @pytest.fixture(scope="module")
 def exact4():
     """Binned-4 cameras (480 × 300 px), 16 poses, exact correspondences every 4 pixels."""
@@ -154,7 +152,7 @@ def test_perturbed_state_has_the_stated_errors(exact8):
     for name, cp in truth.cameras.items():
         q = p.cameras[name]
         assert np.linalg.norm(q.position_mm - cp.position_mm) == pytest.approx(5.0)
-        ang = rotation_angle(q.T_screen_cam.rotation @ cp.T_screen_cam.rotation.T)
+        ang = rotation_angle_rad(q.T_screen_cam.rotation @ cp.T_screen_cam.rotation.T)
         assert math.degrees(ang) == pytest.approx(2.0)
         assert abs(q.camera.fx_px / cp.camera.fx_px - 1) == pytest.approx(0.03)
         assert abs(q.camera.fy_px / cp.camera.fy_px - 1) == pytest.approx(0.03)
@@ -224,7 +222,7 @@ def test_exact_data_recovers_truth(exact4):
             t, e = getattr(cam, attr), getattr(est, attr)
             assert abs(e - t) <= 1e-6 * abs(t), f"{name}.{attr}: {e!r} vs true {t!r}"
         assert est.k3 == 0.0  # held fixed
-        assert rotation_angle(T_est.rotation @ T.rotation.T) <= 1e-6
+        assert rotation_angle_rad(T_est.rotation @ T.rotation.T) <= 1e-6
         assert np.max(np.abs(T_est.translation - T.translation)) <= 1e-6 * np.linalg.norm(T.translation)
     for k, (mp, (n, d)) in enumerate(zip(res.mirrors, planes)):
         s = 1.0 if mp.normal @ n > 0 else -1.0

@@ -11,11 +11,12 @@ the heights come from its own screen model (tensor-product cardinal basis weight
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
+
+from pmdsim.transform import rotation_angle_rad
 
 from pmdsim.calibration import (
     CalibrationDataError,
@@ -60,10 +61,6 @@ def trace_bulged(setup, stride):
     return poses, obs
 
 
-def rotation_angle(r: np.ndarray) -> float:
-    return math.acos(min(1.0, max(-1.0, (np.trace(r) - 1.0) / 2.0)))
-
-
 @pytest.fixture(scope="module")
 def bulged():
     """Binned-8 cameras (240 × 150 px), 16 poses, exact correspondences every 2 pixels."""
@@ -89,7 +86,7 @@ def assert_cameras_match(res, truth, rel=1e-6):
         for attr in ("k1", "k2", "p1", "p2"):  # true value 0
             assert abs(getattr(est, attr)) <= rel, f"{name}.{attr}: {getattr(est, attr)!r} vs true 0"
         T = cp.T_screen_cam
-        assert rotation_angle(T_est.rotation @ T.rotation.T) <= rel
+        assert rotation_angle_rad(T_est.rotation @ T.rotation.T) <= rel
         assert np.max(np.abs(T_est.translation - T.translation)) <= rel * np.linalg.norm(T.translation)
 
 

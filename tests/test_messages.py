@@ -36,3 +36,16 @@ def test_output_into_the_current_directory_is_refused(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, ["simulate", "--out", ".", "--force", "--quiet"])
     assert r.exit_code == 2 and "current directory" in r.output
     assert (tmp_path / "keep.txt").read_text() == "precious"
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["experiment", "1", "--bulges-mm", "abc"], "--bulges-mm must be comma-separated numbers"),
+    (["experiment", "3", "--bulges-mm", ","], "--bulges-mm lists no value"),
+    (["experiment3", "--grids", "3,x"], "--grids must be comma-separated integers"),
+    (["experiment3", "--grids", "2"], "at least 3 × 3"),
+])
+def test_bad_experiment_lists_are_refused_before_any_work(tmp_path, args, msg):
+    out = tmp_path / "o"
+    r = CliRunner().invoke(main, [*args, "--out", str(out), "--quiet"])
+    assert r.exit_code == 2 and msg in r.output
+    assert not out.exists()

@@ -43,3 +43,11 @@ def test_rejects_bad_rotation():
         RigidTransform(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
     with pytest.raises(ValueError, match="finite"):
         RigidTransform(np.eye(3), [np.nan, 0, 0])
+
+
+def test_rotation_angle_matches_scipy():
+    from pmdsim.transform import rotation_angle_rad
+
+    for rv in ([0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [0.0, 3.0, 0.0], [1e-9, 0.0, 0.0]):
+        r = Rotation.from_rotvec(rv)
+        assert abs(rotation_angle_rad(r.as_matrix()) - r.magnitude()) < 1e-7

@@ -265,8 +265,10 @@ def experiment3_cmd(out_dir, setup_path, downsample, bulges_mm, grids, force, qu
     from .experiments import binned_setup, run_experiment2_bulge, simulate_calibration_observations
     from .io import write_reconstructions_h5
 
-    bulges = [float(b) for b in bulges_mm.split(",") if b.strip()]
-    sizes = [int(g) for g in grids.split(",") if g.strip()]
+    bulges = _parse_list(bulges_mm, float, "--bulges-mm")
+    sizes = _parse_list(grids, int, "--grids")
+    if any(g < 3 for g in sizes):
+        raise click.BadParameter(f"--grids: every grid needs at least 3 × 3 control points, got {grids!r}")
     base = _load(setup_path, None)
     prov = provenance(click.get_current_context().meta.get("pmdsim.command"), base.to_toml())
     t0 = time.perf_counter()
@@ -362,17 +364,13 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     from .io import write_reconstructions_h5
     from .plotting import height_grid_figure
 
+    _parse_list(bulges_mm, float, "--bulges-mm")  # report a bad list before any work
     if number == "3":
         ctx = click.get_current_context()
         return ctx.invoke(experiment3_cmd, out_dir=out_dir, setup_path=setup_path, downsample=downsample,
                           bulges_mm=bulges_mm, grids="3,5,9", force=force, quiet=quiet)
 
-    try:
-        bulges = [float(b) for b in bulges_mm.split(",") if b.strip()]
-    except ValueError:
-        raise click.BadParameter(f"--bulges-mm must be comma-separated numbers, got {bulges_mm!r}") from None
-    if not bulges:
-        raise click.BadParameter("--bulges-mm lists no value")
+    bulges = _parse_list(bulges_mm, float, "--bulges-mm")
     base = _load(setup_path, None)
     prov = provenance(click.get_current_context().meta.get("pmdsim.command"), base.to_toml())
     t0 = time.perf_counter()
@@ -461,6 +459,18 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     click.echo(table)
     click.echo(f"wrote results.json, heights.h5, figure{3 + int(number)}.png, table.txt to {out_dir} "
                f"in {time.perf_counter() - t0:.1f} s", err=True)
+
+
+def _parse_list(text: str, kind, option: str) -> list:
+    """Comma-separated numbers of an option, with a clear error."""
+    try:
+        values = [kind(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        what = "integers" if kind is int else "numbers"
+        raise click.BadParameter(f"{option} must be comma-separated {what}, got {text!r}") from None
+    if not values:
+        raise click.BadParameter(f"{option} lists no value")
+    return values
 
 
 def _json_ready(obj):

@@ -20,6 +20,7 @@ from .registration import Registration, register
 from .setup import CameraSetup, Setup, default_setup
 from .simulation import render_images, trace_setup_camera
 from .surface import SplineSurface
+from .transform import rotation_angle_rad
 
 __all__ = [
     "PAPER_TABLE2",
@@ -293,10 +294,6 @@ def calibrated_setup(nominal: Setup, result) -> Setup:
     return replace(nominal, cameras=cams, sample=sample, screen=screen)
 
 
-def _rotation_angle_deg(r: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def calibration_deviation(truth: Setup, model: Setup) -> dict:
     """Calibrated minus true parameters per camera, and the calibrated frame's turn."""
     out = {}
@@ -308,7 +305,7 @@ def calibration_deviation(truth: Setup, model: Setup) -> dict:
             "ppx_px": c.ppx_px - tc.ppx_px, "ppy_px": c.ppy_px - tc.ppy_px,
             "k1": c.k1 - tc.k1, "k2": c.k2 - tc.k2, "p1": c.p1 - tc.p1, "p2": c.p2 - tc.p2,
             "position_mm": float(np.linalg.norm(cs.T_world_cam.translation - t.T_world_cam.translation)),
-            "rotation_deg": _rotation_angle_deg(cs.T_world_cam.rotation @ t.T_world_cam.rotation.T),
+            "rotation_deg": float(np.degrees(rotation_angle_rad(cs.T_world_cam.rotation @ t.T_world_cam.rotation.T))),
         }
     z_true = truth.sample.T_world_sample.rotation[:, 2]
     z_cal = model.sample.T_world_sample.rotation[:, 2]

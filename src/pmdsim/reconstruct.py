@@ -475,6 +475,14 @@ def _points_normals(o, d, q, z, points, normals):
             normals[v, u, 2] = nz
 
 
+def _points_and_normals(o, d, q, z):
+    """Points (H, W, 3) on the view rays at heights z and their unit bisector normals."""
+    points = np.empty(d.shape)
+    normals = np.empty(d.shape)
+    _points_normals(o, d, q, z, points, normals)
+    return points, normals
+
+
 def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
     H, W = valid.shape
@@ -555,9 +563,7 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     o, d, q, valid = _check_inputs(o, d, q, valid)
     seed, z0 = _check_seed(seed_pixel, seed_height_mm, o, d, valid)
     z, done, max_used, max_change, n_unconv = _run_stepwise(o, d, q, valid, seed, z0)
-    points = np.empty(d.shape)
-    normals = np.empty(d.shape)
-    _points_normals(o, d, q, z, points, normals)
+    points, normals = _points_and_normals(o, d, q, z)
     return Reconstruction(
         height_mm=z,
         points=points,
@@ -1180,9 +1186,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)
-    pts = np.empty(d.shape)
-    nrm = np.empty(d.shape)
-    _points_normals(o, d, q, z, pts, nrm)
+    pts, nrm = _points_and_normals(o, d, q, z)
     return Reconstruction(
         height_mm=z,
         points=pts,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RigidTransform", "givens_rotation", "givens_angles"]
+__all__ = ["RigidTransform", "givens_rotation", "givens_angles", "rotation_angle_rad"]
 
 
 def _rx(a: float) -> np.ndarray:
@@ -185,3 +185,9 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     if theta < 1e-8:
         return np.eye(3) + k + 0.5 * (k @ k)
     return np.eye(3) + np.sin(theta) / theta * k + (1.0 - np.cos(theta)) / theta**2 * (k @ k)
+
+
+def rotation_angle_rad(rotation: np.ndarray) -> float:
+    """The angle (rad, in [0, π]) of a rotation matrix (3, 3): how far it turns anything."""
+    r = np.asarray(rotation, dtype=float)
+    return float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
