@@ -92,7 +92,9 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
                 mappings[cam] = m
                 bar.update(1)
                 futures = []
-                for spec, img in render_images(setup, cam, m):
+                # Calibration pose K uses noise stream K + 1, as the in-memory experiments do.
+                stream = None if calibration_pose is None else calibration_pose + 1
+                for spec, img in render_images(setup, cam, m, stream=stream):
                     futures.append(pool.submit(write_png, tmp / spec.file, img))
                     entries.append(spec.as_manifest_entry())
                 for f in futures:

@@ -240,7 +240,8 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
                              truth.screen.surface)
             images: dict = {}
-            for spec, img in render_images(truth, cam, m):
+            # One independent noise stream per pose (stream 0 is left to the sample's images).
+            for spec, img in render_images(truth, cam, m, stream=k + 1):
                 images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
                 if image_sink is not None:
                     image_sink(k, spec, img)

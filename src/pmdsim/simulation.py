@@ -67,12 +67,18 @@ def image_specs(setup: Setup, camera: str, *, extension: str = "png") -> list[Im
     return out
 
 
-def render_images(setup: Setup, camera: str, mapping: Mapping) -> Iterator[tuple[ImageSpec, np.ndarray]]:
+def render_images(setup: Setup, camera: str, mapping: Mapping, *,
+                  stream: int | None = None) -> Iterator[tuple[ImageSpec, np.ndarray]]:
     """Yield ``(spec, image)`` for every image of ``camera``; noise (if any) is seeded from
-    the setup's seed and the camera's index, so the same setup gives the same images."""
+    the setup's seed and the camera's index, so the same setup gives the same images.
+
+    ``stream`` (≥ 0) selects an independent noise stream for the same camera, e.g. one per
+    calibration mirror pose, so that the noise of different image sets is uncorrelated.
+    """
     p = setup.patterns
     cam_index = list(setup.cameras).index(camera)
-    rng = np.random.default_rng([p.seed, cam_index]) if p.noise_std > 0 else None
+    key = [p.seed, cam_index] if stream is None else [p.seed, cam_index, int(stream)]
+    rng = np.random.default_rng(key) if p.noise_std > 0 else None
     stack = None
     for spec in image_specs(setup, camera):
         f = spec.frame
