@@ -56,13 +56,24 @@ def test_free_screen_costs_nothing_on_a_flat_screen():
 
 def test_cli_experiment3_contract(tmp_path):
     out = tmp_path / "e3"
-    r = CliRunner().invoke(main, ["experiment", "3", "--out", str(out), "--downsample", "8", "--bulges-mm", "3",
-                                  "--quiet"])
+    args = ["experiment", "3", "--out", str(out), "--downsample", "8", "--bulges-mm", "3", "--deformations", "offcentre",
+            "--mirror-sags-um", "", "--grids", "3,5,17", "--quiet"]
+    r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     recs = json.loads((out / "results.json").read_text())
-    assert {x["screen_model"] for x in recs} == {"planar", "3x3", "5x5", "9x9"}
     for x in recs:
         assert {"bulge_mm", "camera", "max_height_diff_um", "max_dev_plane_um", "tilt_urad", "screen_model",
-                "free_parameters"} <= set(x)
-    free = {x["screen_model"]: x["free_parameters"] for x in recs}
-    assert free == {"planar": 0, "3x3": 1, "5x5": 9, "9x9": 49}
+                "free_parameters", "scenario", "calibration_rms_px"} <= set(x)
+    free = {(x["scenario"], x["screen_model"]): x["free_parameters"] for x in recs}
+    # 17×17: control heights no reflection reaches; reported, not run, and the rest goes on.
+    assert free == {("bulge", "planar"): 0, ("bulge", "3x3"): 1, ("bulge", "5x5"): 9,
+                    ("offcentre", "planar"): 0, ("offcentre", "3x3"): 1, ("offcentre", "5x5"): 9}
+    cal = json.loads((out / "calibration.json").read_text())
+    failed = [c for c in cal if "error" in c]
+    assert {(c["scenario"], c["screen_model"]) for c in failed} == {("bulge", "17x17"), ("offcentre", "17x17")}
+    assert all("screen.h[" in c["error"] for c in failed)
+    assert "Not determined by the calibration data" in (out / "table.txt").read_text()
+    assert (out / "error_vs_free_parameters.png").stat().st_size > 10_000
+    # Never overwritten without --force.
+    r2 = CliRunner().invoke(main, args)
+    assert r2.exit_code != 0 and "--force" in r2.output

@@ -249,71 +249,135 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True)
 @click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
 @click.option("--grids", default="3,5,9", show_default=True,
               help="Free-form screen models: comma-separated n for n×n control grids (the planar model is always run).")
+@click.option("--deformations", default="offcentre,random", show_default=True,
+              help="Mismatch case: true screen deformations (offcentre, random; empty for none).")
+@click.option("--mirror-sags-um", default="1,5", show_default=True,
+              help="Non-planar calibration mirror: sags in µm (empty for none), with the bulge --sag-bulge-mm.")
+@click.option("--sag-bulge-mm", type=float, default=3.0, show_default=True)
 @click.option("--force", is_flag=True)
 @click.option("--quiet", is_flag=True)
-def experiment3_cmd(out_dir, setup_path, downsample, bulges_mm, grids, force, quiet) -> None:
-    """Experiment 3 (work in progress; run as `pmdsim experiment 3`): calibrate the screen's shape.
+def experiment3_cmd(out_dir, setup_path, downsample, method, bulges_mm, grids, deformations, mirror_sags_um,
+                    sag_bulge_mm, force, quiet) -> None:
+    """Experiment 3 (run as `pmdsim experiment 3`): calibrate the screen's shape (paper §5).
 
-    For every Δh and screen model (planar, n×n free-form grids) calibrate and reconstruct the
-    planar sample; errors against the number of free screen heights.
+    For every scenario (the paper's bulges, mismatching deformations, a sagged calibration
+    mirror) and screen model (planar, n×n free-form grids) calibrate and reconstruct the planar
+    sample; errors against the number of free screen heights.
     """
     from dataclasses import replace
 
-    import numpy as np
-
-    from .experiments import binned_setup, run_experiment2_bulge, simulate_calibration_observations
+    from .experiments import SCREEN_DEFORMATIONS, experiment3_scenarios, run_experiment3
     from .io import write_reconstructions_h5
 
-    bulges = _parse_list(bulges_mm, float, "--bulges-mm")
-    sizes = _parse_list(grids, int, "--grids")
+    bulges = _parse_list(bulges_mm, float, "--bulges-mm") if bulges_mm.strip() else []
+    sizes = _parse_list(grids, int, "--grids") if grids.strip() else []
     if any(g < 3 for g in sizes):
         raise click.BadParameter(f"--grids: every grid needs at least 3 × 3 control points, got {grids!r}")
+    kinds = [k.strip() for k in deformations.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in SCREEN_DEFORMATIONS]
+    if bad:
+        raise click.BadParameter(f"--deformations: unknown {bad}; expected some of {list(SCREEN_DEFORMATIONS)}")
+    sags = _parse_list(mirror_sags_um, float, "--mirror-sags-um") if mirror_sags_um.strip() else []
     base = _load(setup_path, None)
     prov = provenance(click.get_current_context().meta.get("pmdsim.command"), base.to_toml())
     t0 = time.perf_counter()
-    records, cases = [], []
-    jobs = [(b, g) for b in bulges for g in [None, *sizes]]
+    scenarios = experiment3_scenarios(base, downsample=downsample, bulges=bulges, deformations=kinds,
+                                      mirror_sags_um=sags, sag_bulge_mm=sag_bulge_mm)
+    if not scenarios:
+        raise click.BadParameter("nothing to run: no bulges, deformations or mirror sags given")
+    records, cases, groups, calibrations, undetermined = [], [], [], [], []
+    n_models = 1 + len(sizes)
     with atomic_output_dir(out_dir, force=force) as tmp:
-        with click.progressbar(jobs, label="experiment 3", file=sys.stderr, hidden=quiet) as bar:
-            obs_by_bulge = {}
-            for dh, g in bar:
-                if dh not in obs_by_bulge:
-                    obs_by_bulge = {dh: simulate_calibration_observations(binned_setup(base, downsample).with_bulge(dh))}
-                e = run_experiment2_bulge(dh, base=base, downsample=downsample, screen_grid=g,
-                                          observations=obs_by_bulge[dh])
+        with click.progressbar(length=len(scenarios) * (n_models + 1), label="experiment 3", file=sys.stderr,
+                               hidden=quiet) as bar:
+            for sc, label, e, recs in run_experiment3(scenarios, sizes, method=method,
+                                                      progress=lambda msg: bar.update(1)):
+                if isinstance(e, Exception):  # the data cannot determine this model: say so, go on
+                    undetermined.append(f"{sc.label}, {label} screen model: {e}")
+                    calibrations.append({"scenario": sc.name, "bulge_mm": sc.bulge_mm,
+                                         "mirror_sag_um": sc.mirror_sag_um, "screen_model": label,
+                                         "error": str(e)})
+                    continue
                 if not e.result.converged:
-                    raise click.ClickException(f"Δh = {dh:g} mm, screen model {g}: calibration did not converge: "
+                    raise click.ClickException(f"{sc.label}, screen model {label}: calibration did not converge: "
                                                f"{e.result.reason}")
-                label = "planar" if g is None else f"{g}x{g}"
-                sm = e.result.screen_model
+                tag = {"bulge": f"bulge_{sc.bulge_mm:g}mm", "mirror_sag": f"mirror_sag_{sc.mirror_sag_um:g}um"}.get(
+                    sc.name, sc.name)
+                records.extend(recs)
+                calibrations.append({"scenario": sc.name, "bulge_mm": sc.bulge_mm, "mirror_sag_um": sc.mirror_sag_um,
+                                     "screen_model": label, **e.result.to_dict(), "deviation_from_truth": e.deviation})
                 for c in e.cases:
-                    rec = c.as_record()
-                    rec["screen_model"] = label
-                    rec["free_parameters"] = 0 if sm is None else int(sm.n_free)
-                    rec["calibration_rms_px"] = float(e.result.rms_px)
-                    rec["frame_turn_deg"] = float(e.deviation["table_turn_deg"])
-                    if sm is not None:
-                        rec["screen_central_height_mm"] = float(np.ravel(sm.height(
-                            0.5 * (sm.grid_x_mm[0] + sm.grid_x_mm[-1]), 0.5 * (sm.grid_y_mm[0] + sm.grid_y_mm[-1])))[0])
-                    records.append(rec)
-                    cases.append(replace(c, camera=f"{c.camera}_{label}"))
+                    cases.append(replace(c, camera=f"{c.camera}"))
+                    groups.append(f"{tag}/{label}/{c.camera}")
         write_json(tmp / "results.json", _json_ready(records))
-        write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()})
-        lines = [f"Experiment 3 — calibrated screen models; {len(records)} reconstructions",
-                 f"{'Δh mm':>6s} {'model':>7s} {'free':>5s} {'camera':>6s} {'max.diff µm':>12s} {'dev µm':>9s} "
-                 f"{'tilt µrad':>10s} {'calib RMS px':>13s} {'centre h mm':>12s}"]
-        for r in records:
-            ch = r.get("screen_central_height_mm")
-            lines.append(f"{r['bulge_mm']:6g} {r['screen_model']:>7s} {r['free_parameters']:5d} {r['camera']:>6s} "
-                         f"{r['max_height_diff_um']:12.4f} {r['max_dev_plane_um']:9.4f} {r['tilt_urad']:10.2f} "
-                         f"{r['calibration_rms_px']:13.5f} {'' if ch is None else f'{ch:12.6f}'}")
-        table = "\n".join(lines)
+        write_json(tmp / "calibration.json", _json_ready(calibrations))
+        write_json(tmp / "run.json", {**prov, "experiment": 3, "downsample": downsample, "method": method,
+                                      "grids": sizes, "deformations": kinds, "mirror_sags_um": sags,
+                                      "sag_bulge_mm": sag_bulge_mm})
+        write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()}, groups=groups)
+        table = experiment3_table(records)
+        if undetermined:
+            table += "\n\nNot determined by the calibration data (full reasons in calibration.json):\n" + "\n".join(
+                "  " + (u if len(u) <= 400 else u[:400] + " …") for u in undetermined)
         (tmp / "table.txt").write_text(table + "\n", encoding="utf-8")
+        if records:
+            _experiment3_figure(tmp / "error_vs_free_parameters.png", records, downsample)
     click.echo(table)
-    click.echo(f"wrote results.json, heights.h5, table.txt to {out_dir} in {time.perf_counter() - t0:.1f} s", err=True)
+    click.echo(f"wrote results.json, calibration.json, heights.h5, table.txt, error_vs_free_parameters.png to "
+               f"{out_dir} in {time.perf_counter() - t0:.1f} s", err=True)
+
+
+def _experiment3_figure(path, records: list[dict], downsample: int) -> None:
+    """Error and calibration residual against the number of free screen heights."""
+    import numpy as np
+
+    from .plotting import error_vs_free_parameters_figure
+
+    models = list(dict.fromkeys((r["screen_model"], r["free_parameters"]) for r in records))
+    series = []
+    for sl in dict.fromkeys(_scenario_label(r) for r in records):
+        err, rms = [], []
+        for m, _ in models:
+            rs = [r for r in records if _scenario_label(r) == sl and r["screen_model"] == m]
+            err.append(max((r["max_height_diff_um"] for r in rs), default=np.nan))
+            rms.append(rs[0]["calibration_rms_px"] if rs else np.nan)
+        series.append((sl, err, rms))
+    floor = [r["max_height_diff_um"] for r in records
+             if r["scenario"] == "bulge" and r["bulge_mm"] == 0 and r["screen_model"] == "planar"]
+    error_vs_free_parameters_figure(path, series, [f"{m.replace('x', '×')} ({n})" for m, n in models],
+                                    suptitle=f"Experiment 3: calibrated screen models (downsample {downsample})",
+                                    floor_um=max(floor) if floor else None)
+
+
+def _scenario_label(r: dict) -> str:
+    if r["scenario"] == "bulge":
+        return f"bulge Δh = {r['bulge_mm']:g} mm"
+    if r["scenario"] == "mirror_sag":
+        return f"mirror sag {r['mirror_sag_um']:g} µm (Δh = {r['bulge_mm']:g} mm)"
+    return f"{r['scenario']} deformation"
+
+
+def experiment3_table(records: list[dict]) -> str:
+    """Experiment 3's table: one line per scenario and screen model, cameras L / R."""
+    lines = [f"Experiment 3 — calibrated screen models; {len(records)} reconstructions",
+             f"{'scenario':34s} {'model':>7s} {'free':>5s} {'max.diff µm L/R':>19s} {'dev µm L/R':>17s} "
+             f"{'tilt µrad L/R':>15s} {'calib RMS px':>13s} {'screen err µm':>14s} {'centre h mm':>12s}"]
+    keyed = {}
+    for r in records:
+        keyed.setdefault((_scenario_label(r), r["screen_model"]), []).append(r)
+    for (sl, model), rs in keyed.items():
+        def pair(k, f):
+            return "/".join(format(x[k], f) for x in rs)
+        ch = rs[0].get("screen_central_height_mm")
+        lines.append(f"{sl:34s} {model:>7s} {rs[0]['free_parameters']:5d} {pair('max_height_diff_um', '.4f'):>19s} "
+                     f"{pair('max_dev_plane_um', '.4f'):>17s} {pair('tilt_urad', '.2f'):>15s} "
+                     f"{rs[0]['calibration_rms_px']:13.5f} {rs[0]['screen_shape_max_error_um']:14.2f} "
+                     f"{'' if ch is None else f'{ch:12.6f}'}")
+    return "\n".join(lines)
 
 
 _METRIC_ROWS = (
@@ -354,23 +418,34 @@ def format_table(records: list[dict], paper: dict, title: str) -> str:
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Experiment 2: seed of the start values' errors.")
 @click.option("--write-images", is_flag=True, help="Experiment 1: also write the rendered fringe images under OUT/images.")
+@click.option("--grids", default="3,5,9", show_default=True,
+              help="Experiment 3: free-form screen models, comma-separated n for n×n grids (planar always run).")
+@click.option("--deformations", default="offcentre,random", show_default=True,
+              help="Experiment 3: mismatching true screen deformations (offcentre, random; empty for none).")
+@click.option("--mirror-sags-um", default="1,5", show_default=True,
+              help="Experiment 3: sags of a non-planar calibration mirror in µm (empty for none).")
+@click.option("--sag-bulge-mm", type=float, default=3.0, show_default=True,
+              help="Experiment 3: the screen bulge Δh of the mirror-sag scenarios.")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, seed, write_images, force, quiet) -> None:
+def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, seed, write_images, grids,
+                   deformations, mirror_sags_um, sag_bulge_mm, force, quiet) -> None:
     """Run one of the paper's experiments.
 
     1 = perfect setup knowledge, planar screen model (Table 2, Fig. 4);
-    2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5).
+    2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5);
+    3 = beyond the paper (§5): calibrate free-form screen models of increasing flexibility, with
+    the paper's bulges, mismatching deformations and a non-planar calibration mirror.
     """
     from .experiments import PAPER_TABLE2, PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
     from .io import write_reconstructions_h5
     from .plotting import height_grid_figure
 
-    _parse_list(bulges_mm, float, "--bulges-mm")  # report a bad list before any work
     if number == "3":
         ctx = click.get_current_context()
         return ctx.invoke(experiment3_cmd, out_dir=out_dir, setup_path=setup_path, downsample=downsample,
-                          bulges_mm=bulges_mm, grids="3,5,9", force=force, quiet=quiet)
+                          method=method, bulges_mm=bulges_mm, grids=grids, deformations=deformations,
+                          mirror_sags_um=mirror_sags_um, sag_bulge_mm=sag_bulge_mm, force=force, quiet=quiet)
 
     bulges = _parse_list(bulges_mm, float, "--bulges-mm")
     base = _load(setup_path, None)

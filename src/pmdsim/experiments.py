@@ -30,6 +30,19 @@ __all__ = [
     "evaluate_decoded",
     "run_experiment1_case",
     "experiment1",
+    "PAPER_TABLE3",
+    "INITIAL_ERRORS",
+    "simulate_calibration_observations",
+    "calibrated_setup",
+    "run_experiment2_bulge",
+    "calibrate_and_reconstruct",
+    "nominal_setup",
+    "free_screen_model",
+    "SCREEN_DEFORMATIONS",
+    "screen_deformation",
+    "Experiment3Scenario",
+    "experiment3_scenarios",
+    "run_experiment3",
 ]
 
 #: The paper's Table 2 (Experiment 1): (Δh mm, camera) → (max height difference µm,
@@ -286,7 +299,8 @@ def calibrated_setup(nominal: Setup, result) -> Setup:
     sample = replace(nominal.sample, pose=Pose.from_transform(table))
     sm = getattr(result, "screen_model", None)
     if sm is None:
-        return replace(nominal, cameras=cams, sample=sample).with_bulge(0.0)
+        flat = replace(nominal.screen, heights_mm=None, bulge_mm=None)
+        return replace(nominal, cameras=cams, sample=sample, screen=flat)
     # A calibrated free-form screen: its grid and estimated control heights.
     screen = replace(nominal.screen, grid_x_mm=tuple(float(v) for v in sm.grid_x_mm),
                      grid_y_mm=tuple(float(v) for v in sm.grid_y_mm),
@@ -359,26 +373,61 @@ def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsam
     (border heights held: the rigid frame's plane is the gauge; interior heights free) and
     reconstructs with the calibrated screen — the paper's future work (§5); None: planar.
     """
-    from .calibration import ScreenModel, calibrate, nominal_state, perturbed_state
-
     base = default_setup() if base is None else base
     truth = binned_setup(base, downsample).with_bulge(bulge_mm)
-    nominal = truth.with_bulge(0.0)
+    return calibrate_and_reconstruct(truth, bulge_mm=bulge_mm, method=method,
+                                     start_seed=[seed, int(round(bulge_mm * 1000))], progress=progress,
+                                     image_sink=image_sink, screen_grid=screen_grid, observations=observations)
+
+
+def nominal_setup(truth: Setup) -> Setup:
+    """What the calibration starts from and assumes: the truth's design (camera models, poses,
+    mirror poses) with a planar screen over the same extent and a planar calibration mirror.
+    (Start values are perturbed from it by :func:`calibrate_and_reconstruct`.)"""
+    scr = replace(truth.screen, heights_mm=None, bulge_mm=None)
+    return replace(truth, screen=scr).with_mirror_sag(0.0)
+
+
+def free_screen_model(nominal: Setup, screen_grid: int):
+    """A flat n × n free-form :class:`~pmdsim.calibration.ScreenModel` spanning the nominal
+    screen's grid (border held at 0 = the gauge, (n − 2)² free interior heights)."""
+    from .calibration import ScreenModel
+
+    if isinstance(screen_grid, bool) or int(screen_grid) != screen_grid or screen_grid < 3:
+        raise ValueError(f"screen_grid must be an integer ≥ 3, got {screen_grid!r}")
+    scr = nominal.screen
+    return ScreenModel.flat(np.linspace(scr.grid_x_mm[0], scr.grid_x_mm[-1], int(screen_grid)),
+                            np.linspace(scr.grid_y_mm[0], scr.grid_y_mm[-1], int(screen_grid)))
+
+
+def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, method: str = "stepwise",
+                              start_seed=0, progress: Progress | None = None, image_sink=None,
+                              screen_grid: int | None = None, observations=None) -> Experiment2Bulge:
+    """The Experiment 2 chain for any true setup (deformed screen, sagged mirror, …).
+
+    Simulate the calibration poses of ``truth`` (or take ``observations`` of it) → calibrate
+    from nominal start values (:func:`nominal_setup` perturbed by :data:`INITIAL_ERRORS`,
+    seeded by ``start_seed``) with a planar (``screen_grid`` None) or n × n free-form screen
+    model and planar mirrors → simulate the planar sample of ``truth`` → reconstruct both
+    cameras with the calibrated setup, heights relative to the calibrated table plane (its true
+    height is 0, so the reconstructed height is the error). ``bulge_mm`` labels the results
+    (default: the truth's central screen control height).
+    """
+    from .calibration import calibrate, nominal_state, perturbed_state
+
+    nominal = nominal_setup(truth)
+    if bulge_mm is None:
+        z = truth.screen.control_heights()
+        bulge_mm = float(z[z.shape[0] // 2, z.shape[1] // 2])
     # ``observations`` lets several screen models share one simulated calibration data set.
     obs = observations if observations is not None else simulate_calibration_observations(
         truth, progress=progress, image_sink=image_sink)
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
-    rng = np.random.default_rng([seed, int(round(bulge_mm * 1000))])
+    rng = np.random.default_rng(start_seed)
     start = perturbed_state(nominal_state(nominal, poses), rng, **INITIAL_ERRORS)
     if progress is not None:
         progress(f"Δh = {bulge_mm:g} mm: calibrating")
-    screen_model = None
-    if screen_grid is not None:
-        if int(screen_grid) != screen_grid or screen_grid < 3:
-            raise ValueError(f"screen_grid must be an integer ≥ 3, got {screen_grid!r}")
-        scr = nominal.screen
-        screen_model = ScreenModel.flat(np.linspace(scr.grid_x_mm[0], scr.grid_x_mm[-1], int(screen_grid)),
-                                        np.linspace(scr.grid_y_mm[0], scr.grid_y_mm[-1], int(screen_grid)))
+    screen_model = None if screen_grid is None else free_screen_model(nominal, screen_grid)
     result = calibrate(obs, start, screen_model=screen_model)
     model = calibrated_setup(nominal, result)
     deviation = calibration_deviation(truth, model)
@@ -403,3 +452,157 @@ def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsam
         metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
         cases.append(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics))
     return Experiment2Bulge(float(bulge_mm), result, model, deviation, cases)
+
+
+# ============================================================================ Experiment 3
+#: True screen deformations that the centred models cannot all represent (the mismatch case).
+SCREEN_DEFORMATIONS = ("offcentre", "random")
+
+
+def screen_deformation(setup: Setup, kind: str, *, peak_mm: float = 3.0, seed: int = 0) -> Setup:
+    """``setup`` with a true screen deformation of the mismatch case (Experiment 3).
+
+    Both hold the screen's border at 0 (a rigid frame, as the paper's bulge does):
+
+    ``"offcentre"``
+        A 5 × 5 control grid over the screen with one off-centre control height of ``peak_mm``
+        (row 1, column 3: at 3/4 of the width and 1/4 of the height). The 3 × 3 model cannot
+        represent it; the 5 × 5 model can exactly, and so can 9 × 9 (its not-a-knot spline
+        space contains the 5 × 5 one: the 5-point spline's only interior knot is the centre,
+        which is also a knot of the 9-point spline).
+    ``"random"``
+        A seeded random smooth shape on a 17 × 17 grid: Σ_{m,n=1..4} a_mn·sin(mπu)·sin(nπv),
+        u, v ∈ [0, 1] across the screen, a_mn ~ N(0, 1)/(m² + n²), scaled so that the largest
+        control height magnitude is ``peak_mm``. No model grid represents it exactly.
+    """
+    scr = setup.screen
+    x0, x1 = scr.grid_x_mm[0], scr.grid_x_mm[-1]
+    y0, y1 = scr.grid_y_mm[0], scr.grid_y_mm[-1]
+    if kind == "offcentre":
+        gx, gy = np.linspace(x0, x1, 5), np.linspace(y0, y1, 5)
+        z = np.zeros((5, 5))
+        z[1, 3] = peak_mm
+    elif kind == "random":
+        gx, gy = np.linspace(x0, x1, 17), np.linspace(y0, y1, 17)
+        u = (gx - x0) / (x1 - x0)
+        v = (gy - y0) / (y1 - y0)
+        rng = np.random.default_rng([seed, 17])
+        z = np.zeros((17, 17))
+        for m in range(1, 5):
+            for n in range(1, 5):
+                z += rng.normal() / (m * m + n * n) * np.outer(np.sin(n * np.pi * v), np.sin(m * np.pi * u))
+        z *= peak_mm / np.abs(z).max()
+    else:
+        raise ValueError(f"unknown screen deformation {kind!r}; expected one of {SCREEN_DEFORMATIONS}")
+    return setup.with_screen_heights(gx, gy, z)
+
+
+@dataclass(frozen=True, eq=False)
+class Experiment3Scenario:
+    """One true setup of Experiment 3: the paper's bulge, a mismatch deformation, or a sagged
+    calibration mirror (with the paper's bulge ``bulge_mm``)."""
+
+    name: str  # "bulge", "offcentre", "random" or "mirror_sag"
+    bulge_mm: float
+    mirror_sag_um: float
+    truth: Setup
+
+    @property
+    def label(self) -> str:
+        if self.name == "bulge":
+            return f"bulge {self.bulge_mm:g} mm"
+        if self.name == "mirror_sag":
+            return f"mirror sag {self.mirror_sag_um:g} µm, bulge {self.bulge_mm:g} mm"
+        return f"{self.name} deformation"
+
+    @property
+    def start_seed(self) -> list[int]:
+        """Seed of the calibration's start values: Experiment 2's for the bulge scenarios."""
+        if self.name == "bulge":
+            return [0, int(round(self.bulge_mm * 1000))]
+        kind = {"offcentre": 1, "random": 2, "mirror_sag": 3}[self.name]
+        return [0, 1_000_000 * kind + int(round(self.mirror_sag_um * 1000))]
+
+
+def experiment3_scenarios(base: Setup, *, downsample: int = 1, bulges: Iterable[float] = (0.0, 1.0, 2.0, 3.0),
+                          deformations: Iterable[str] = SCREEN_DEFORMATIONS,
+                          mirror_sags_um: Iterable[float] = (1.0, 5.0), sag_bulge_mm: float = 3.0,
+                          peak_mm: float = 3.0) -> list[Experiment3Scenario]:
+    """The true setups of Experiment 3, binned by ``downsample``."""
+    b = binned_setup(base, downsample)
+    out = [Experiment3Scenario("bulge", float(dh), 0.0, b.with_bulge(dh)) for dh in bulges]
+    for kind in deformations:
+        t = screen_deformation(b, kind, peak_mm=peak_mm)
+        z = t.screen.control_heights()
+        out.append(Experiment3Scenario(kind, float(z[z.shape[0] // 2, z.shape[1] // 2]), 0.0, t))
+    for s in mirror_sags_um:
+        out.append(Experiment3Scenario("mirror_sag", float(sag_bulge_mm), float(s),
+                                       b.with_bulge(sag_bulge_mm).with_mirror_sag(s)))
+    return out
+
+
+def screen_shape_error_um(truth: Setup, model: Setup, observations) -> tuple[float, float]:
+    """(max, RMS) of calibrated − true screen height (µm) over the screen points the calibration
+    observed (the decoded (x_q, y_q) of all ``observations``): how well the model found the
+    screen's shape where the data can tell. Both share the gauge (border/frame plane at 0)."""
+    q = np.concatenate([o.q_screen_mm[:, :2] for o in observations])
+    d = model.screen.surface.height(q[:, 0], q[:, 1]) - truth.screen.surface.height(q[:, 0], q[:, 1])
+    d = d[np.isfinite(d)]
+    return float(np.abs(d).max() * 1e3), float(np.sqrt(np.mean(d * d)) * 1e3)
+
+
+def experiment3_records(scenario: Experiment3Scenario, screen_model: str, e: Experiment2Bulge, observations) -> list[dict]:
+    """results.json objects of one scenario and screen model: the Experiment 1 keys, then
+    ``screen_model`` and ``free_parameters`` (the contract), then diagnostics."""
+    sm = e.result.screen_model
+    shape_max, shape_rms = screen_shape_error_um(scenario.truth, e.model, observations)
+    out = []
+    for c in e.cases:
+        rec = c.as_record()
+        rec = {"bulge_mm": rec.pop("bulge_mm"), "camera": rec.pop("camera"),
+               "max_height_diff_um": rec.pop("max_height_diff_um"), "max_dev_plane_um": rec.pop("max_dev_plane_um"),
+               "tilt_urad": rec.pop("tilt_urad"),
+               "screen_model": screen_model, "free_parameters": 0 if sm is None else int(sm.n_free),
+               "scenario": scenario.name, "mirror_sag_um": scenario.mirror_sag_um,
+               "calibration_rms_px": float(e.result.rms_px), "calibration_converged": bool(e.result.converged),
+               "calibration_condition_number": float(e.result.condition_number),
+               "frame_turn_deg": float(e.deviation["table_turn_deg"]),
+               "screen_shape_max_error_um": shape_max, "screen_shape_rms_error_um": shape_rms, **rec}
+        if sm is not None:
+            cx = 0.5 * (sm.grid_x_mm[0] + sm.grid_x_mm[-1])
+            cy = 0.5 * (sm.grid_y_mm[0] + sm.grid_y_mm[-1])
+            rec["screen_central_height_mm"] = float(np.ravel(sm.height(cx, cy))[0])
+        out.append(rec)
+    return out
+
+
+def run_experiment3(scenarios: Iterable[Experiment3Scenario], grids: Iterable[int] = (3, 5, 9), *,
+                    method: str = "stepwise", progress: Progress | None = None):
+    """Experiment 3 (beyond the paper, §5): for every scenario, simulate the calibration data
+    once, then calibrate and reconstruct with the planar model and each n × n free-form model.
+
+    Yields
+    ------
+    (scenario, screen_model label, Experiment2Bulge, records) per scenario and model, in order.
+    Where the calibration data cannot determine a model (e.g. control heights that no mirror
+    pose's reflection reaches), the third item is the :class:`~pmdsim.calibration.CalibrationDataError`
+    that says which parameters and why, and ``records`` is empty: the other models still run.
+    """
+    from .calibration import CalibrationDataError
+
+    grids = list(grids)
+    for sc in scenarios:
+        if progress is not None:
+            progress(f"{sc.label}: simulating the calibration poses")
+        obs = simulate_calibration_observations(sc.truth)
+        for g in [None, *grids]:
+            label = "planar" if g is None else f"{g}x{g}"
+            if progress is not None:
+                progress(f"{sc.label}: {label} screen model")
+            try:
+                e = calibrate_and_reconstruct(sc.truth, bulge_mm=sc.bulge_mm, method=method,
+                                              start_seed=sc.start_seed, screen_grid=g, observations=obs)
+            except CalibrationDataError as err:
+                yield sc, label, err, []
+                continue
+            yield sc, label, e, experiment3_records(sc, label, e, obs)

@@ -183,8 +183,9 @@ def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str
                 g.attrs[f"count_{sname}"] = count
 
 
-def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> None:
-    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``).
+def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any], groups=None) -> None:
+    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``, or ``groups[i]``
+    for case i when given).
 
     Each group holds ``height_mm`` (float64 H×W, reconstructed height in the sample frame,
     NaN outside the FOV), ``height_error_um`` (float32, reconstructed − true), ``points_mm``
@@ -193,8 +194,13 @@ def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> 
     with h5py.File(path, "w", track_order=True) as f:
         for k, v in attrs.items():
             f.attrs[k] = v if v is not None else ""
-        for c in cases:
-            g = f.require_group(f"bulge_{c.bulge_mm:g}mm").create_group(c.camera)
+        cases = list(cases)
+        if groups is None:
+            groups = [f"bulge_{c.bulge_mm:g}mm/{c.camera}" for c in cases]
+        if len(groups) != len(cases):
+            raise ValueError(f"write_reconstructions_h5: {len(groups)} group names for {len(cases)} cases")
+        for c, name in zip(cases, groups):
+            g = f.create_group(name)
             kw = dict(compression="gzip", compression_opts=1)
             d = g.create_dataset("height_mm", data=c.height_mm, **kw)
             d.attrs["frame"] = "sample"

@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-__all__ = ["height_map_figure", "height_grid_figure"]
+__all__ = ["height_map_figure", "height_grid_figure", "error_vs_free_parameters_figure"]
 
 
 def _stride(shape, max_cells=250_000):
@@ -60,6 +60,40 @@ def height_grid_figure(path: str | Path, panels, *, suptitle: str, label: str = 
     for i, row in enumerate(panels):
         for j, (x, y, z, title) in enumerate(row):
             _panel(fig, axes[i, j], np.asarray(x), np.asarray(y), np.asarray(z), title, label)
+    fig.suptitle(suptitle, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, metadata={"Software": None})
+    plt.close(fig)
+
+
+def error_vs_free_parameters_figure(path: str | Path, series, model_labels, *, suptitle: str,
+                                    floor_um: float | None = None) -> None:
+    """Experiment 3: reconstruction error and calibration residual against the screen model.
+
+    Parameters
+    ----------
+    series : list of (label, errors_um, rms_px)
+        One line per scenario; ``errors_um[i]`` (maximum height difference, the larger of the
+        cameras) and ``rms_px[i]`` belong to ``model_labels[i]`` (NaN where not run).
+    model_labels : list of str
+        x-axis categories, e.g. "planar (0)", "3×3 (1)", ….
+    floor_um : float, optional
+        The 8-bit floor (Δh = 0, planar model), drawn as a dashed line.
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12.0, 4.6), dpi=110)
+    x = np.arange(len(model_labels))
+    for label, err, rms in series:
+        axes[0].plot(x, err, marker="o", label=label)
+        axes[1].plot(x, rms, marker="o", label=label)
+    if floor_um is not None:
+        axes[0].axhline(floor_um, color="k", ls="--", lw=0.8, label="8-bit floor (Δh = 0, planar)")
+    for ax, ylabel in zip(axes, ("max. height difference (µm)", "calibration residual RMS (px)")):
+        ax.set_yscale("log")
+        ax.set_xticks(x, model_labels)
+        ax.set_xlabel("screen model (free control heights)")
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].legend(fontsize=7)
     fig.suptitle(suptitle, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, metadata={"Software": None})

@@ -157,12 +157,19 @@ class CalibrationSetup:
         x axis and about its y axis, through the centre of the mirror.
     mirror_size_mm : (width, height) of the mirror, centred on the sample's grid centre.
     observation_stride_px : the calibration uses every stride-th pixel in both directions.
+    mirror_sag_um : flatness error of the mirror (beyond the paper, which assumes a perfect
+        plane): a paraboloid of revolution (power, the dominant form error of a polished flat),
+        z_mirror = −s·(1 − r²/ρ²) with s = ``mirror_sag_um`` (in mm: s/1000), r the distance
+        from the mirror's centre and ρ half its smaller side. Positive: the centre stands s
+        closer to the cameras than the edge midpoints (convex as seen from the cameras; the
+        mirror frame's +z points away from them, like the sample's). 0: a perfect plane.
     """
 
     mirror_lifts_mm: tuple[float, ...] = (10.0, 20.0, 30.0)
     mirror_tilts_deg: tuple[float, ...] = (1.0, 2.0, 3.0)
     mirror_size_mm: tuple[float, float] = (400.0, 400.0)
     observation_stride_px: int = 8
+    mirror_sag_um: float = 0.0
 
     def mirror_poses(self, sample: "SampleSetup") -> list[tuple[str, RigidTransform]]:
         """(label, T_world_mirror) of every pose: base, lifts, then tilts (+/− about x, then y).
@@ -186,10 +193,29 @@ class CalibrationSetup:
                     out.append((f"tilt_{axis}{sign * tilt:+g}deg", T_ws @ T_sample_centre @ R @ T_centre_mirror))
         return out
 
-    def mirror_surface(self):
-        from .surface import PlaneSurface
+    def mirror_grid(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[tuple[float, ...], ...] | None]:
+        """(grid_x_mm, grid_y_mm, heights_mm) of the mirror in its frame; heights None for a plane.
 
-        return PlaneSurface((0.0, self.mirror_size_mm[0]), (0.0, self.mirror_size_mm[1]))
+        With a sag the grid is 3 × 3: the not-a-knot spline through it reproduces the
+        paraboloid z = −s·(1 − r²/ρ²) exactly (it lies in span{1, x, x²} ⊗ span{1, y, y²}).
+        """
+        w, h = self.mirror_size_mm
+        if self.mirror_sag_um == 0.0:
+            return (0.0, w), (0.0, h), None
+        s = self.mirror_sag_um * 1e-3
+        rho2 = (0.5 * min(w, h)) ** 2
+        gx, gy = (0.0, 0.5 * w, w), (0.0, 0.5 * h, h)
+        z = tuple(tuple(-s * (1.0 - ((x - 0.5 * w) ** 2 + (y - 0.5 * h) ** 2) / rho2) for x in gx) for y in gy)
+        return gx, gy, z
+
+    def mirror_surface(self):
+        """The mirror in its frame: a plane over [0, w] × [0, h], or the sagged spline surface."""
+        from .surface import PlaneSurface, SplineSurface
+
+        gx, gy, z = self.mirror_grid()
+        if z is None:
+            return PlaneSurface(gx, gy)
+        return SplineSurface(gx, gy, np.array(z))
 
 
 @dataclass(frozen=True)
@@ -214,13 +240,35 @@ class Setup:
             )
         return replace(self, screen=replace(self.screen, bulge_mm=float(bulge_mm)))
 
+    def with_screen_heights(self, grid_x_mm, grid_y_mm, heights_mm) -> "Setup":
+        """The same setup with the screen's control grid and full (n_y, n_x) height matrix
+        replaced (no bulge override); the screen's pose is kept."""
+        gx = tuple(float(v) for v in grid_x_mm)
+        gy = tuple(float(v) for v in grid_y_mm)
+        z = np.asarray(heights_mm, dtype=float)
+        if z.shape != (len(gy), len(gx)):
+            raise SetupError(f"screen.heights_mm must have shape (len(grid_y_mm), len(grid_x_mm)) = "
+                             f"({len(gy)}, {len(gx)}), got {z.shape}")
+        if not np.isfinite(z).all():
+            raise SetupError("screen.heights_mm must be finite")
+        scr = replace(self.screen, grid_x_mm=gx, grid_y_mm=gy, heights_mm=tuple(tuple(float(v) for v in r) for r in z),
+                      bulge_mm=None)
+        scr.surface  # validate the grid now (raises with the problem)
+        return replace(self, screen=scr)
+
+    def with_mirror_sag(self, sag_um: float) -> "Setup":
+        """The same setup with a calibration mirror of sag ``sag_um`` (see :class:`CalibrationSetup`)."""
+        if not math.isfinite(sag_um):
+            raise SetupError(f"calibration.mirror_sag_um must be finite, got {sag_um!r}")
+        return replace(self, calibration=replace(self.calibration, mirror_sag_um=float(sag_um)))
+
     def with_mirror_pose(self, index: int) -> "Setup":
         """The setup with the sample replaced by the calibration mirror in pose ``index``."""
         poses = self.calibration.mirror_poses(self.sample)
         if not 0 <= index < len(poses):
             raise SetupError(f"calibration pose index must be in 0 … {len(poses) - 1}, got {index}")
-        w, h = self.calibration.mirror_size_mm
-        return replace(self, sample=SampleSetup(Pose.from_transform(poses[index][1]), (0.0, w), (0.0, h)))
+        gx, gy, z = self.calibration.mirror_grid()
+        return replace(self, sample=SampleSetup(Pose.from_transform(poses[index][1]), gx, gy, z))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (the TOML document's content)."""
@@ -277,6 +325,7 @@ class Setup:
                 "mirror_tilts_deg": list(cal.mirror_tilts_deg),
                 "mirror_size_mm": list(cal.mirror_size_mm),
                 "observation_stride_px": cal.observation_stride_px,
+                "mirror_sag_um": cal.mirror_sag_um,
             },
         }
 
@@ -326,7 +375,7 @@ _KNOWN_KEYS = {
     "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm"),
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
                  "seed"),
-    "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px"),
+    "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
 }
 
 
@@ -562,8 +611,11 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         if min(size) <= 0:
             raise SetupError(f"calibration.mirror_size_mm must be > 0, got {list(size)}")
         stride = c.integer("observation_stride_px", dc.observation_stride_px, minimum=1)
+        sag = c.number("mirror_sag_um", dc.mirror_sag_um)
+        if abs(sag) * 1e-3 >= 0.05 * min(size):
+            raise SetupError(f"calibration.mirror_sag_um must be small against the mirror (< 5 % of its size), got {sag}")
         c.finish()
-        calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride)
+        calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride, sag)
     else:
         r.used.add("calibration")
         calibration = dc
@@ -611,7 +663,9 @@ _COMMENTS = {
     "so a positive bulge is concave as seen from the sample.",
     "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given.",
     "calibration": "Calibration mirror poses (paper §4): base = the sample's pose; lifts towards the cameras;\n"
-    "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.",
+    "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.\n"
+    "mirror_sag_um: the mirror's flatness error, a paraboloid −s·(1 − r²/ρ²) (ρ = half the smaller side;\n"
+    "+ = centre towards the cameras); 0 = a perfect plane, as the paper assumes.",
     "patterns": "Fringes I_k = A + B·cos(2π·c/p − 2πk/N); mean_level A and amplitude B are fractions of full scale;\n"
     "periods coarsest first (the coarsest must cover the screen); noise_std in grey levels.",
 }
