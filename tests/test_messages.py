@@ -41,8 +41,10 @@ def test_output_into_the_current_directory_is_refused(tmp_path, monkeypatch):
 @pytest.mark.parametrize("args,msg", [
     (["experiment", "1", "--bulges-mm", "abc"], "--bulges-mm must be comma-separated numbers"),
     (["experiment", "3", "--bulges-mm", ","], "--bulges-mm lists no value"),
-    (["experiment3", "--grids", "3,x"], "--grids must be comma-separated integers"),
-    (["experiment3", "--grids", "2"], "at least 3 × 3"),
+    (["experiment", "3", "--grids", "3,x"], "--grids must be comma-separated integers"),
+    (["experiment", "3", "--grids", "2"], "at least 3 × 3"),
+    (["experiment", "3", "--deformations", "wavy"], "--deformations: unknown ['wavy']"),
+    (["experiment", "3", "--mirror-sags-um", "1,x"], "--mirror-sags-um must be comma-separated numbers"),
 ])
 def test_bad_experiment_lists_are_refused_before_any_work(tmp_path, args, msg):
     out = tmp_path / "o"

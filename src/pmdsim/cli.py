@@ -245,31 +245,14 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
                f"residuals; wrote {out_path}", err=True)
 
 
-@main.command("experiment3", hidden=True)
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
-@click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
-@click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True)
-@click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True)
-@click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
-@click.option("--grids", default="3,5,9", show_default=True,
-              help="Free-form screen models: comma-separated n for n×n control grids (the planar model is always run).")
-@click.option("--deformations", default="offcentre,random", show_default=True,
-              help="Mismatch case: true screen deformations (offcentre, random; empty for none).")
-@click.option("--mirror-sags-um", default="1,5", show_default=True,
-              help="Non-planar calibration mirror: sags in µm (empty for none), with the bulge --sag-bulge-mm.")
-@click.option("--sag-bulge-mm", type=float, default=3.0, show_default=True)
-@click.option("--force", is_flag=True)
-@click.option("--quiet", is_flag=True)
-def experiment3_cmd(out_dir, setup_path, downsample, method, bulges_mm, grids, deformations, mirror_sags_um,
-                    sag_bulge_mm, force, quiet) -> None:
-    """Experiment 3 (run as `pmdsim experiment 3`): calibrate the screen's shape (paper §5).
+def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, deformations, mirror_sags_um,
+                 sag_bulge_mm, force, quiet) -> None:
+    """`pmdsim experiment 3`: calibrate the screen's shape (paper §5).
 
     For every scenario (the paper's bulges, mismatching deformations, a sagged calibration
     mirror) and screen model (planar, n×n free-form grids) calibrate and reconstruct the planar
     sample; errors against the number of free screen heights.
     """
-    from dataclasses import replace
-
     from .experiments import SCREEN_DEFORMATIONS, experiment3_scenarios, run_experiment3
     from .io import write_reconstructions_h5
 
@@ -311,7 +294,7 @@ def experiment3_cmd(out_dir, setup_path, downsample, method, bulges_mm, grids, d
                 calibrations.append({"scenario": sc.name, "bulge_mm": sc.bulge_mm, "mirror_sag_um": sc.mirror_sag_um,
                                      "screen_model": label, **e.result.to_dict(), "deviation_from_truth": e.deviation})
                 for c in e.cases:
-                    cases.append(replace(c, camera=f"{c.camera}"))
+                    cases.append(c)
                     groups.append(f"{tag}/{label}/{c.camera}")
         write_json(tmp / "results.json", _json_ready(records))
         write_json(tmp / "calibration.json", _json_ready(calibrations))
@@ -442,10 +425,8 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     from .plotting import height_grid_figure
 
     if number == "3":
-        ctx = click.get_current_context()
-        return ctx.invoke(experiment3_cmd, out_dir=out_dir, setup_path=setup_path, downsample=downsample,
-                          method=method, bulges_mm=bulges_mm, grids=grids, deformations=deformations,
-                          mirror_sags_um=mirror_sags_um, sag_bulge_mm=sag_bulge_mm, force=force, quiet=quiet)
+        return _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, deformations, mirror_sags_um,
+                            sag_bulge_mm, force, quiet)
 
     bulges = _parse_list(bulges_mm, float, "--bulges-mm")
     base = _load(setup_path, None)

@@ -20,7 +20,7 @@ from .registration import Registration, register
 from .setup import CameraSetup, Setup, default_setup
 from .simulation import render_images, trace_setup_camera
 from .surface import SplineSurface
-from .transform import rotation_angle_rad
+from .transform import RigidTransform, rotation_angle_rad
 
 __all__ = [
     "PAPER_TABLE2",
@@ -264,7 +264,7 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
     return obs
 
 
-def table_frame_from_plane(nominal: Setup, plane_screen) -> "RigidTransform":
+def table_frame_from_plane(nominal: Setup, plane_screen) -> RigidTransform:
     """``T_world_table``: the calibrated table plane (the base mirror plane, screen frame) as a
     sample frame in world coordinates, world being defined by the screen at its nominal pose.
 
@@ -272,8 +272,6 @@ def table_frame_from_plane(nominal: Setup, plane_screen) -> "RigidTransform":
     origin the nominal sample origin projected onto the plane, +x the nominal sample x axis
     projected onto the plane.
     """
-    from .transform import RigidTransform
-
     T_ws = nominal.screen.T_world_screen
     n = T_ws.apply_vector(plane_screen.normal)
     p0 = T_ws.apply(plane_screen.normal * plane_screen.d_mm)  # a point of the plane
