@@ -193,3 +193,66 @@ def test_second_derivatives_match_fitpack():
         np.testing.assert_allclose([h, hx, hy], [ref.ev(y, x), ref.ev(y, x, dy=1), ref.ev(y, x, dx=1)], atol=1e-10)
         np.testing.assert_allclose([hxx, hxy, hyy], [ref.ev(y, x, dy=2), ref.ev(y, x, dx=1, dy=1), ref.ev(y, x, dx=2)],
                                    atol=1e-10)
+
+
+def test_derivative_bounds_hold():
+    """KernelSurface.dmax bounds the second and third partial derivatives (Newton error bounds)."""
+    from pmdsim.surface import eval2_kernel
+
+    rng = np.random.default_rng(11)
+    gx = np.array([0.0, 40.0, 100.0, 130.0, 200.0, 300.0])
+    gy = np.linspace(0, 200, 5)
+    k = SplineSurface(gx, gy, rng.normal(size=(5, 6))).kernel
+    pts = rng.uniform([0, 0], [300, 200], size=(3000, 2))
+    e = np.array([eval2_kernel(k.kind, k.grid_x, k.grid_y, k.coef, x, y) for x, y in pts])
+    second = np.abs(e[:, 3:]).max()
+    assert second <= k.dmax[0] and second > 0.02 * k.dmax[0]  # a bound, not absurdly loose
+    # Third derivatives by central differences of the (piecewise quadratic) second derivatives,
+    # away from the patch borders.
+    d = 1e-3
+    inner = [(x, y) for x, y in pts if np.min(np.abs(x - gx)) > 2 * d and np.min(np.abs(y - gy)) > 2 * d]
+    third = 0.0
+    for x, y in inner[:500]:
+        ex = [eval2_kernel(k.kind, k.grid_x, k.grid_y, k.coef, x + s * d, y) for s in (-1, 1)]
+        ey = [eval2_kernel(k.kind, k.grid_x, k.grid_y, k.coef, x, y + s * d) for s in (-1, 1)]
+        third = max(third, *(abs(ex[1][i] - ex[0][i]) / (2 * d) for i in (3, 4, 5)),
+                    *(abs(ey[1][i] - ey[0][i]) / (2 * d) for i in (3, 4, 5)))
+    assert third <= k.dmax[1]
+    assert PlaneSurface((0.0, 1.0), (0.0, 1.0)).kernel.dmax.tolist() == [0.0, 0.0]
+
+
+def test_warm_started_newton_fast_path():
+    """intersect_kernel: one Newton step from a warm start (paper's eq. 13 accelerated) when
+    it provably converges to the tolerance; otherwise _NEEDS_SOLVE and intersect_solve."""
+    from pmdsim.surface import _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, intersect_kernel, intersect_solve
+
+    a, b, c = 2e-4, -1.5e-4, 0.7
+    s = _paraboloid_surface(a, b, c)
+    k = s.kernel
+    rng = np.random.default_rng(5)
+    o = np.array([10.0, 250.0, -300.0])
+    target = np.column_stack([rng.uniform(-90, 90, 300), rng.uniform(-70, 70, 300), np.zeros(300)])
+    d = target - o
+    p_ref = o + _ray_paraboloid(o, d, a, b, c)[:, None] * d
+    tol = 1e-11
+    n_fast = 0
+    for dz0 in (1e-7, 1e-5, 1e-3, 0.3):
+        for i in range(len(d)):
+            args = (k.kind, k.grid_x, k.grid_y, k.coef)
+            ray = (*o, *d[i])
+            for gradient in (True, False):
+                t, x, y, z, hx, hy, st = intersect_kernel(*args, k.dmax, *ray, tol, p_ref[i, 2] + dz0, gradient)
+                fast = st != _NEEDS_SOLVE
+                if not fast:
+                    t, x, y, z, hx, hy, st = intersect_solve(*args, k.z_min, k.z_max, k.dmax, *ray, tol,
+                                                             FIXED_POINT_MAX_ITER, z)
+                n_fast += fast
+                assert st == IntersectStatus.HIT
+                np.testing.assert_allclose([x, y, z], p_ref[i], atol=1e-9, rtol=0)
+                assert abs(z - (c + a * x * x + b * y * y)) <= 2 * tol
+                if gradient or not fast:
+                    np.testing.assert_allclose([hx, hy], [2 * a * x, 2 * b * y], atol=1e-11, rtol=0)
+                else:
+                    assert np.isnan(hx) and np.isnan(hy)
+    # Close starts take the one-step fast path, a 0.3 mm error does not.
+    assert n_fast >= 2 * 2 * len(d)

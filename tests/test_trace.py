@@ -171,3 +171,25 @@ def test_mapping_is_independent_of_thread_count():
     finally:
         numba.set_num_threads(n)
     np.testing.assert_array_equal(m1.screen_xy_mm, m2.screen_xy_mm)
+
+
+def test_partial_paraboloid_screen_closed_form():
+    """Warm starts restart after pixels that miss a deformed screen (SCREEN_OUTSIDE inside rows)."""
+    a, b, c = -2e-5, -3e-5, 1.0
+    gx = np.array([150.0, 300.0, 450.0])  # a strip of the screen: rows leave and re-enter it
+    gy = np.array([0.0, 199.0, 398.0])
+    X, Y = np.meshgrid(gx, gy)
+    screen = SplineSurface(gx, gy, c + a * (X - 354) ** 2 + b * (Y - 199) ** 2)
+    T_world_sample = RigidTransform.from_origin_angles([-200.0, -200.0, 0.0], [0.0, 0.0, 0.0])
+    sample = PlaneSurface((0.0, 400.0), (0.0, 400.0))
+    m = trace_camera(SMALL, T_WORLD_CAM, T_world_sample, sample, T_WORLD_SCREEN, screen)
+    counts = m.status_counts()
+    assert counts.get("VALID", 0) > 1000 and counts.get("SCREEN_OUTSIDE", 0) > 1000, counts
+    o, d = _world_rays(SMALL, T_WORLD_CAM)
+    p = _ray_plane(o, d, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    r = _reflect(d, np.array([0.0, 0.0, 1.0]))
+    T_apex = T_WORLD_SCREEN @ RigidTransform(np.eye(3), [354.0, 199.0, 0.0])
+    q = _ray_paraboloid_local(T_apex.inv().apply(p), T_apex.inv().apply_vector(r), a, b, c)[..., :2] + [354.0, 199.0]
+    inside = (q[..., 0] >= 150.0) & (q[..., 0] <= 450.0)
+    np.testing.assert_array_equal(m.valid, inside)
+    np.testing.assert_allclose(m.screen_xy_mm[inside], q[inside], atol=1e-9, rtol=0)

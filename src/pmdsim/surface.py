@@ -38,6 +38,8 @@ INTERSECT_TOL_MM = 1e-11
 #: Fixed-point iterations (eqs. 13–16) before the safeguarded Newton fallback takes over.
 FIXED_POINT_MAX_ITER = 60
 _NEWTON_MAX_ITER = 200
+#: Newton steps of a warm-started intersection before the fixed-point iteration takes over.
+_NEWTON_WARM_MAX_ITER = 8
 
 _KIND_PLANE = 0
 _KIND_SPLINE = 1
@@ -47,6 +49,7 @@ _HIT = 0
 _PARALLEL = 1
 _OUTSIDE = 2
 _NO_CONVERGENCE = 3
+_NEEDS_SOLVE = 4  # internal: intersect_kernel's fast path did not apply, call intersect_solve
 
 
 class IntersectStatus:
@@ -136,6 +139,9 @@ class KernelSurface(NamedTuple):
         ``h = Σ_a Σ_b c[4a + b] (y − y_j)**a (x − x_i)**b``.
     z_min, z_max : float
         Conservative bounds of the height inside the grid (for the intersection fallback).
+    dmax : ndarray (2,)
+        Conservative bounds D₂, D₃ of all second and of all third partial derivatives of h
+        inside the grid (for the error bounds of the Newton steps of :func:`intersect_kernel`).
     """
 
     kind: int
@@ -144,6 +150,7 @@ class KernelSurface(NamedTuple):
     coef: np.ndarray
     z_min: float
     z_max: float
+    dmax: np.ndarray
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -319,22 +326,120 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start,
-                     hx_hint=np.nan, hy_hint=np.nan):
+def _finish(gx, gy, oz, inv_dz, x, y, z, hx, hy):
+    """(t, x, y, z, h_x, h_y, status) of a converged intersection: a hit, behind the ray's
+    origin (PARALLEL) or outside the grid."""
+    t = (z - oz) * inv_dz
+    if not t > 0.0:
+        return t, x, y, z, hx, hy, _PARALLEL
+    if x < gx[0] or x > gx[gx.shape[0] - 1] or y < gy[0] or y > gy[gy.shape[0] - 1]:
+        return t, x, y, z, hx, hy, _OUTSIDE
+    return t, x, y, z, hx, hy, _HIT
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _newton_step(kind, gx, gy, coef, ax, ay, bx, by, m2, c3, z, tol, gradient):
+    """One Newton step on f(z) = h(a + b·z) − z, the accelerated fixed-point step of eq. (13).
+
+    The ray is x = a_x + b_x·z, y = a_y + b_y·z (eqs. 14–16 with t eliminated). With
+    h_z = ∇h·b the slope of the surface along the ray per unit height, the step is
+    s = (h − z)/(1 − h_z): the fixed-point step divided by 1 − h_z. By Taylor's theorem with
+    |h_zz| ≤ ``m2`` along the ray, the new height is off the root by at most
+    m2·e²/(2(1 − h_z)), e the error before the step (≈ |s|); the step counts as converged when
+    m2·s²/(1 − h_z) ≤ ``tol`` (a safety factor 2) and |h_z| < 1, i.e. the root is an
+    attracting fixed point of eq. (13) (the paper's iteration would converge to it too; this
+    excludes roots where the ray leaves the surface).
+
+    With ``gradient`` the surface gradient (for eq. 17), evaluated before the step, is
+    carried to the new point with the second derivatives; with ``c3`` = D₃ (|b_x| + |b_y|)²
+    (D₃ bounding the third derivatives) its error is then ≤ c3·s²/2, and convergence also
+    requires c3·s² ≤ ``tol`` (as a slope). Without (a compile-time constant in the inlined
+    callers), h_x and h_y are NaN.
+
+    Returns
+    -------
+    (z, x, y, h_x, h_y, converged)
+    """
+    h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ax + bx * z, ay + by * z)
+    hz = hx * bx + hy * by
+    fp = 1.0 - hz
+    step = (h - z) / fp
+    z = z + step
+    s = abs(step)
+    converged = abs(hz) < 1.0 and m2 * s * s <= tol * fp
+    if gradient:
+        converged = converged and c3 * s * s <= tol
+        hx += (hxx * bx + hxy * by) * step
+        hy += (hxy * bx + hyy * by) * step
+    else:
+        hx = np.nan
+        hy = np.nan
+    return z, ax + bx * z, ay + by * z, hx, hy, converged
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol, z_start, gradient):
+    """Intersection of the ray o + t·d with the height field z = h(x, y): the fast path.
+
+    For the tracer's inner loop: straight-line code (no loops, no calls), inlined. The plane
+    z = 0 is intersected directly (eqs. 9–12); a spline surface with a warm start
+    ``z_start`` (a neighbouring ray's height) takes one Newton step (:func:`_newton_step`,
+    the paper's fixed-point step of eq. 13 accelerated by its analytic derivative). If that
+    step has not converged to ``tol``, or without a warm start, the status is
+    ``_NEEDS_SOLVE`` and the caller must call :func:`intersect_solve` with the returned z as
+    its start — directly from its own loop (numba reference-counts arrays that an inlined
+    function passes to a call or uses in a loop, on every call). ``gradient``: whether the
+    surface gradient is needed (else h_x, h_y are NaN; pass a constant).
+
+    Returns
+    -------
+    (t, x, y, z, h_x, h_y, status)
+        The ray parameter, the point, the surface gradient there and an
+        :class:`IntersectStatus` code (or ``_NEEDS_SOLVE``, with z the start for
+        :func:`intersect_solve`).
+    """
+    nan = np.nan
+    if dz == 0.0 or not np.isfinite(dz):
+        return nan, nan, nan, nan, nan, nan, _PARALLEL
+    inv_dz = 1.0 / dz
+    bx = dx * inv_dz
+    by = dy * inv_dz
+    ax = ox - oz * bx
+    ay = oy - oz * by
+    if kind == _KIND_PLANE:
+        return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)  # eqs. (9)–(12)
+    if not np.isfinite(z_start):
+        return nan, nan, nan, nan, nan, nan, _NEEDS_SOLVE
+    # |h_zz| along the ray: Σ ∂²h/∂x_i∂x_j b_i b_j ≤ D₂ (|b_x| + |b_y|)².
+    w2 = (abs(bx) + abs(by)) ** 2
+    z, x, y, hx, hy, ok = _newton_step(kind, gx, gy, coef, ax, ay, bx, by, dmax[0] * w2, dmax[1] * w2, z_start, tol,
+                                       gradient)
+    if not ok:
+        return nan, nan, nan, z if np.isfinite(z) else z_start, nan, nan, _NEEDS_SOLVE
+    return _finish(gx, gy, oz, inv_dz, x, y, z, hx, hy)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start):
     """Intersection of the ray o + t·d with the height field z = h(x, y) (paper eqs. 9–16).
 
-    The paper's fixed-point iteration z ← h(x(z), y(z)) (eq. 13, with x(z), y(z) the ray's
-    point at height z, eqs. 14–16) starts at ``z_start`` — the x–y plane z = 0 of eq. (9) when
-    ``z_start`` is NaN, or a nearby ray's height as a warm start, optionally with that ray's
-    surface gradient (``hx_hint``, ``hy_hint``) to estimate the contraction factor — and stops
-    when the height
-    has converged to ``tol``: with q = |step_n/step_(n−1)| the observed contraction factor
-    (q ≈ |∇h·d_xy/d_z|), the error after one more step is ≈ step·q²/(1 − q); once that is
-    ≤ ``tol``, the final step is taken with the gradient (and second derivatives, which carry
-    the gradient to the returned point) for eq. (17). If it has not converged after ``max_iter`` steps (q ≥ 1: steep surface
-    or grazing ray), a fallback takes over: the first sign change of
-    f(t) = o_z + t d_z − h(o_xy + t d_xy) within the part of the ray that lies inside the
-    surface's height bounds and over its grid rectangle, refined by bracketed Newton steps.
+    With x(z), y(z) the ray's point at height z (eqs. 14–16), the intersection is the fixed
+    point of the paper's iteration z ← h(x(z), y(z)) (eq. 13).
+
+    With a warm start ``z_start`` (finite): Newton steps (:func:`_newton_step`) until one
+    has converged to ``tol`` (at most ``_NEWTON_WARM_MAX_ITER``).
+
+    Otherwise, or if they fail: the paper's fixed-point iteration from the x–y plane z = 0
+    (eq. 9). It converges linearly with the factor q = |h_z| (the slope of the surface along
+    the ray per unit height), estimated from the last two steps; it stops when the height
+    error after one more step, ≈ step·q²/(1 − q), is ≤ ``tol``, and takes that final step
+    with the gradient (and second derivatives, which carry the gradient to the returned
+    point) for eq. (17).
+
+    If that has not converged after ``max_iter`` steps (q ≥ 1: steep surface or grazing
+    ray): the first sign change of f(t) = o_z + t d_z − h(o_xy + t d_xy) within the part of
+    the ray that lies inside the surface's height bounds and over its grid rectangle,
+    refined by bracketed Newton steps.
 
     Returns
     -------
@@ -352,64 +457,56 @@ def intersect_kernel(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, t
     by = dy * inv_dz
     ax = ox - oz * bx
     ay = oy - oz * by
-    z = 0.0 if (kind == _KIND_PLANE or not np.isfinite(z_start)) else z_start  # eq. (9)
-    x = ax + bx * z
-    y = ay + by * z
-    hx = 0.0
-    hy = 0.0
-    converged = kind == _KIND_PLANE
-    if not converged:
-        step_prev = -1.0  # no previous step yet
-        q_hint = 2.0 * abs(hx_hint * bx + hy_hint * by) + 1e-6
-        if not (np.isfinite(q_hint) and np.isfinite(z_start)):
-            q_hint = 1.0  # no hint: wait for two steps
-        for _ in range(max_iter):
-            znew = height_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
-            x = ax + bx * znew  # eqs. (14)–(16)
-            y = ay + by * znew
-            step = abs(znew - z)
-            z = znew
-            if step == 0.0:
+    if kind == _KIND_PLANE:
+        return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)
+    if np.isfinite(z_start):
+        w2 = (abs(bx) + abs(by)) ** 2
+        z = z_start
+        for _ in range(_NEWTON_WARM_MAX_ITER):
+            z, x, y, hx, hy, ok = _newton_step(kind, gx, gy, coef, ax, ay, bx, by, dmax[0] * w2, dmax[1] * w2, z, tol,
+                                               True)
+            if ok:
+                return _finish(gx, gy, oz, inv_dz, x, y, z, hx, hy)
+            if not np.isfinite(z):
+                break
+    z = 0.0  # eq. (9)
+    x = ax
+    y = ay
+    converged = False
+    step_prev = -1.0  # no previous step yet
+    for _ in range(max_iter):
+        znew = height_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
+        x = ax + bx * znew  # eqs. (14)–(16)
+        y = ay + by * znew
+        step = abs(znew - z)
+        z = znew
+        if step == 0.0:
+            converged = True
+            break
+        # Linear convergence with factor q: the error now is ≈ step·q/(1 − q), and after
+        # the final step below ≈ step·q²/(1 − q). q is estimated from the last two steps.
+        if step_prev > 0.0:
+            q = step / step_prev
+            if q < 0.5 and step * q * q / (1.0 - q) <= tol:
                 converged = True
                 break
-            # Linear convergence with factor q: the error now is ≈ step·q/(1 − q), and after
-            # the final step below ≈ step·q²/(1 − q). q is estimated from the last two steps,
-            # or — after the first step of a warm start — from the neighbouring ray's surface
-            # gradient (q = |h_x·d_x/d_z + h_y·d_y/d_z| at the fixed point), with a safety
-            # factor of 2.
-            if step_prev > 0.0:
-                q = step / step_prev
-                if q < 0.5 and step * q * q / (1.0 - q) <= tol:
-                    converged = True
-                    break
-            elif q_hint < 0.25 and step * q_hint * q_hint / (1.0 - q_hint) <= tol:
-                converged = True
-                break
-            step_prev = step
-        if converged:
-            # The final step of eq. (13) also gives the gradient for eq. (17). It is evaluated
-            # at the point before that step and carried to the returned point to first order
-            # with the second derivatives (the remaining gradient error is second order in a
-            # height change that is already ≤ step·q).
-            zf, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, x, y)
-            ddx = bx * (zf - z)
-            ddy = by * (zf - z)
-            hx += hxx * ddx + hxy * ddy
-            hy += hxy * ddx + hyy * ddy
-            z = zf
-            x = ax + bx * z
-            y = ay + by * z
-        if not converged:
-            ok, x, y, z, hx, hy, code = _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz,
-                                                            tol)
-            if not ok:
-                return nan, nan, nan, nan, nan, nan, code
-    t = (z - oz) * inv_dz
-    if not t > 0.0:
-        return t, x, y, z, hx, hy, _PARALLEL
-    if x < gx[0] or x > gx[gx.shape[0] - 1] or y < gy[0] or y > gy[gy.shape[0] - 1]:
-        return t, x, y, z, hx, hy, _OUTSIDE
-    return t, x, y, z, hx, hy, _HIT
+        step_prev = step
+    if converged:
+        # The final step of eq. (13) also gives the gradient for eq. (17). It is evaluated
+        # at the point before that step and carried to the returned point to first order
+        # with the second derivatives (the remaining gradient error is second order in a
+        # height change that is already ≤ step·q).
+        zf, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, x, y)
+        ddx = bx * (zf - z)
+        ddy = by * (zf - z)
+        hx += hxx * ddx + hxy * ddy
+        hy += hxy * ddx + hyy * ddy
+        z = zf
+        return _finish(gx, gy, oz, inv_dz, ax + bx * z, ay + by * z, z, hx, hy)
+    ok, x, y, z, hx, hy, code = _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol)
+    if not ok:
+        return nan, nan, nan, nan, nan, nan, code
+    return _finish(gx, gy, oz, inv_dz, x, y, z, hx, hy)
 
 
 # Parallel loops are thin wrappers over chunks that call a serial, compiled function: numba's
@@ -434,10 +531,10 @@ def _eval_many(kind, gx, gy, coef, x, y, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _intersect_range(start, end, kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out, p_out, status):
+def _intersect_range(start, end, kind, gx, gy, coef, z_min, z_max, dmax, o, d, tol, max_iter, t_out, p_out, status):
     for k in range(start, end):
-        t, x, y, z, hx, hy, st = intersect_kernel(
-            kind, gx, gy, coef, z_min, z_max, o[k, 0], o[k, 1], o[k, 2], d[k, 0], d[k, 1], d[k, 2],
+        t, x, y, z, hx, hy, st = intersect_solve(
+            kind, gx, gy, coef, z_min, z_max, dmax, o[k, 0], o[k, 1], o[k, 2], d[k, 0], d[k, 1], d[k, 2],
             tol, max_iter, np.nan,
         )
         t_out[k] = t
@@ -448,10 +545,10 @@ def _intersect_range(start, end, kind, gx, gy, coef, z_min, z_max, o, d, tol, ma
 
 
 @numba.njit(cache=True, parallel=True)
-def _intersect_many(kind, gx, gy, coef, z_min, z_max, o, d, tol, max_iter, t_out, p_out, status):
+def _intersect_many(kind, gx, gy, coef, z_min, z_max, dmax, o, d, tol, max_iter, t_out, p_out, status):
     n = o.shape[0]
     for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
-        _intersect_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, o, d,
+        _intersect_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, dmax, o, d,
                          tol, max_iter, t_out, p_out, status)
 
 
@@ -523,9 +620,40 @@ class _SurfaceBase:
         p = np.empty_like(of)
         st = np.empty(of.shape[0], dtype=np.uint8)
         k = self.kernel
-        _intersect_many(k.kind, k.grid_x, k.grid_y, k.coef, k.z_min, k.z_max, of, df, tol_mm,
+        _intersect_many(k.kind, k.grid_x, k.grid_y, k.coef, k.z_min, k.z_max, k.dmax, of, df, tol_mm,
                         FIXED_POINT_MAX_ITER, t, p, st)
         return t.reshape(shape), p.reshape(shape + (3,)), st.reshape(shape)
+
+
+def _derivative_bound(patches: np.ndarray, lx: np.ndarray, ly: np.ndarray, order: int) -> float:
+    """A bound of all partial derivatives of the given order of the bicubic patches.
+
+    Parameters
+    ----------
+    patches : ndarray (n_y − 1, n_x − 1, 4, 4)
+        ``patches[j, i, a, b]`` multiplies (y − y_j)**a (x − x_i)**b.
+    lx, ly : ndarray (n_x − 1,), (n_y − 1,)
+        Patch widths and heights.
+    order : int
+        Derivative order r.
+
+    Returns
+    -------
+    float
+        max over patches and over p + q = r of Σ |c_ab| · b!/(b − p)! · a!/(a − q)! ·
+        l_x**(b − p) · l_y**(a − q), which bounds |∂^r h/∂x^p ∂y^q| anywhere on the patches.
+    """
+    ff = np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0], [1.0, 2.0, 2.0, 0.0], [1.0, 3.0, 6.0, 6.0]])
+    # ff[n, k] = n!/(n − k)!, zero for k > n.
+    best = 0.0
+    for p in range(order + 1):
+        q = order - p
+        w = np.zeros((ly.size, lx.size, 4, 4))
+        for a in range(q, 4):
+            for b in range(p, 4):
+                w[:, :, a, b] = ff[a, q] * ff[b, p] * ly[:, None] ** (a - q) * lx[None, :] ** (b - p)
+        best = max(best, float(np.max(np.sum(np.abs(patches) * w, axis=(2, 3)))))
+    return best
 
 
 def _validate_grid(name: str, g) -> np.ndarray:
@@ -586,7 +714,10 @@ class SplineSurface(_SurfaceBase):
         kind = _KIND_PLANE if not np.any(z) else _KIND_SPLINE
         coef = np.ascontiguousarray(patches.reshape(-1))
         coef.setflags(write=False)
-        object.__setattr__(self, "kernel", KernelSurface(kind, gx, gy, coef, z_min, z_max))
+        lx, ly = np.diff(gx), np.diff(gy)
+        dmax = np.array([_derivative_bound(patches, lx, ly, 2), _derivative_bound(patches, lx, ly, 3)])
+        dmax.setflags(write=False)
+        object.__setattr__(self, "kernel", KernelSurface(kind, gx, gy, coef, z_min, z_max, dmax))
 
     @classmethod
     def from_bulge(cls, grid_x_mm, grid_y_mm, bulge_mm: float) -> "SplineSurface":
@@ -629,7 +760,7 @@ class PlaneSurface(_SurfaceBase):
         object.__setattr__(self, "x_range_mm", (float(gx[0]), float(gx[1])))
         object.__setattr__(self, "y_range_mm", (float(gy[0]), float(gy[1])))
         object.__setattr__(
-            self, "kernel", KernelSurface(_KIND_PLANE, gx, gy, np.zeros(16), -1e-9, 1e-9)
+            self, "kernel", KernelSurface(_KIND_PLANE, gx, gy, np.zeros(16), -1e-9, 1e-9, np.zeros(2))
         )
 
     is_planar = True

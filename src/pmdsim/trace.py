@@ -16,7 +16,9 @@ import numba
 import numpy as np
 
 from .camera import Camera
-from .surface import FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel
+from .surface import (
+    _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
+)
 from .transform import RigidTransform
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
@@ -55,17 +57,28 @@ _SAMPLE_CODES = np.array([Status.VALID, Status.SAMPLE_PARALLEL, Status.SAMPLE_OU
 _SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OUTSIDE, Status.SCREEN_NO_CONVERGENCE], dtype=np.uint8)
 
 
-@numba.njit(cache=True, error_model="numpy")
+# _nrt=False: the function allocates nothing, and without numba's reference counting the
+# arrays handed to the inlined surface kernels are not incref'd and decref'd on every pixel
+# (atomic calls that also force register spills: ~40 % of the time). fastmath={"contract"}
+# only lets LLVM fuse a·b + c into FMAs (one rounding instead of two); it assumes nothing
+# about NaN or infinity, so the validity checks are unaffected.
+@numba.njit(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 def _trace_run(
     run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
-    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
-    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
     screen_xy, status, p_sample, q_screen, store,
 ):
-    """Trace one run of ``run_length`` rays (an image row); each intersection is warm started
-    from the previous pixel's height, so results do not depend on the thread count."""
+    """Trace one run of ``run_length`` rays (an image row).
+
+    Each intersection is warm started from the previous pixels' heights (one Newton step,
+    :func:`pmdsim.surface.intersect_kernel`); the first pixel of a run, and any pixel whose
+    fast path does not converge, is solved by :func:`pmdsim.surface.intersect_solve`. Runs
+    are independent, so results do not depend on the thread count.
+    """
     n = d_cam.shape[0]
+    nan = np.nan
     # Ray origin: the pinhole, in the sample frame.
     ox = t_sc[0]
     oy = t_sc[1]
@@ -79,23 +92,24 @@ def _trace_run(
     b10, b11, b12 = r_ps[1, 0], r_ps[1, 1], r_ps[1, 2]
     b20, b21, b22 = r_ps[2, 0], r_ps[2, 1], r_ps[2, 2]
     c0, c1, c2 = t_ps[0], t_ps[1], t_ps[2]
-    if True:
-        zs_prev = np.nan
-        zp_prev = np.nan  # screen height of the previous pixel …
-        zp_prev2 = np.nan  # … and of the one before (for a linear extrapolation)
-        gx_prev = np.nan  # screen gradient at the previous pixel
-        gy_prev = np.nan
-        k_end = min(n, (run + 1) * run_length)
-        for k in range(run * run_length, k_end):
-            screen_xy[k, 0] = np.nan
-            screen_xy[k, 1] = np.nan
-            if store:
-                for c in range(3):
-                    p_sample[k, c] = np.nan
-                    q_screen[k, c] = np.nan
-            if not ok[k]:
-                status[k] = 1  # UNDISTORT_FAILED
-                continue
+    zs_prev = nan  # sample height of the previous pixel
+    # Screen heights of the previous three pixels (NaN where not valid).
+    zp1 = nan
+    zp2 = nan
+    zp3 = nan
+    k_end = min(n, (run + 1) * run_length)
+    for k in range(run * run_length, k_end):
+        qx = nan
+        qy = nan
+        qz = nan
+        if store:
+            for c in range(3):
+                p_sample[k, c] = nan
+                q_screen[k, c] = nan
+        if not ok[k]:
+            status[k] = 1  # UNDISTORT_FAILED
+            zs_prev = nan
+        else:
             a = d_cam[k, 0]
             b = d_cam[k, 1]
             c = d_cam[k, 2]
@@ -104,60 +118,71 @@ def _trace_run(
             vy = a10 * a + a11 * b + a12 * c
             vz = a20 * a + a21 * b + a22 * c
             t, px, py, pz, hx, hy, st = intersect_kernel(
-                s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, ox, oy, oz, vx, vy, vz, tol, max_iter, zs_prev
+                s_kind, s_gx, s_gy, s_coef, s_dmax, ox, oy, oz, vx, vy, vz, tol, zs_prev, True
             )
+            if st == _NEEDS_SOLVE:
+                t, px, py, pz, hx, hy, st = intersect_solve(
+                    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
+                )
             if st != 0:
                 status[k] = sample_codes[st]
-                zs_prev = np.nan
-                continue
-            zs_prev = pz
-            # Reflection, eq. (17), with n = (−h_x, −h_y, 1).
-            nx = -hx
-            ny = -hy
-            f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
-            rx = vx - f * nx
-            ry = vy - f * ny
-            rz = vz - f
-            # Origin and direction of the reflected ray in the screen frame.
-            qox = b00 * px + b01 * py + b02 * pz + c0
-            qoy = b10 * px + b11 * py + b12 * pz + c1
-            qoz = b20 * px + b21 * py + b22 * pz + c2
-            wx = b00 * rx + b01 * ry + b02 * rz
-            wy = b10 * rx + b11 * ry + b12 * rz
-            wz = b20 * rx + b21 * ry + b22 * rz
-            # Warm start: the screen height extrapolated linearly from the two previous pixels.
-            z_guess = 2.0 * zp_prev - zp_prev2 if np.isfinite(zp_prev2) else zp_prev
-            t2, qx, qy, qz, sgx, sgy, st2 = intersect_kernel(
-                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, z_guess,
-                gx_prev, gy_prev,
-            )
-            if store:
-                p_sample[k, 0] = px
-                p_sample[k, 1] = py
-                p_sample[k, 2] = pz
-            if st2 != 0:
-                status[k] = screen_codes[st2]
-                zp_prev = np.nan
-                zp_prev2 = np.nan
-                continue
-            zp_prev2 = zp_prev
-            zp_prev = qz
-            gx_prev = sgx
-            gy_prev = sgy
-            status[k] = 0
-            screen_xy[k, 0] = qx
-            screen_xy[k, 1] = qy
-            if store:
-                q_screen[k, 0] = qx
-                q_screen[k, 1] = qy
-                q_screen[k, 2] = qz
+                zs_prev = nan
+            else:
+                zs_prev = pz
+                # Reflection, eq. (17), with n = (−h_x, −h_y, 1).
+                nx = -hx
+                ny = -hy
+                f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
+                rx = vx - f * nx
+                ry = vy - f * ny
+                rz = vz - f
+                # Origin and direction of the reflected ray in the screen frame.
+                qox = b00 * px + b01 * py + b02 * pz + c0
+                qoy = b10 * px + b11 * py + b12 * pz + c1
+                qoz = b20 * px + b21 * py + b22 * pz + c2
+                wx = b00 * rx + b01 * ry + b02 * rz
+                wy = b10 * rx + b11 * ry + b12 * rz
+                wz = b20 * rx + b21 * ry + b22 * rz
+                # Warm start: the screen height extrapolated linearly from the pixels two and three
+                # back (not from the previous one: two independent chains of dependent
+                # computations, which the processor overlaps), else the previous one's.
+                z_guess = 3.0 * zp2 - 2.0 * zp3
+                if not np.isfinite(z_guess):
+                    z_guess = zp1
+                t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
+                    p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, z_guess, False
+                )
+                if st2 == _NEEDS_SOLVE:
+                    t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
+                        p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, qz
+                    )
+                if store:
+                    p_sample[k, 0] = px
+                    p_sample[k, 1] = py
+                    p_sample[k, 2] = pz
+                if st2 != 0:
+                    status[k] = screen_codes[st2]
+                    qx = nan
+                    qy = nan
+                    qz = nan
+                else:
+                    status[k] = 0
+                    if store:
+                        q_screen[k, 0] = qx
+                        q_screen[k, 1] = qy
+                        q_screen[k, 2] = qz
+        screen_xy[k, 0] = qx
+        screen_xy[k, 1] = qy
+        zp3 = zp2
+        zp2 = zp1
+        zp1 = qz
 
 
 @numba.njit(cache=True, parallel=True)
 def _trace_kernel(
     d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
-    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
-    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
     screen_xy, status, p_sample, q_screen, store,
 ):
@@ -165,8 +190,8 @@ def _trace_kernel(
     for run in numba.prange(n_runs):
         _trace_run(
             run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
-            s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax,
-            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax,
+            s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
             screen_xy, status, p_sample, q_screen, store,
         )
@@ -262,8 +287,8 @@ def trace_rays(
         df, okf, max(int(run_length), 1),
         np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
         np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
-        s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max,
-        p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max,
+        s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
+        p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max, p.dmax,
         tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
         screen_xy, status, p_s, q_p, store_points,
     )
