@@ -74,6 +74,12 @@ def test_cli_experiment3_contract(tmp_path):
     assert all("screen.h[" in c["error"] for c in failed)
     assert "Not determined by the calibration data" in (out / "table.txt").read_text()
     assert (out / "error_vs_free_parameters.png").stat().st_size > 10_000
+    import h5py
+
+    with h5py.File(out / "heights.h5") as f:
+        assert set(f) == {"bulge_3mm", "offcentre"}
+        assert set(f["offcentre"]) == {"planar", "3x3", "5x5"}
+        assert set(f["offcentre/5x5/left"]) == {"height_mm", "height_error_um", "points_mm", "valid"}
     # Never overwritten without --force.
     r2 = CliRunner().invoke(main, args)
     assert r2.exit_code != 0 and "--force" in r2.output

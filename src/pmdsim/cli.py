@@ -254,7 +254,7 @@ def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, defo
     sample; errors against the number of free screen heights.
     """
     from .experiments import SCREEN_DEFORMATIONS, experiment3_scenarios, run_experiment3
-    from .io import write_reconstructions_h5
+    from .io import reconstructions_h5
 
     bulges = _parse_list(bulges_mm, float, "--bulges-mm") if bulges_mm.strip() else []
     sizes = _parse_list(grids, int, "--grids") if grids.strip() else []
@@ -272,9 +272,10 @@ def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, defo
                                       mirror_sags_um=sags, sag_bulge_mm=sag_bulge_mm)
     if not scenarios:
         raise click.BadParameter("nothing to run: no bulges, deformations or mirror sags given")
-    records, cases, groups, calibrations, undetermined = [], [], [], [], []
+    records, calibrations, undetermined = [], [], []
     n_models = 1 + len(sizes)
-    with atomic_output_dir(out_dir, force=force) as tmp:
+    with atomic_output_dir(out_dir, force=force) as tmp, \
+            reconstructions_h5(tmp / "heights.h5", {k: v for k, v in prov.items()}) as add_case:
         with click.progressbar(length=len(scenarios) * (n_models + 1), label="experiment 3", file=sys.stderr,
                                hidden=quiet) as bar:
             for sc, label, e, recs in run_experiment3(scenarios, sizes, method=method,
@@ -293,15 +294,13 @@ def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, defo
                 records.extend(recs)
                 calibrations.append({"scenario": sc.name, "bulge_mm": sc.bulge_mm, "mirror_sag_um": sc.mirror_sag_um,
                                      "screen_model": label, **e.result.to_dict(), "deviation_from_truth": e.deviation})
-                for c in e.cases:
-                    cases.append(c)
-                    groups.append(f"{tag}/{label}/{c.camera}")
+                for c in e.cases:  # written as they come: the run never holds all height maps
+                    add_case(c, f"{tag}/{label}/{c.camera}")
         write_json(tmp / "results.json", _json_ready(records))
         write_json(tmp / "calibration.json", _json_ready(calibrations))
         write_json(tmp / "run.json", {**prov, "experiment": 3, "downsample": downsample, "method": method,
                                       "grids": sizes, "deformations": kinds, "mirror_sags_um": sags,
                                       "sag_bulge_mm": sag_bulge_mm})
-        write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()}, groups=groups)
         table = experiment3_table(records)
         if undetermined:
             table += "\n\nNot determined by the calibration data (full reasons in calibration.json):\n" + "\n".join(

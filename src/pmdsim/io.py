@@ -183,24 +183,17 @@ def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str
                 g.attrs[f"count_{sname}"] = count
 
 
-def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any], groups=None) -> None:
-    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``, or ``groups[i]``
-    for case i when given).
-
-    Each group holds ``height_mm`` (float64 H×W, reconstructed height in the sample frame,
-    NaN outside the FOV), ``height_error_um`` (float32, reconstructed − true), ``points_mm``
-    (float32 H×W×3, sample frame) and ``valid`` (bool), with the metrics as attributes.
-    """
+@contextlib.contextmanager
+def reconstructions_h5(path: str | Path, attrs: dict[str, Any]):
+    """Open a reconstructions file for writing case by case (so that a long experiment need not
+    hold every height map in memory); yields ``add(case, group=None)``. Layout: see
+    :func:`write_reconstructions_h5`."""
     with h5py.File(path, "w", track_order=True) as f:
         for k, v in attrs.items():
             f.attrs[k] = v if v is not None else ""
-        cases = list(cases)
-        if groups is None:
-            groups = [f"bulge_{c.bulge_mm:g}mm/{c.camera}" for c in cases]
-        if len(groups) != len(cases):
-            raise ValueError(f"write_reconstructions_h5: {len(groups)} group names for {len(cases)} cases")
-        for c, name in zip(cases, groups):
-            g = f.create_group(name)
+
+        def add(c, group: str | None = None) -> None:
+            g = f.create_group(f"bulge_{c.bulge_mm:g}mm/{c.camera}" if group is None else group)
             kw = dict(compression="gzip", compression_opts=1)
             d = g.create_dataset("height_mm", data=c.height_mm, **kw)
             d.attrs["frame"] = "sample"
@@ -209,6 +202,20 @@ def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any], gro
             g.create_dataset("valid", data=c.valid, **kw)
             for k, v in c.as_record().items():
                 g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v
+
+        yield add
+
+
+def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> None:
+    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``).
+
+    Each group holds ``height_mm`` (float64 H×W, reconstructed height in the sample frame,
+    NaN outside the FOV), ``height_error_um`` (float32, reconstructed − true), ``points_mm``
+    (float32 H×W×3, sample frame) and ``valid`` (bool), with the metrics as attributes.
+    """
+    with reconstructions_h5(path, attrs) as add:
+        for c in cases:
+            add(c)
 
 
 def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) -> None:
