@@ -20,6 +20,7 @@ from pmdsim.transform import rotation_angle_rad
 
 from pmdsim.calibration import (
     CalibrationDataError,
+    CalibrationDegenerateError,
     CalibrationState,
     Observations,
     ScreenModel,
@@ -244,3 +245,24 @@ def test_unseen_control_heights_are_named(bulged):
             assert f"screen.h[{j},{i}]_mm" in msg
     for i in (5, 6, 7):
         assert f"screen.h[4,{i}]_mm" not in msg
+
+
+def test_degenerate_pose_sets_with_a_free_screen_are_reported(bulged):
+    """With a free screen the pose set must still determine the cameras: only the base pose
+    and the three lifts (all planes parallel, by construction of the poses — not by the code)
+    are named as degenerate, with the cause; a single pose is refused before fitting."""
+    _, poses, obs, truth, _ = bulged
+    labels = [label for label, _ in binned_setup(8).calibration.mirror_poses(binned_setup(8).sample)]
+    lifts = [k for k, label in enumerate(labels) if "tilt" not in label]
+    assert len(lifts) == 4
+    sub = [o for o in obs if o.pose_index in lifts]
+    state = CalibrationState(truth.cameras, tuple(truth.mirrors[k] for k in lifts))
+    with pytest.raises(CalibrationDegenerateError) as info:
+        calibrate(sub, state, screen_model=ScreenModel.flat(GX3, GY3))
+    err = info.value
+    assert "all mirror planes are parallel" in err.cause
+    for cam in ("left", "right"):
+        assert f"{cam}.position_z_mm" in err.parameters
+    one = [Observations(o.camera, 0, o.uv_px, o.q_screen_mm) for o in obs if o.pose_index == 0]
+    with pytest.raises(CalibrationDataError, match=r"only 1 mirror pose\(s\).*at least 3"):
+        calibrate(one, CalibrationState(truth.cameras, truth.mirrors[:1]), screen_model=ScreenModel.flat(GX3, GY3))
