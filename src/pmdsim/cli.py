@@ -218,7 +218,8 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
                 if cam not in nominal.cameras:
                     raise click.UsageError(f"camera {cam!r} of {d} is not in the setup ({list(nominal.cameras)})")
                 dec = decode_camera(manifest, cam, screen_size_mm=nominal.screen.size_mm)
-                obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=stride))
+                obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=stride,
+                                                     screen_std_xy_mm=dec.std_xy_mm))
     start = nominal_state(nominal, [T for _, T in poses])
     result = calibrate(obs, start, max_iter=max_iter)
     if not result.converged:

@@ -259,8 +259,9 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
                 if image_sink is not None:
                     image_sink(k, spec, img)
             dec = decode_images(truth, images)
+            # The decoder's σ per pixel: the covariance's noise model (calibration, "Uncertainties").
             obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
-                                                 screen_surface=screen_surface))
+                                                 screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm))
     return obs
 
 
