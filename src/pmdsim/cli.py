@@ -232,6 +232,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
               "converged": summary["converged"], "reason": summary["reason"], "iterations": summary["iterations"],
               "rms_px": summary["rms_px"], "n_residuals": summary["n_residuals"],
               "condition_number": summary["condition_number"],
+              "determination": result.determination_report(),
               "std": {name: c["std"] for name, c in summary["cameras"].items()}}
     from .setup import _dump_toml
 
@@ -242,6 +243,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     for name, c in summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
+    click.echo(result.determination_report(), err=True)
     click.echo(f"calibration converged ({result.reason}); RMS {result.rms_px:.4f} px over {result.n_residuals} "
                f"residuals; wrote {out_path}", err=True)
 
