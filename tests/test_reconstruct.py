@@ -320,6 +320,81 @@ def test_noisy_least_squares_is_a_minimum(noisy):
 
 
 # ------------------------------------------------------------------------------------------
+# Coarse-to-fine start of the least-squares integration (used for large images; forced here)
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def coarse_start(monkeypatch):
+    """Make the least-squares integration start coarse to fine already for these small images
+    (160×200 → 80×100 → 40×50; the 40×50 level starts stepwise)."""
+    import pmdsim.reconstruct as rc
+
+    monkeypatch.setattr(rc, "_COARSE_START_MIN_PIXELS", 4000)
+    calls = []
+    original = rc._coarse_mask
+
+    def spy(S, seed):
+        calls.append(S.shape)
+        return original(S, seed)
+
+    monkeypatch.setattr(rc, "_coarse_mask", spy)
+    return calls
+
+
+@pytest.mark.parametrize("seed", [SEED, (81, 101), (0, 199), (159, 0)], ids=["even", "odd", "corner_tr", "corner_bl"])
+@pytest.mark.parametrize("scene", [plane_scene, paraboloid_scene], ids=["plane", "paraboloid"])
+def test_coarse_start_exact_surface(coarse_start, scene, seed):
+    """Closed-form surfaces are recovered exactly whatever the seed's parity (the coarse grid
+    is aligned with the seed) and however the image border falls on the coarse grid."""
+    o, d, q, z_true, n_true = scene()
+    valid = np.ones((H, W), bool)
+    rec = reconstruct_least_squares(o, d, q, valid, seed_pixel=seed, seed_height_mm=z_true[seed])
+    assert coarse_start == [(H, W), (H // 2, W // 2)]
+    _check_exact(rec, o, d, z_true, n_true, valid, seed, z_true[seed], "least_squares")
+
+
+def test_coarse_start_camera_above(coarse_start):
+    o, d, q, z_true, n_true = _flip_z(*paraboloid_scene())
+    valid = np.ones((H, W), bool)
+    rec = reconstruct_least_squares(o, d, q, valid, seed_pixel=(10, 190), seed_height_mm=z_true[10, 190])
+    assert coarse_start
+    _check_exact(rec, o, d, z_true, n_true, valid, (10, 190), z_true[10, 190], "least_squares")
+
+
+def test_coarse_start_irregular_mask(coarse_start):
+    """Holes, a slit, dropouts and an island: the coarse problem must not bridge gaps of the
+    mask, and the pixels next to them are filled stepwise; the result is exact."""
+    o, d, q, z_true, n_true = paraboloid_scene()
+    valid = _irregular_mask()
+    labels, _ = ndimage.label(valid)
+    component = labels == labels[SEED]
+    rec = reconstruct_least_squares(o, d, q, valid, seed_pixel=SEED, seed_height_mm=z_true[SEED])
+    assert coarse_start
+    assert rec.converged
+    assert np.array_equal(rec.reconstructed, component)
+    assert np.all(np.isnan(rec.height_mm[~component]))
+    assert np.abs(rec.height_mm - z_true)[component].max() < TOL_EXACT_MM
+
+
+def test_coarse_start_reaches_the_same_minimum(noisy, coarse_start):
+    """With noise the start differs (coarse solution vs stepwise solution), but the minimum of
+    the sum of squared trapezoidal residuals is unique: both iterations must end there, to
+    within the convergence tolerance."""
+    o, d, q, z_true, valid, st, ls = noisy
+    ls2 = reconstruct_least_squares(o, d, q, valid, SEED, z_true[SEED])
+    assert coarse_start
+    assert ls2.converged and ls2.final_change_mm < 1e-9
+    assert np.abs(ls2.height_mm - ls.height_mm)[valid].max() < 1e-8
+    # … and it is a minimum of the test's own objective.
+    f0 = _objective(ls2.height_mm, o, d, q, valid)
+    bump = np.exp(-((np.mgrid[0:H, 0:W][0] - 40.0) ** 2 + (np.mgrid[0:H, 0:W][1] - 150.0) ** 2) / (2 * 20.0 ** 2))
+    bump -= bump[SEED]
+    for eps in (1e-4, -1e-4):
+        assert _objective(ls2.height_mm + eps * bump, o, d, q, valid) > f0
+
+
+# ------------------------------------------------------------------------------------------
 # Dispatch, result type, errors
 # ------------------------------------------------------------------------------------------
 
