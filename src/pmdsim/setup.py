@@ -681,7 +681,9 @@ def _fmt_value(v: Any) -> str:
             raise ValueError("TOML setup values must be finite")
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        out = v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
+        # Any other control character as \uXXXX (TOML basic strings allow none of them raw).
+        return '"' + "".join(f"\\u{ord(ch):04x}" if ord(ch) < 0x20 or ord(ch) == 0x7F else ch for ch in out) + '"'
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_fmt_value(x) for x in v) + "]"
     if isinstance(v, dict):
