@@ -101,7 +101,8 @@ class Reconstruction:
         ``"stepwise"``: the largest number of corrector iterations that any single integration
         step needed.
     converged : bool
-        ``"least_squares"``: the last iteration changed no height by ``tol_mm`` or more.
+        ``"least_squares"``: the last iteration changed no height by ``tol_mm`` or more (and
+        its sparse solve converged).
         ``"stepwise"``: every step's corrector met |Δz| < :data:`STEP_TOL_MM`.
     seed_pixel : tuple of int
         (row, column) of the initial point whose height was given.
@@ -1164,8 +1165,10 @@ def _pcg(D, iD, Ex, Ey, b, atol, rtol, max_iter, cap=np.inf, work=None, mg=None)
     Stops when the max-norm of the preconditioned residual (an estimate of the error of x) is
     below ``max(atol, min(rtol · its initial value, cap))``; that last preconditioned residual
     is added to x. The over-corrected cycle is not guaranteed to be positive definite; should
-    CG break down or not converge in ``max_iter`` steps with it, the solve is repeated with the
-    plain cycle (no over-correction), which is a symmetric positive definite preconditioner.
+    CG break down with it (non-positive curvature or a non-finite residual), CG restarts from
+    the current x with the plain cycle (no over-correction), which is a symmetric positive
+    definite preconditioner. After ``max_iter`` iterations in all, the current x is returned
+    (not converged; the caller's next Gauss–Newton iteration continues from it).
     ``work`` (:class:`_CGWork`) and ``mg`` (the hierarchy of this operator) are created if not
     given. Returns (x, total CG iterations, converged); x is ``work.x``."""
     if work is None:
@@ -1173,31 +1176,45 @@ def _pcg(D, iD, Ex, Ey, b, atol, rtol, max_iter, cap=np.inf, work=None, mg=None)
     if mg is None:
         mg = _Multigrid(D, iD, Ex, Ey)
     x, r, z, p, Ap = work.x, work.r, work.z, work.p, work.Ap
+    x[:] = 0.0
+    r[:] = b
     total = 0
+    tol = None
     for alpha_top, alpha in ((_MG_TOP_OVERCORRECTION, _MG_OVERCORRECTION), (1.0, 1.0)):
-        x[:] = 0.0
-        r[:] = b
         rz, zmax = mg.apply(r, z, alpha_top, alpha)
-        if zmax <= atol:
-            x += z  # the solution is below the tolerance anyway
+        if tol is None:
+            if zmax <= atol:
+                x += z  # the solution is below the tolerance anyway
+                return x, total, True
+            tol = max(atol, min(rtol * zmax, cap))
+        elif zmax <= tol:
+            x += z
             return x, total, True
-        tol = max(atol, min(rtol * zmax, cap))
         beta = 0.0
-        for k in range(1, max_iter + 1):
+        breakdown = False
+        while total < max_iter:
             total += 1
             pAp = _direction_matvec_dot(D, Ex, Ey, z, p, beta, Ap)
             if not (pAp > 0.0 and rz > 0.0):
-                break  # breakdown: the preconditioner is not positive definite here
+                breakdown = True  # the preconditioner is not positive definite here
+                break
             a = rz / pAp
             _cg_update(x, r, p, Ap, a)
             rz_new, zmax = mg.apply(r, z, alpha_top, alpha)
             if not np.isfinite(rz_new):
+                breakdown = True
                 break
             if zmax <= tol:
                 x += z
                 return x, total, True
             beta = rz_new / rz
             rz = rz_new
+        if not breakdown:
+            return x, total, False
+        # Restart with the plain cycle from the last good x (its residual recomputed).
+        if not np.all(np.isfinite(x)):
+            x[:] = 0.0
+        _residual(D, Ex, Ey, b, x, r)
     return x, total, False
 
 
@@ -1380,8 +1397,9 @@ def _apply_update(z, delta, D):
 
 def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
-    updating the heights z (H, W) in place, until the largest update is below ``tol`` or after
-    ``max_iter`` iterations. Returns (iterations, converged, largest last update).
+    updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
+    linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
+    converged, largest last update).
 
     Each update is solved (:func:`_pcg`) until the estimated error of the update is below
     ``max(tol/100, min(1e-4 · |first estimate|, tol/10))`` (max-norm): to a tenth of ``tol``,
@@ -1402,13 +1420,14 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     it = 0
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
-        delta, _, _ = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER, cap=_INNER_CAP * tol, work=work)
+        delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+                                cap=_INNER_CAP * tol, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
             raise ReconstructionError(
                 "the least-squares iteration diverged (non-finite heights); check that q and d are "
                 "consistent (q must be the screen points seen via the surface along d)")
-        if change < tol:
+        if change < tol and solved:  # a partial update proves nothing
             converged = True
             break
     return it, converged, change
@@ -1558,8 +1577,9 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     Returns
     -------
     Reconstruction
-        ``iterations`` is the number of outer iterations, ``converged`` whether the last one
-        changed no height by ``tol_mm`` or more.
+        ``iterations`` is the number of outer iterations on the full grid, ``converged``
+        whether the last one changed no height by ``tol_mm`` or more (with its sparse solve
+        converged).
 
     Raises
     ------
