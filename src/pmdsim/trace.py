@@ -98,7 +98,7 @@ def _trace_run(
     zp2 = nan
     zp3 = nan
     k_end = min(n, (run + 1) * run_length)
-    for k in range(run * run_length, k_end):
+    for k in range(np.uint64(run * run_length), np.uint64(k_end)):  # unsigned: no negative-index wrap-around
         qx = nan
         qy = nan
         qz = nan
@@ -283,15 +283,21 @@ def trace_rays(
     s = sample.kernel
     p = screen.kernel
     run_length = shape[-1] if len(shape) >= 2 else min(max(n, 1), 1024)
-    _trace_kernel(
-        df, okf, max(int(run_length), 1),
-        np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
-        np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
-        s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
-        p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max, p.dmax,
-        tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
-        screen_xy, status, p_s, q_p, store_points,
-    )
+    # Rows are handed to the threads 8 at a time rather than in one block per thread: on a
+    # shared machine a thread that is descheduled for a while does not hold up the others.
+    old_chunksize = numba.set_parallel_chunksize(8)
+    try:
+        _trace_kernel(
+            df, okf, max(int(run_length), 1),
+            np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
+            np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
+            s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
+            p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max, p.dmax,
+            tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
+            screen_xy, status, p_s, q_p, store_points,
+        )
+    finally:
+        numba.set_parallel_chunksize(old_chunksize)
     return Mapping(
         screen_xy.reshape(shape + (2,)),
         status.reshape(shape),
