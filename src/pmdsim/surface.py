@@ -12,6 +12,11 @@ bicubic polynomial per grid patch, which evaluates eq. (8) and its exact first d
 in a few dozen floating-point operations. Grid lines of 2 points are linear, of 3 points the
 parabola through them (what not-a-knot reduces to), of ≥ 4 points not-a-knot cubics.
 
+Ray intersections (paper eqs. 9–16) are the fixed point of z ← h(x(z), y(z)) along the ray:
+cold starts use the paper's fixed-point iteration (:func:`intersect_solve`); the tracer's
+warm starts from neighbouring pixels take one Newton step on the same fixed-point equation,
+accepted by a Taylor error bound (:func:`intersect_kernel`).
+
 See docs/conventions.md, "Surfaces", for frames and the sign of heights.
 """
 
@@ -53,7 +58,11 @@ _NEEDS_SOLVE = 4  # internal: intersect_kernel's fast path did not apply, call i
 
 
 class IntersectStatus:
-    """Result codes of :func:`intersect_kernel` (0 = hit)."""
+    """Result codes of :func:`intersect_solve` and :func:`intersect_kernel` (0 = hit).
+
+    :func:`intersect_kernel` (the tracer's fast path) may also return the internal code
+    ``_NEEDS_SOLVE``: its caller then calls :func:`intersect_solve`.
+    """
 
     HIT = _HIT
     PARALLEL = _PARALLEL  # ray parallel to the x–y plane, or the surface lies behind the ray origin
