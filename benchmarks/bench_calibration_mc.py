@@ -35,53 +35,17 @@ import numpy as np
 
 from _common import dump_json, peak_rss_mb
 from pmdsim import __version__
-from pmdsim.calibration import (
-    Observations,
-    calibrate,
-    compare_spread,
-    nominal_state,
-    observations_from_mapping,
-    parameter_group,
-    perturbed_state,
-)
+from pmdsim.calibration import calibrate, compare_spread, nominal_state, parameter_group, perturbed_state
 from pmdsim.experiments import (
     INITIAL_ERRORS,
     binned_setup,
-    decode_images,
     free_screen_model,
     nominal_setup,
+    observe_calibration_poses,
     simulate_calibration_observations,
+    trace_calibration_poses,
 )
 from pmdsim.setup import default_setup
-from pmdsim.simulation import render_images
-from pmdsim.trace import Mapping, trace_camera
-
-
-def trace_strided(truth, stride: int):
-    """[(pose index, camera, mapping of every ``stride``-th pixel)] of all calibration poses."""
-    cal = truth.calibration
-    mirror = cal.mirror_surface()
-    out = []
-    for k, (_, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
-        for cam, cs in truth.cameras.items():
-            m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface)
-            out.append((k, cam, Mapping(m.screen_xy_mm[::stride, ::stride], m.status[::stride, ::stride])))
-    return out
-
-
-def observe_strided(noisy, traced, stride: int) -> list:
-    """Render and decode the traced strided pixels of ``noisy`` (noise stream per camera and pose as
-    in ``simulate_calibration_observations``); correspondences in full-image pixel coordinates."""
-    obs = []
-    for k, cam, m in traced:
-        images: dict = {}
-        for spec, img in render_images(noisy, cam, m, stream=k + 1):
-            images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        dec = decode_images(noisy, images)
-        o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1)
-        obs.append(Observations(cam, k, o.uv_px * stride, o.q_screen_mm))
-    return obs
 
 
 def parse_models(text: str) -> list[tuple[str, int | None]]:
@@ -178,14 +142,14 @@ def main() -> None:
         true_state = nominal_state(nominal, poses)
         results = {label: [] for label, _ in group}
         stride = truth.calibration.observation_stride_px
-        traced = trace_strided(truth, stride) if args.render == "strided" else None
+        traced = trace_calibration_poses(truth, stride) if args.render == "strided" else None
         for i in range(args.draws):
             t0 = time.perf_counter()
             noisy = replace(truth, patterns=replace(truth.patterns, noise_std=args.noise, seed=args.seed0 + i))
             if traced is None:
                 obs = simulate_calibration_observations(noisy)
             else:
-                obs = observe_strided(noisy, traced, stride)
+                obs = observe_calibration_poses(noisy, traced, stride)
             t_sim += time.perf_counter() - t0
             start = true_state if args.start == "true" else perturbed_state(
                 true_state, np.random.default_rng([args.seed0, i]), **INITIAL_ERRORS)

@@ -59,12 +59,10 @@ from pmdsim.calibration import (
     calibrate,
     compare_spread,
     nominal_state,
-    observations_from_mapping,
 )
-from pmdsim.experiments import binned_setup, decode_images, free_screen_model, nominal_setup
+from pmdsim.experiments import (binned_setup, free_screen_model, nominal_setup, observe_calibration_poses,
+                                trace_calibration_poses)
 from pmdsim.setup import default_setup
-from pmdsim.simulation import render_images
-from pmdsim.trace import Mapping, trace_camera
 
 DS = 8  # cameras binned 8 × 8: 240 × 150 px
 STRIDE = 16  # every 16th pixel in u and v: ≈ 150 correspondences per camera and pose
@@ -75,35 +73,16 @@ BLOCK_TOL = 0.20
 MARGINAL_TOL = 0.30
 
 
-def trace_strided(truth):
-    """[(pose index, camera, mapping of every STRIDE-th pixel)] for all calibration poses."""
-    cal = truth.calibration
-    mirror = cal.mirror_surface()
-    out = []
-    for k, (_, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
-        for cam, cs in truth.cameras.items():
-            m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface)
-            out.append((k, cam, Mapping(m.screen_xy_mm[::STRIDE, ::STRIDE], m.status[::STRIDE, ::STRIDE])))
-    return out
-
-
 def observe(truth, traced, noise_std, seed, with_std=False):
-    """Render (8 bit, noise seeded by ``seed``, an independent stream per camera and pose) and
-    decode the strided pixels; correspondences in full-image pixel coordinates (``with_std``:
-    with the decoder's predicted σ of (x_q, y_q) as ``q_std_mm``). Also returns the median
+    """Render (8 bit, noise seeded by ``seed``) and decode the strided pixels; ``with_std``:
+    keep the decoder's predicted σ of (x_q, y_q) as ``q_std_mm``. Also returns the median
     predicted σ (mm)."""
     s = replace(truth, patterns=replace(truth.patterns, noise_std=noise_std, seed=seed))
-    obs, stds = [], []
-    for k, cam, m in traced:
-        images: dict = {}
-        for spec, img in render_images(s, cam, m, stream=k + 1):
-            images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        dec = decode_images(s, images)
-        o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1, screen_std_xy_mm=dec.std_xy_mm)
-        obs.append(Observations(cam, k, o.uv_px * STRIDE, o.q_screen_mm, o.q_std_mm if with_std else None))
-        stds.append(o.q_std_mm)
-    return obs, float(np.median(np.concatenate(stds)))
+    obs = observe_calibration_poses(s, traced, STRIDE)
+    std = float(np.median(np.concatenate([o.q_std_mm for o in obs])))
+    if not with_std:
+        obs = [Observations(o.camera, o.pose_index, o.uv_px, o.q_screen_mm) for o in obs]
+    return obs, std
 
 
 def monte_carlo(bulge_mm, screen_grid, seed0, with_std):
@@ -112,7 +91,7 @@ def monte_carlo(bulge_mm, screen_grid, seed0, with_std):
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
     start = nominal_state(nominal, poses)  # the true cameras and planes; a flat screen
     model = None if screen_grid is None else free_screen_model(nominal, screen_grid)
-    traced = trace_strided(truth)
+    traced = trace_calibration_poses(truth, STRIDE)
     results = []
     for i in range(DRAWS):
         obs, decoder_std = observe(truth, traced, NOISE_GREY, seed0 + i, with_std)
