@@ -55,6 +55,10 @@ def test_mirror_sag_round_trips_and_is_validated():
     doc["calibration"]["mirror_sag_um"] = "1"
     with pytest.raises(SetupError, match="calibration.mirror_sag_um"):
         parse_setup(doc)
+    # The same bounds hold on the programmatic path (pmdsim experiment 3 --mirror-sags-um).
+    for bad in (30000.0, float("nan"), float("inf")):
+        with pytest.raises(SetupError, match="calibration.mirror_sag_um"):
+            default_setup().with_mirror_sag(bad)
 
 
 def test_sagged_mirror_imprints_its_form_on_the_reconstruction():

@@ -171,6 +171,14 @@ class CalibrationSetup:
     observation_stride_px: int = 8
     mirror_sag_um: float = 0.0
 
+    def __post_init__(self) -> None:
+        sag = self.mirror_sag_um
+        if isinstance(sag, bool) or not isinstance(sag, (int, float)) or not math.isfinite(sag):
+            raise SetupError(f"calibration.mirror_sag_um must be a finite number (µm), got {sag!r}")
+        if abs(sag) * 1e-3 >= 0.05 * min(self.mirror_size_mm):
+            raise SetupError(f"calibration.mirror_sag_um must be small against the mirror (< 5 % of its "
+                             f"{min(self.mirror_size_mm):g} mm side, i.e. a flat with a form error), got {sag} µm")
+
     def mirror_poses(self, sample: "SampleSetup") -> list[tuple[str, RigidTransform]]:
         """(label, T_world_mirror) of every pose: base, lifts, then tilts (+/− about x, then y).
 
@@ -258,9 +266,7 @@ class Setup:
 
     def with_mirror_sag(self, sag_um: float) -> "Setup":
         """The same setup with a calibration mirror of sag ``sag_um`` (see :class:`CalibrationSetup`)."""
-        if not math.isfinite(sag_um):
-            raise SetupError(f"calibration.mirror_sag_um must be finite, got {sag_um!r}")
-        return replace(self, calibration=replace(self.calibration, mirror_sag_um=float(sag_um)))
+        return replace(self, calibration=replace(self.calibration, mirror_sag_um=sag_um))  # validated there
 
     def with_mirror_pose(self, index: int) -> "Setup":
         """The setup with the sample replaced by the calibration mirror in pose ``index``."""
@@ -611,9 +617,7 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         if min(size) <= 0:
             raise SetupError(f"calibration.mirror_size_mm must be > 0, got {list(size)}")
         stride = c.integer("observation_stride_px", dc.observation_stride_px, minimum=1)
-        sag = c.number("mirror_sag_um", dc.mirror_sag_um)
-        if abs(sag) * 1e-3 >= 0.05 * min(size):
-            raise SetupError(f"calibration.mirror_sag_um must be small against the mirror (< 5 % of its size), got {sag}")
+        sag = c.number("mirror_sag_um", dc.mirror_sag_um)  # its size bound: CalibrationSetup
         c.finish()
         calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride, sag)
     else:
