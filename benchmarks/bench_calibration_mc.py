@@ -35,16 +35,10 @@ import numpy as np
 
 from _common import dump_json, peak_rss_mb
 from pmdsim import __version__
-from pmdsim.calibration import calibrate, compare_spread, nominal_state, parameter_group, perturbed_state
-from pmdsim.experiments import (
-    INITIAL_ERRORS,
-    binned_setup,
-    free_screen_model,
-    nominal_setup,
-    observe_calibration_poses,
-    simulate_calibration_observations,
-    trace_calibration_poses,
-)
+from pmdsim.calibration import (calibrate, compare_spread, free_screen_model, nominal_setup, nominal_state,
+                                parameter_group, perturbed_state)
+from pmdsim.studies import (INITIAL_ERRORS, observe_calibration_poses, simulate_calibration_observations,
+                            trace_calibration_poses)
 from pmdsim.setup import default_setup
 
 
@@ -121,7 +115,7 @@ def main() -> None:
         raise SystemExit("--draws ≥ 2, --downsample ≥ 1, --noise > 0 and --stride ≥ 1 are required")
     models = parse_models(args.models)
 
-    base = binned_setup(default_setup(), args.downsample)
+    base = default_setup().binned(args.downsample)
     if args.stride is not None:
         base = replace(base, calibration=replace(base.calibration, observation_stride_px=args.stride))
     truths = {"flat": base.with_bulge(0.0), "bulge": base.with_bulge(args.bulge_mm)}

@@ -22,9 +22,10 @@ import numpy as np
 
 from _common import best_of, dump_json, peak_rss_mb
 from pmdsim import __version__
-from pmdsim.experiments import decode_images, evaluate_decoded, experiment1
-from pmdsim.patterns import FringeSequence
-from pmdsim.reconstruct import reconstruct
+from pmdsim.studies import experiment1
+from pmdsim.evaluation import decode_images, evaluate_decoded
+from pmdsim.simulation.patterns import FringeSequence
+from pmdsim.evaluation.reconstruction import reconstruct
 from pmdsim.setup import default_setup
 from pmdsim.simulation import render_images, trace_setup_camera
 

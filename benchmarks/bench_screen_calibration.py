@@ -19,7 +19,8 @@ import numpy as np
 from _common import best_of, dump_json, peak_rss_mb
 from pmdsim import __version__
 from pmdsim.calibration import calibrate, nominal_state, perturbed_state
-from pmdsim.experiments import INITIAL_ERRORS, free_screen_model, nominal_setup, simulate_calibration_observations
+from pmdsim.studies import INITIAL_ERRORS, simulate_calibration_observations
+from pmdsim.calibration import free_screen_model, nominal_setup
 from pmdsim.setup import default_setup
 
 

@@ -27,7 +27,7 @@ from pmdsim import __version__
 from pmdsim.io import write_png
 from pmdsim.setup import default_setup
 from pmdsim.simulation import render_images
-from pmdsim.trace import trace_camera
+from pmdsim.simulation.trace import trace_camera
 
 
 

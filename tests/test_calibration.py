@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pmdsim.transform import rotation_angle_rad
+from pmdsim.geometry.transform import rotation_angle_rad
 
 from pmdsim.calibration import (
     PARAMETER_UNITS,
@@ -35,9 +35,9 @@ from pmdsim.calibration import (
 )
 from pmdsim.errors import PmdsimError
 from pmdsim.setup import CameraSetup, default_setup
-from pmdsim.surface import PlaneSurface, SplineSurface
-from pmdsim.trace import trace_camera
-from pmdsim.transform import RigidTransform
+from pmdsim.geometry.surface import PlaneSurface, SplineSurface
+from pmdsim.simulation.trace import trace_camera
+from pmdsim.geometry.transform import RigidTransform
 
 MIRROR = PlaneSurface((0.0, 400.0), (0.0, 400.0))
 SCREEN = PlaneSurface((0.0, 708.0), (0.0, 398.0))

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pmdsim.transform import rotation_angle_rad
+from pmdsim.geometry.transform import rotation_angle_rad
 
 from pmdsim.calibration import (
     CalibrationDataError,
@@ -31,8 +31,8 @@ from pmdsim.calibration import (
     residuals_and_jacobian,
 )
 from pmdsim.setup import CameraSetup, default_setup
-from pmdsim.surface import SplineSurface
-from pmdsim.trace import trace_camera
+from pmdsim.geometry.surface import SplineSurface
+from pmdsim.simulation.trace import trace_camera
 
 GX3, GY3 = [0.0, 354.0, 708.0], [0.0, 199.0, 398.0]
 BULGE_MM = 3.0

@@ -60,8 +60,8 @@ from pmdsim.calibration import (
     compare_spread,
     nominal_state,
 )
-from pmdsim.experiments import (binned_setup, free_screen_model, nominal_setup, observe_calibration_poses,
-                                trace_calibration_poses)
+from pmdsim.calibration import free_screen_model, nominal_setup
+from pmdsim.studies import observe_calibration_poses, trace_calibration_poses
 from pmdsim.setup import default_setup
 
 DS = 8  # cameras binned 8 × 8: 240 × 150 px
@@ -86,7 +86,7 @@ def observe(truth, traced, noise_std, seed, with_std=False):
 
 
 def monte_carlo(bulge_mm, screen_grid, seed0, with_std):
-    truth = binned_setup(default_setup(), DS).with_bulge(bulge_mm)
+    truth = default_setup().binned(DS).with_bulge(bulge_mm)
     nominal = nominal_setup(truth)
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
     start = nominal_state(nominal, poses)  # the true cameras and planes; a flat screen
@@ -167,7 +167,7 @@ def test_spread_statistics_on_synthetic_draws():
             self.state, self.covariance, self.parameter_names = state, cov, names
 
     # A real state to take increments from: 2 cameras, 3 mirrors (P = 37).
-    truth = binned_setup(default_setup(), DS)
+    truth = default_setup().binned(DS)
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)][:3]
     state = nominal_state(truth, poses)
     names = tuple(state.parameter_names())
@@ -198,7 +198,7 @@ def test_spread_statistics_on_synthetic_draws():
 
 
 def test_increment_to_inverts_updated():
-    truth = binned_setup(default_setup(), DS).with_bulge(3.0)
+    truth = default_setup().binned(DS).with_bulge(3.0)
     nominal = nominal_setup(truth)
     poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
     state = replace(nominal_state(nominal, poses), screen=free_screen_model(nominal, 5))

@@ -5,7 +5,7 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from pmdsim.camera import Camera
+from pmdsim.geometry.camera import Camera
 
 DIST = dict(k1=-0.21, k2=0.13, p1=1.2e-3, p2=-0.8e-3, k3=0.04)
 

@@ -12,8 +12,9 @@ import pytest
 from click.testing import CliRunner
 
 from pmdsim.cli import main
-from pmdsim.experiments import PAPER_TABLE2, binned_setup, decode_images, evaluate_decoded, experiment1
-from pmdsim.metrics import surface_error_metrics
+from pmdsim.studies import PAPER_TABLE2, experiment1
+from pmdsim.evaluation import decode_images, evaluate_decoded
+from pmdsim.evaluation.metrics import surface_error_metrics
 from pmdsim.setup import default_setup
 from pmdsim.simulation import render_images, trace_setup_camera
 
@@ -61,7 +62,7 @@ def test_magnitudes_match_the_paper_within_a_factor_two(results):
 def test_true_screen_model_removes_the_error():
     """Round trip: evaluating with the *true* (bulged) screen as the model recovers the plane
     at the 8-bit floor — the bulge error of Experiment 1 is entirely the planar-screen model."""
-    truth = binned_setup(default_setup(), DOWNSAMPLE).with_bulge(3.0)
+    truth = default_setup().binned(DOWNSAMPLE).with_bulge(3.0)
     m = trace_setup_camera(truth, "left", store_points=True)
     images = {}
     for spec, img in render_images(truth, "left", m):

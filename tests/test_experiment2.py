@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from pmdsim.cli import main
-from pmdsim.experiments import PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
+from pmdsim.studies import PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
 
 DOWNSAMPLE = 4
 

@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from pmdsim.cli import main
-from pmdsim.experiments import binned_setup, run_experiment1_case, run_experiment2_bulge, simulate_calibration_observations
+from pmdsim.studies import run_experiment1_case, run_experiment2_bulge, simulate_calibration_observations
 from pmdsim.setup import default_setup
 
 DS = 8
@@ -19,7 +19,7 @@ DS = 8
 
 @pytest.fixture(scope="module")
 def obs3():
-    return simulate_calibration_observations(binned_setup(default_setup(), DS).with_bulge(3.0))
+    return simulate_calibration_observations(default_setup().binned(DS).with_bulge(3.0))
 
 
 def test_free_screen_3x3_reaches_the_8bit_floor(obs3):
@@ -46,7 +46,7 @@ def test_planar_model_on_the_same_data_is_far_worse(obs3):
 
 
 def test_free_screen_costs_nothing_on_a_flat_screen():
-    obs0 = simulate_calibration_observations(binned_setup(default_setup(), DS))
+    obs0 = simulate_calibration_observations(default_setup().binned(DS))
     planar = run_experiment2_bulge(0.0, downsample=DS, observations=obs0)
     free = run_experiment2_bulge(0.0, downsample=DS, screen_grid=5, observations=obs0)
     for p, f in zip(planar.cases, free.cases):

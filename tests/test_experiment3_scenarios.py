@@ -12,8 +12,7 @@ import pytest
 
 from pmdsim.calibration import CalibrationDataError
 from pmdsim.errors import SetupError
-from pmdsim.experiments import (binned_setup, calibrate_and_reconstruct, screen_deformation,
-                                simulate_calibration_observations)
+from pmdsim.studies import calibrate_and_reconstruct, screen_deformation, simulate_calibration_observations
 from pmdsim.setup import CalibrationSetup, default_setup, parse_setup
 
 DS = 8
@@ -66,7 +65,7 @@ def test_sagged_mirror_imprints_its_form_on_the_reconstruction():
     therefore makes a truly flat sample look concave by the mirror's own deviation from a plane:
     over each camera's field of view, the reconstructed error minus its best-fit plane equals
     minus the paraboloid minus its best-fit plane (closed form), to first order."""
-    truth = binned_setup(default_setup(), DS).with_mirror_sag(5.0)
+    truth = default_setup().binned(DS).with_mirror_sag(5.0)
     e = calibrate_and_reconstruct(truth, start_seed=[0, 5])
     assert e.result.converged, e.result.reason
     cal = truth.calibration
@@ -91,14 +90,14 @@ def test_sagged_mirror_imprints_its_form_on_the_reconstruction():
 
 @pytest.fixture(scope="module")
 def offcentre():
-    truth = screen_deformation(binned_setup(default_setup(), DS), "offcentre")
+    truth = screen_deformation(default_setup().binned(DS), "offcentre")
     return truth, simulate_calibration_observations(truth)
 
 
 def test_offcentre_deformation_lies_in_the_5x5_and_9x9_spline_spaces():
     """Not-a-knot spline spaces: the 5-point one (interior knot at the centre only) is contained
     in the 9-point one, so a 9×9 spline through samples of the 5×5 surface reproduces it."""
-    from pmdsim.surface import SplineSurface
+    from pmdsim.geometry.surface import SplineSurface
 
     truth = screen_deformation(default_setup(), "offcentre")
     s5 = truth.screen.surface
@@ -131,7 +130,7 @@ def test_underparameterised_model_shows_in_the_residual(offcentre):
 
 
 def test_random_deformation_converges_with_flexibility():
-    truth = screen_deformation(binned_setup(default_setup(), DS), "random")
+    truth = screen_deformation(default_setup().binned(DS), "random")
     obs = simulate_calibration_observations(truth)
     rms, err = [], []
     for g in (None, 3, 5, 9):

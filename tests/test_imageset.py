@@ -39,10 +39,10 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from pmdsim.camera import Camera
+from pmdsim.geometry.camera import Camera
 from pmdsim.cli import main
 from pmdsim.errors import ImageSetError
-from pmdsim.imageset import (
+from pmdsim.io.imageset import (
     CameraImages,
     ImageSetManifest,
     camera_images_from_arrays,

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from pmdsim.phase import (
+from pmdsim.evaluation.phase import (
     PhaseDecodingError,
     PhaseFlag,
     decode_direction,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pmdsim.reconstruct import (
+from pmdsim.evaluation.reconstruction import (
     Reconstruction,
     ReconstructionError,
     normals_from_registration,
@@ -328,7 +328,7 @@ def test_noisy_least_squares_is_a_minimum(noisy):
 def coarse_start(monkeypatch):
     """Make the least-squares integration start coarse to fine already for these small images
     (160×200 → 80×100 → 40×50; the 40×50 level starts stepwise)."""
-    import pmdsim.reconstruct as rc
+    import pmdsim.evaluation.reconstruction as rc
 
     monkeypatch.setattr(rc, "_COARSE_START_MIN_PIXELS", 4000)
     calls = []

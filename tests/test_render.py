@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from pmdsim.camera import Camera
-from pmdsim.patterns import FringeSequence, PatternFrame, render
+from pmdsim.geometry.camera import Camera
+from pmdsim.simulation.patterns import FringeSequence, PatternFrame, render
 from pmdsim.setup import CameraSetup, default_setup
 from pmdsim.simulation import image_specs, render_images, trace_setup_camera
 
@@ -138,7 +138,7 @@ def test_render_rejects_bad_input():
 def test_render_period_equals_single_frames():
     """The stacked renderer (one sine/cosine per pixel) gives the single-frame renderer's images
     (up to a grey level where a value falls on a rounding tie within 1e-12)."""
-    from pmdsim.patterns import render_period
+    from pmdsim.simulation.patterns import render_period
 
     setup = _small_setup()
     m = trace_setup_camera(setup, "left")

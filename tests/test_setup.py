@@ -381,7 +381,7 @@ def test_with_bulge_sets_central_control_point_only():
 def test_toml_strings_with_control_characters_round_trip_through_tomllib():
     import tomllib
 
-    from pmdsim.setup import _fmt_value
+    from pmdsim.setup.toml import _fmt_value
 
     for v in ["two\nlines", "tab\there", 'quote " and \\ backslash', "bell \x07 and cr \r and del \x7f", "µm ±"]:
         assert tomllib.loads("x = " + _fmt_value(v))["x"] == v

@@ -5,7 +5,7 @@ import pytest
 from scipy.interpolate import CubicSpline, RectBivariateSpline
 from scipy.optimize import brentq
 
-from pmdsim.surface import IntersectStatus, PlaneSurface, SplineSurface, cardinal_spline_coefficients
+from pmdsim.geometry.surface import IntersectStatus, PlaneSurface, SplineSurface, cardinal_spline_coefficients
 
 
 def _spline_1d(knots, values):
@@ -180,7 +180,7 @@ def test_plane_fast_path_equals_spline_plane():
 
 def test_second_derivatives_match_fitpack():
     """The intersection carries the gradient to the final point with the second derivatives."""
-    from pmdsim.surface import eval2_kernel
+    from pmdsim.geometry.surface import eval2_kernel
 
     rng = np.random.default_rng(9)
     gx = np.linspace(0, 300, 6)
@@ -197,7 +197,7 @@ def test_second_derivatives_match_fitpack():
 
 def test_derivative_bounds_hold():
     """KernelSurface.dmax bounds the second and third partial derivatives (Newton error bounds)."""
-    from pmdsim.surface import eval2_kernel
+    from pmdsim.geometry.surface import eval2_kernel
 
     rng = np.random.default_rng(11)
     gx = np.array([0.0, 40.0, 100.0, 130.0, 200.0, 300.0])
@@ -224,7 +224,7 @@ def test_derivative_bounds_hold():
 def test_warm_started_newton_fast_path():
     """intersect_kernel: one Newton step from a warm start (paper's eq. 13 accelerated) when
     it provably converges to the tolerance; otherwise _NEEDS_SOLVE and intersect_solve."""
-    from pmdsim.surface import _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, intersect_kernel, intersect_solve
+    from pmdsim.geometry.surface import _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, intersect_kernel, intersect_solve
 
     a, b, c = 2e-4, -1.5e-4, 0.7
     s = _paraboloid_surface(a, b, c)

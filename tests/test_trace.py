@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from pmdsim.camera import Camera
+from pmdsim.geometry.camera import Camera
 from pmdsim.setup import default_setup
 from pmdsim.simulation import trace_setup_camera
-from pmdsim.surface import PlaneSurface, SplineSurface
-from pmdsim.trace import Status, trace_camera
-from pmdsim.transform import RigidTransform
+from pmdsim.geometry.surface import PlaneSurface, SplineSurface
+from pmdsim.simulation.trace import Status, trace_camera
+from pmdsim.geometry.transform import RigidTransform
 
 # A small camera with the Table 1 field of view (focal length scaled with the sensor).
 SMALL = Camera(192, 120, 440.0, 440.0, 96.0, 60.0, k1=-0.05, k2=0.01, p1=2e-4, p2=-1e-4)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pmdsim.transform import RigidTransform, givens_angles, givens_rotation
+from pmdsim.geometry.transform import RigidTransform, givens_angles, givens_rotation
 
 
 @pytest.mark.parametrize("angles", [(45, 10, 10), (135, 0, 0), (45, -10, -10), (-30, 20, 170), (0, 0, 0)])
@@ -46,7 +46,7 @@ def test_rejects_bad_rotation():
 
 
 def test_rotation_angle_matches_scipy():
-    from pmdsim.transform import rotation_angle_rad
+    from pmdsim.geometry.transform import rotation_angle_rad
 
     for rv in ([0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [0.0, 3.0, 0.0], [1e-9, 0.0, 0.0]):
         r = Rotation.from_rotvec(rv)

@@ -18,6 +18,7 @@ from . import __version__
 from .errors import PmdsimError
 from .io import MANIFEST_NAME, MAPPING_NAME, IMAGESET_FORMAT, atomic_output_dir, provenance, write_json, write_mapping_h5, write_png
 from .setup import Setup, default_setup, load_setup
+from .studies.report import experiment3_table, format_table, json_ready, scenario_label
 
 
 def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
@@ -73,7 +74,7 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) -> None:
     """Simulate a measurement: fringe images, manifest.json and mapping.h5 (paper §2)."""
-    from .simulation import image_specs, render_images, trace_setup_camera
+    from .simulation.render import image_specs, render_images, trace_setup_camera
 
     setup = _load(setup_path, bulge_mm)
     if calibration_pose is not None:
@@ -142,10 +143,10 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     """
     import numpy as np
 
-    from .experiments import evaluate_decoded
-    from .imageset import decode_camera, load_manifest
+    from .evaluation.pipeline import evaluate_decoded
+    from .io.imageset import decode_camera, load_manifest
     from .io import write_evaluation_h5
-    from .plotting import height_map_figure
+    from .studies.figures import height_map_figure
 
     setup = _load(setup_path, None)
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
@@ -165,9 +166,9 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
                                             seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
                 results[cam] = (decoded, reg, rec)
                 p = rec.points
-                height_map_figure(tmp / f"height_{cam}.png", p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
                                   title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model)",
-                                  label="height (µm)")
+                                  label="height (µm)", path=tmp / f"height_{cam}.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir)})
     for cam, (decoded, reg, rec) in results.items():
@@ -198,8 +199,8 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     is the calibrated table plane (pose 0), with the standard deviations in [calibration_report].
     """
     from .calibration import calibrate, nominal_state, observations_from_mapping
-    from .experiments import calibrated_setup, calibration_summary
-    from .imageset import decode_camera, load_manifest
+    from .calibration import calibrated_setup, calibration_summary
+    from .io.imageset import decode_camera, load_manifest
     from .io import atomic_file
 
     nominal = _load(setup_path, None).with_bulge(0.0)
@@ -226,7 +227,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
         raise click.ClickException(f"the calibration did not converge: {result.reason} "
                                    f"(RMS {result.rms_px:.4g} px after {result.iterations} iterations); nothing written")
     model = calibrated_setup(nominal, result)
-    summary = _json_ready(calibration_summary(result, model))
+    summary = json_ready(calibration_summary(result, model))
     report = {"pmdsim_version": __version__,
               "command": click.get_current_context().meta.get("pmdsim.command") or "",
               "converged": summary["converged"], "reason": summary["reason"], "iterations": summary["iterations"],
@@ -234,12 +235,12 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
               "condition_number": summary["condition_number"],
               "determination": result.determination_report(),
               "std": {name: c["std"] for name, c in summary["cameras"].items()}}
-    from .setup import _dump_toml
+    from .setup.toml import dump_toml
 
     doc = model.to_dict()
     doc["calibration_report"] = report
     with atomic_file(out_path, force=force, mode="w") as f:
-        f.write(_dump_toml(doc))
+        f.write(dump_toml(doc))
     for name, c in summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
@@ -256,7 +257,7 @@ def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, defo
     mirror) and screen model (planar, n×n free-form grids) calibrate and reconstruct the planar
     sample; errors against the number of free screen heights.
     """
-    from .experiments import SCREEN_DEFORMATIONS, experiment3_scenarios, run_experiment3
+    from .studies import SCREEN_DEFORMATIONS, experiment3_scenarios, run_experiment3
     from .io import reconstructions_h5
 
     bulges = _parse_list(bulges_mm, float, "--bulges-mm") if bulges_mm.strip() else []
@@ -299,8 +300,8 @@ def _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, defo
                                      "screen_model": label, **e.result.to_dict(), "deviation_from_truth": e.deviation})
                 for c in e.cases:  # written as they come: the run never holds all height maps
                     add_case(c, f"{tag}/{label}/{c.camera}")
-        write_json(tmp / "results.json", _json_ready(records))
-        write_json(tmp / "calibration.json", _json_ready(calibrations))
+        write_json(tmp / "results.json", json_ready(records))
+        write_json(tmp / "calibration.json", json_ready(calibrations))
         write_json(tmp / "run.json", {**prov, "experiment": 3, "downsample": downsample, "method": method,
                                       "grids": sizes, "deformations": kinds, "mirror_sags_um": sags,
                                       "sag_bulge_mm": sag_bulge_mm})
@@ -320,25 +321,25 @@ def _experiment3_figure(path, records: list[dict], downsample: int) -> None:
     """Error and calibration residual against the number of free screen heights."""
     import numpy as np
 
-    from .plotting import error_vs_free_parameters_figure
+    from .studies.figures import error_vs_free_parameters_figure
 
     models = list(dict.fromkeys((r["screen_model"], r["free_parameters"]) for r in records))
     series = []
-    for sl in dict.fromkeys(_scenario_label(r) for r in records):
+    for sl in dict.fromkeys(scenario_label(r) for r in records):
         err, rms = [], []
         for m, _ in models:
-            rs = [r for r in records if _scenario_label(r) == sl and r["screen_model"] == m]
+            rs = [r for r in records if scenario_label(r) == sl and r["screen_model"] == m]
             err.append(max((r["max_height_diff_um"] for r in rs), default=np.nan))
             rms.append(rs[0]["calibration_rms_px"] if rs else np.nan)
         series.append((sl, err, rms))
     floor = [r["max_height_diff_um"] for r in records
              if r["scenario"] == "bulge" and r["bulge_mm"] == 0 and r["screen_model"] == "planar"]
-    error_vs_free_parameters_figure(path, series, [f"{m.replace('x', '×')} ({n})" for m, n in models],
+    error_vs_free_parameters_figure(series, [f"{m.replace('x', '×')} ({n})" for m, n in models],
                                     suptitle=f"Experiment 3: calibrated screen models (downsample {downsample})",
-                                    floor_um=max(floor) if floor else None)
+                                    floor_um=max(floor) if floor else None, path=path)
 
 
-def _scenario_label(r: dict) -> str:
+def scenario_label(r: dict) -> str:
     if r["scenario"] == "bulge":
         return f"bulge Δh = {r['bulge_mm']:g} mm"
     if r["scenario"] == "mirror_sag":
@@ -353,7 +354,7 @@ def experiment3_table(records: list[dict]) -> str:
              f"{'tilt µrad L/R':>15s} {'calib RMS px':>13s} {'screen err µm':>14s} {'centre h mm':>12s}"]
     keyed = {}
     for r in records:
-        keyed.setdefault((_scenario_label(r), r["screen_model"]), []).append(r)
+        keyed.setdefault((scenario_label(r), r["screen_model"]), []).append(r)
     for (sl, model), rs in keyed.items():
         def pair(k, f):
             return "/".join(format(x[k], f) for x in rs)
@@ -422,9 +423,9 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     3 = beyond the paper (§5): calibrate free-form screen models of increasing flexibility, with
     the paper's bulges, mismatching deformations and a non-planar calibration mirror.
     """
-    from .experiments import PAPER_TABLE2, PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
+    from .studies import PAPER_TABLE2, PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
     from .io import write_reconstructions_h5
-    from .plotting import height_grid_figure
+    from .studies.figures import height_grid_figure
 
     if number == "3":
         return _experiment3(out_dir, setup_path, downsample, method, bulges_mm, grids, deformations, mirror_sags_um,
@@ -467,7 +468,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
                     if not e2.result.converged:
                         raise click.ClickException(
                             f"Δh = {dh:g} mm: the calibration did not converge: {e2.result.reason}")
-                    from .experiments import calibration_summary
+                    from .calibration import calibration_summary
 
                     summary = calibration_summary(e2.result, e2.model)
                     calibrations.append({"bulge_mm": dh, **summary, "deviation_from_truth": e2.deviation})
@@ -482,14 +483,14 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
                 rec["calibrated_camera"] = cal["cameras"][c.camera]
                 rec["camera_deviation_from_truth"] = cal["deviation_from_truth"][c.camera]
                 records.append(rec)
-            write_json(tmp / "calibration.json", _json_ready(calibrations))
+            write_json(tmp / "calibration.json", json_ready(calibrations))
         cam0 = next(iter(base.cameras.values())).camera.binned(downsample)
         meta = {**prov, "experiment": int(number), "downsample": downsample, "method": method,
                 "image_size_px": [cam0.width_px, cam0.height_px],
                 f"paper_table{2 if number == '1' else 3}": [
                     {"bulge_mm": b, "camera": c, "max_height_diff_um": v[0], "max_dev_plane_um": v[1], "tilt_urad": v[2]}
                     for (b, c), v in paper.items()]}
-        write_json(tmp / "results.json", _json_ready(records))
+        write_json(tmp / "results.json", json_ready(records))
         write_json(tmp / "run.json", meta)
         write_reconstructions_h5(tmp / "heights.h5", cases, {k: v for k, v in prov.items()})
         shown = ([b for b in (0.0, 3.0) if b in bulges] or bulges[:2]) if number == "1" else [max(bulges)]
@@ -505,7 +506,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
         what = ("perfect setup knowledge, planar screen model" if number == "1"
                 else "simulated holistic calibration, planar screen model")
         frame = "sample frame" if number == "1" else "calibrated table frame"
-        height_grid_figure(tmp / f"figure{3 + int(number)}.png", panels,
+        height_grid_figure(panels, path=tmp / f"figure{3 + int(number)}.png",
                            suptitle=f"Experiment {number}: reconstructed planar sample, height error ({frame}, {method})")
         table = format_table(records, paper,
                              f"Experiment {number} — {what}; {method} integration, "
@@ -533,14 +534,14 @@ def _parse_list(text: str, kind, option: str) -> list:
     return values
 
 
-def _json_ready(obj):
+def json_ready(obj):
     """numpy scalars → Python numbers, recursively (for JSON)."""
     import numpy as np
 
     if isinstance(obj, dict):
-        return {k: _json_ready(v) for k, v in obj.items()}
+        return {k: json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.generic):
         return obj.item()
     return obj

@@ -45,7 +45,7 @@ import numpy as np
 from numba.typed import List
 from scipy import ndimage
 
-from .errors import PmdsimError
+from ..errors import PmdsimError
 
 __all__ = [
     "ReconstructionError",

@@ -45,7 +45,7 @@ Functions
 :func:`camera_images_from_arrays`
     The same :class:`CameraImages` from in-memory images (no files).
 :func:`decode_camera`, :func:`decode_camera_images`
-    Decode the pixel → screen mapping with :func:`pmdsim.phase.decode_screen_coordinates`.
+    Decode the pixel → screen mapping with :func:`pmdsim.evaluation.phase.decode_screen_coordinates`.
 """
 
 from __future__ import annotations
@@ -59,9 +59,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .errors import ImageSetError
-from .io import IMAGESET_FORMAT, MANIFEST_NAME, read_image
-from .phase import ScreenCoordinates, decode_screen_coordinates
+from ..errors import ImageSetError
+from .images import read_image
+from .outputs import IMAGESET_FORMAT, MANIFEST_NAME
+from ..evaluation.phase import ScreenCoordinates, decode_screen_coordinates
 
 __all__ = [
     "DIRECTIONS",
@@ -493,7 +494,7 @@ def load_manifest(path_or_dir: str | Path, *, screen_size_mm=None, check_files: 
     manifest_path = p / MANIFEST_NAME if p.is_dir() else p
     if not manifest_path.is_file():
         where = f"no {MANIFEST_NAME} in directory {str(p)!r}" if p.is_dir() else f"manifest {str(p)!r} does not exist"
-        raise ImageSetError(f"{where}: an image set needs a manifest (see pmdsim.imageset)")
+        raise ImageSetError(f"{where}: an image set needs a manifest (see pmdsim.io.imageset)")
     src = str(manifest_path)
     try:
         text = manifest_path.read_text(encoding="utf-8")
@@ -708,12 +709,12 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     noise_std : float or array_like broadcastable to (H, W), optional
         Intensity noise σ_I in grey levels for the predicted σ (default: quantisation noise).
     **decoder_kw
-        Further keyword arguments of :func:`pmdsim.phase.decode_screen_coordinates`
+        Further keyword arguments of :func:`pmdsim.evaluation.phase.decode_screen_coordinates`
         (``screen_origin_mm``, thresholds, ``tolerance``, ``margin_mm``, ``check_saturation``).
 
     Returns
     -------
-    pmdsim.phase.ScreenCoordinates
+    pmdsim.evaluation.phase.ScreenCoordinates
         ``screen_xy_mm`` (H, W, 2) in mm (NaN where invalid), ``valid`` (H, W), ``flags``, …
 
     Raises
@@ -721,7 +722,7 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     ImageSetError
         If the screen size is invalid or a direction's coarsest period is shorter than the
         screen extent (hierarchical unwrapping needs it to be at least the extent).
-    pmdsim.phase.PhaseDecodingError
+    pmdsim.evaluation.phase.PhaseDecodingError
         For invalid decoder arguments.
     """
     size = _screen_size(screen_size_mm, "screen_size_mm")
@@ -754,11 +755,11 @@ def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, 
     noise_std : float or array_like broadcastable to (H, W), optional
         Intensity noise σ_I in grey levels (default: quantisation noise 1/√12).
     **decoder_kw
-        Passed to :func:`pmdsim.phase.decode_screen_coordinates`.
+        Passed to :func:`pmdsim.evaluation.phase.decode_screen_coordinates`.
 
     Returns
     -------
-    pmdsim.phase.ScreenCoordinates
+    pmdsim.evaluation.phase.ScreenCoordinates
         ``screen_xy_mm`` (H, W, 2) in mm of the screen frame, NaN where invalid; ``valid``,
         ``flags``, ``std_xy_mm``, ``modulation``, ``offset``.
 

@@ -41,7 +41,7 @@ Model (forward, analytic, exact for a planar mirror)
 The screen point is mirrored across the plane, q' = q − 2 (n·q − d) n (the virtual point: the
 reflected ray through it passes through the camera centre), transformed to the camera,
 p = T_cam_screen(q') = Rᵀ (q' − c) with ``T_screen_cam = (R, c)``, and projected with the
-camera model of :mod:`pmdsim.camera` (eqs. 2–4, OpenCV's distortion). The residual is
+camera model of :mod:`pmdsim.geometry.camera` (eqs. 2–4, OpenCV's distortion). The residual is
 predicted − observed pixel (px).
 
 Parameterisation (per Levenberg–Marquardt step, increments around the current state)
@@ -104,9 +104,9 @@ from typing import Iterable, Mapping, Sequence
 import numba
 import numpy as np
 
-from .camera import Camera
-from .errors import PmdsimError
-from .transform import RigidTransform, rotvec_to_matrix
+from ..geometry.camera import Camera
+from ..errors import PmdsimError
+from ..geometry.transform import RigidTransform, rotvec_to_matrix
 
 __all__ = [
     "CalibrationError",
@@ -494,7 +494,7 @@ class Observations:
         model's height h(x_q, y_q).
     q_std_mm : array_like (M, 2), optional
         Standard deviations of the decoded (x_q, y_q) (e.g. the decoder's
-        :attr:`pmdsim.phase.ScreenCoordinates.std_xy_mm`), used by :func:`calibrate` for the
+        :attr:`pmdsim.evaluation.phase.ScreenCoordinates.std_xy_mm`), used by :func:`calibrate` for the
         covariance only (their overall scale is estimated from the residuals: only ratios
         matter). None: the same for all correspondences and both coordinates.
 
@@ -566,7 +566,7 @@ def observations_from_mapping(
     camera, pose_index
         As in :class:`Observations`.
     screen_xy_mm : ndarray (H, W, 2)
-        Pattern coordinates (x_q, y_q) per pixel (e.g. :attr:`pmdsim.trace.Mapping.screen_xy_mm`
+        Pattern coordinates (x_q, y_q) per pixel (e.g. :attr:`pmdsim.simulation.trace.Mapping.screen_xy_mm`
         or decoded phases converted to mm).
     valid : ndarray of bool (H, W)
         Pixels whose pattern coordinates are valid.
@@ -576,7 +576,7 @@ def observations_from_mapping(
         The screen model; q's z is its height at (x_q, y_q). None: the plane z = 0.
     screen_std_xy_mm : ndarray (H, W, 2), optional
         Standard deviations of the pattern coordinates per pixel (e.g. the decoder's
-        :attr:`pmdsim.phase.ScreenCoordinates.std_xy_mm`): the observations' ``q_std_mm``.
+        :attr:`pmdsim.evaluation.phase.ScreenCoordinates.std_xy_mm`): the observations' ``q_std_mm``.
 
     Raises
     ------
@@ -618,8 +618,8 @@ def observations_from_mapping(
 # ============================================================================ screen model
 def _basis_weights(grid: np.ndarray, coef: np.ndarray, v: np.ndarray, derivative: bool = False) -> np.ndarray:
     """Values (M, n) of the n cardinal not-a-knot basis splines of ``grid`` at ``v`` (M,), or
-    their derivatives d/dv (``coef`` from :func:`pmdsim.surface.cardinal_spline_coefficients`;
-    the edge intervals extrapolate, as in :func:`pmdsim.surface._interval`)."""
+    their derivatives d/dv (``coef`` from :func:`pmdsim.geometry.surface.cardinal_spline_coefficients`;
+    the edge intervals extrapolate, as in :func:`pmdsim.geometry.surface._interval`)."""
     n = grid.size
     i = np.clip(np.searchsorted(grid, v, side="right") - 1, 0, n - 2)
     t = v - grid[i]
@@ -715,7 +715,7 @@ class ScreenModel:
 
     @classmethod
     def from_surface(cls, surface, free=None) -> "ScreenModel":
-        """From a :class:`pmdsim.surface.SplineSurface` (e.g. a setup's ``screen.surface``);
+        """From a :class:`pmdsim.geometry.surface.SplineSurface` (e.g. a setup's ``screen.surface``);
         ``free`` defaults to all interior control points."""
         z = np.asarray(surface.heights_mm, dtype=float)
         if free is None:
@@ -750,8 +750,8 @@ class ScreenModel:
 
     @property
     def surface(self):
-        """The screen surface as a :class:`pmdsim.surface.SplineSurface` (e.g. for the ray tracer)."""
-        from .surface import SplineSurface
+        """The screen surface as a :class:`pmdsim.geometry.surface.SplineSurface` (e.g. for the ray tracer)."""
+        from ..geometry.surface import SplineSurface
 
         return SplineSurface(self.grid_x_mm, self.grid_y_mm, self.heights_mm)
 
@@ -760,7 +760,7 @@ class ScreenModel:
         h(x, y) = Σ_j Σ_i heights_mm[j, i]·wy[:, j]·wx[:, i]. (The not-a-knot cardinal basis
         splines have global support — they decay by about 4× per grid interval — so every
         control height has a nonzero weight everywhere.)"""
-        from .surface import cardinal_spline_coefficients
+        from ..geometry.surface import cardinal_spline_coefficients
 
         x = np.asarray(x_mm, dtype=float).reshape(-1)
         y = np.asarray(y_mm, dtype=float).reshape(-1)
@@ -1036,7 +1036,7 @@ def _screen_slope(q: np.ndarray, screen: ScreenModel | None) -> np.ndarray:
     (zeros without a screen model: q is used as given)."""
     if screen is None:
         return np.zeros((q.shape[0], 2))
-    from .surface import cardinal_spline_coefficients
+    from ..geometry.surface import cardinal_spline_coefficients
 
     gx, gy = screen.grid_x_mm, screen.grid_y_mm
     cx, cy = cardinal_spline_coefficients(gx), cardinal_spline_coefficients(gy)

@@ -30,7 +30,7 @@ from typing import Sequence
 import numba
 import numpy as np
 
-from .errors import PmdsimError
+from ..errors import PmdsimError
 
 __all__ = [
     "PhaseDecodingError",

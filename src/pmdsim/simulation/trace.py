@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .camera import Camera
-from .surface import (
+from ..geometry.camera import Camera
+from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
-from .transform import RigidTransform
+from ..geometry.transform import RigidTransform
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
 
@@ -73,8 +73,8 @@ def _trace_run(
     """Trace one run of ``run_length`` rays (an image row).
 
     Each intersection is warm started from the previous pixels' heights (one Newton step,
-    :func:`pmdsim.surface.intersect_kernel`); the first pixel of a run, and any pixel whose
-    fast path does not converge, is solved by :func:`pmdsim.surface.intersect_solve`. Runs
+    :func:`pmdsim.geometry.surface.intersect_kernel`); the first pixel of a run, and any pixel whose
+    fast path does not converge, is solved by :func:`pmdsim.geometry.surface.intersect_solve`. Runs
     are independent, so results do not depend on the thread count.
     """
     n = d_cam.shape[0]

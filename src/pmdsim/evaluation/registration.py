@@ -4,11 +4,11 @@ Paper §2.5: for a pixel with decoded pattern coordinates (x_p, y_p), the light 
 screen point p_(p) = (x_p, y_p, h_p(x_p, y_p)) of the *screen model* used by the evaluation.
 The paper's evaluation assumes a planar screen (h_p = 0, "It is precisely here, that the
 reconstruction algorithm implicitly assumes the x–y-plane of the pattern screen coordinate
-system to be the planar light source"); any surface of :mod:`pmdsim.surface` is accepted, so a
+system to be the planar light source"); any surface of :mod:`pmdsim.geometry.surface` is accepted, so a
 deformed (calibrated) screen model can be used as well.
 
 The result is expressed in a reconstruction frame ``ref`` (usually the sample frame), whose +z
-is the height direction of the reconstruction (:mod:`pmdsim.reconstruct`).
+is the height direction of the reconstruction (:mod:`pmdsim.evaluation.reconstruction`).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Camera
-from .transform import RigidTransform
+from ..geometry.camera import Camera
+from ..geometry.transform import RigidTransform
 
 __all__ = ["Registration", "RegistrationStatus", "register"]
 
@@ -28,7 +28,7 @@ class RegistrationStatus(enum.IntEnum):
     """Why a pixel has no registration (0 = registered)."""
 
     VALID = 0
-    NOT_DECODED = 1  # the decoder marked the pixel invalid (see pmdsim.phase.PhaseFlag)
+    NOT_DECODED = 1  # the decoder marked the pixel invalid (see pmdsim.evaluation.phase.PhaseFlag)
     UNDISTORT_FAILED = 2  # the view ray could not be computed
     OUTSIDE_SCREEN_MODEL = 3  # decoded pattern coordinates outside the screen model's bounds
 

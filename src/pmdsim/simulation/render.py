@@ -12,7 +12,7 @@ from typing import Iterator
 import numpy as np
 
 from .patterns import PatternFrame, render_period
-from .setup import Setup
+from ..setup import Setup
 from .trace import Mapping, trace_camera
 
 __all__ = ["trace_setup_camera", "ImageSpec", "image_specs", "render_images"]

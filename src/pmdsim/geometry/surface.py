@@ -1,7 +1,7 @@
 """Surfaces: height fields over a rectangle of their own frame (paper §2.3).
 
 A surface knows its ``height``, its ``gradient`` and how to ``intersect`` rays; the ray tracer
-(:mod:`pmdsim.trace`) does not know which surface it is: it receives the surface's
+(:mod:`pmdsim.simulation.trace`) does not know which surface it is: it receives the surface's
 :class:`KernelSurface` data and calls the compiled kernels of this module.
 
 Interpolation follows the paper's two-step not-a-knot scheme (eq. 8). Because a 1-D

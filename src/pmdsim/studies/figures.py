@@ -1,14 +1,16 @@
-"""Figures (matplotlib, off-screen). Only the CLI layer calls this module."""
+"""Figures of the studies (matplotlib).
+
+Every function returns the :class:`matplotlib.figure.Figure` and saves it only when ``path`` is
+given. Figures are built without pyplot, so importing pmdsim never switches matplotlib's
+backend (inline plots in a notebook keep working) and no figure lingers in pyplot's registry.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
 
 __all__ = ["height_map_figure", "height_grid_figure", "error_vs_free_parameters_figure"]
 
@@ -40,34 +42,45 @@ def _panel(fig, ax, x_mm, y_mm, z_um, title, label):
     cb.update_ticks()
 
 
-def height_map_figure(path: str | Path, x_mm, y_mm, z_um, *, title: str, label: str = "height (µm)") -> None:
-    """One height map over its points' x, y (mm) with a colour bar, written to ``path`` (PNG)."""
-    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=120)
-    _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label)
+def _save(fig: Figure, path: str | Path | None) -> Figure:
     fig.tight_layout()
-    fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)
+    if path is not None:
+        fig.savefig(path, metadata={"Software": None})
+    return fig
 
 
-def height_grid_figure(path: str | Path, panels, *, suptitle: str, label: str = "height error (µm)") -> None:
+def height_map_figure(x_mm, y_mm, z_um, *, title: str, label: str = "height (µm)",
+                      path: str | Path | None = None) -> Figure:
+    """One height map over its points' x, y (mm, each (H, W)) with a colour bar; ``z_um`` (H, W).
+
+    Saved as PNG to ``path`` when given; returns the figure.
+    """
+    fig = Figure(figsize=(6.4, 4.8), dpi=120)
+    ax = fig.subplots()
+    _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label)
+    return _save(fig, path)
+
+
+def height_grid_figure(panels, *, suptitle: str, label: str = "height error (µm)",
+                       path: str | Path | None = None) -> Figure:
     """A grid of height maps, each with its own colour scale (like the paper's Figs. 4 and 5).
 
-    ``panels`` is a list of rows; each entry is (x_mm, y_mm, z_um, title).
+    ``panels`` is a list of rows; each entry is (x_mm, y_mm, z_um, title) with (H, W) arrays.
+    Saved as PNG to ``path`` when given; returns the figure.
     """
     rows = len(panels)
     cols = max(len(r) for r in panels)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.6 * cols, 4.2 * rows), dpi=110, squeeze=False)
+    fig = Figure(figsize=(5.6 * cols, 4.2 * rows), dpi=110)
+    axes = fig.subplots(rows, cols, squeeze=False)
     for i, row in enumerate(panels):
         for j, (x, y, z, title) in enumerate(row):
             _panel(fig, axes[i, j], np.asarray(x), np.asarray(y), np.asarray(z), title, label)
     fig.suptitle(suptitle, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)
+    return _save(fig, path)
 
 
-def error_vs_free_parameters_figure(path: str | Path, series, model_labels, *, suptitle: str,
-                                    floor_um: float | None = None) -> None:
+def error_vs_free_parameters_figure(series, model_labels, *, suptitle: str, floor_um: float | None = None,
+                                    path: str | Path | None = None) -> Figure:
     """Experiment 3: reconstruction error and calibration residual against the screen model.
 
     Parameters
@@ -80,7 +93,8 @@ def error_vs_free_parameters_figure(path: str | Path, series, model_labels, *, s
     floor_um : float, optional
         The 8-bit floor (Δh = 0, planar model), drawn as a dashed line.
     """
-    fig, axes = plt.subplots(1, 2, figsize=(12.0, 4.6), dpi=110)
+    fig = Figure(figsize=(12.0, 4.6), dpi=110)
+    axes = fig.subplots(1, 2)
     x = np.arange(len(model_labels))
     for label, err, rms in series:
         axes[0].plot(x, err, marker="o", label=label)
@@ -95,6 +109,4 @@ def error_vs_free_parameters_figure(path: str | Path, series, model_labels, *, s
         ax.grid(True, which="both", lw=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle(suptitle, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)
+    return _save(fig, path)

@@ -1,0 +1,122 @@
+"""HDF5 outputs: per-camera mappings, evaluations and reconstructions (layouts in the README).
+
+Float maps are stored with the byte-shuffle and gzip filters (standard filters any HDF5 reader
+decodes); attributes carry provenance and the meaning of every status code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+__all__ = ["write_mapping_h5", "reconstructions_h5", "write_reconstructions_h5", "write_evaluation_h5"]
+
+
+#: HDF5 filters for float maps: byte shuffle + gzip level 1 (standard filters any HDF5 reader
+#: decodes; the shuffle makes float maps ≈ 25 % smaller and faster to write than gzip alone).
+_GZIP_FLOAT = dict(compression="gzip", compression_opts=1, shuffle=True)
+
+
+def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str, Any]) -> None:
+    """Write per-camera pixel → screen mappings (one group per camera).
+
+    Each group holds ``screen_xy_mm`` (float64, H×W×2, NaN where invalid), ``valid``
+    (bool, H×W) and ``status`` (uint8, H×W, :class:`pmdsim.simulation.trace.Status` codes).
+    """
+    from ..simulation.trace import Status
+
+    with h5py.File(path, "w", track_order=True) as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v if v is not None else ""
+        f.attrs["status_codes"] = json.dumps({s.name: int(s) for s in Status})
+        for name, m in mappings.items():
+            g = f.create_group(name)
+            d = g.create_dataset("screen_xy_mm", data=m.screen_xy_mm, **_GZIP_FLOAT,
+                                 chunks=(min(64, m.status.shape[0]), m.status.shape[1], 2))
+            d.attrs["units"] = "mm"
+            d.attrs["frame"] = "screen"
+            d.attrs["description"] = "pattern coordinates (x_q, y_q) per pixel [v, u]; NaN where invalid"
+            g.create_dataset("valid", data=m.valid, compression="gzip", compression_opts=1)
+            st = g.create_dataset("status", data=m.status, compression="gzip", compression_opts=1)
+            st.attrs["codes"] = json.dumps({s.name: int(s) for s in Status})
+            for sname, count in m.status_counts().items():
+                g.attrs[f"count_{sname}"] = count
+
+
+@contextlib.contextmanager
+def reconstructions_h5(path: str | Path, attrs: dict[str, Any]):
+    """Open a reconstructions file for writing case by case (so that a long experiment need not
+    hold every height map in memory); yields ``add(case, group=None)``. Layout: see
+    :func:`write_reconstructions_h5`."""
+    with h5py.File(path, "w", track_order=True) as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v if v is not None else ""
+
+        def add(c, group: str | None = None) -> None:
+            g = f.create_group(f"bulge_{c.bulge_mm:g}mm/{c.camera}" if group is None else group)
+            kw = _GZIP_FLOAT
+            d = g.create_dataset("height_mm", data=c.height_mm, **kw)
+            d.attrs["frame"] = "sample"
+            g.create_dataset("height_error_um", data=(c.height_error_mm * 1e3).astype(np.float32), **kw)
+            g.create_dataset("points_mm", data=c.points_mm, **kw)
+            g.create_dataset("valid", data=c.valid, **kw)
+            for k, v in c.as_record().items():
+                g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v
+
+        yield add
+
+
+def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> None:
+    """Write reconstructions (one group per case: ``bulge_{Δh}mm/{camera}``).
+
+    Each group holds ``height_mm`` (float64 H×W, reconstructed height in the sample frame,
+    NaN outside the FOV), ``height_error_um`` (float32, reconstructed − true), ``points_mm``
+    (float32 H×W×3, sample frame) and ``valid`` (bool), with the metrics as attributes.
+    """
+    with reconstructions_h5(path, attrs) as add:
+        for c in cases:
+            add(c)
+
+
+def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) -> None:
+    """Write an evaluation: one group per camera with the decoded coordinates, masks, normals
+    and the height map.
+
+    Datasets per camera: ``screen_xy_mm`` (H×W×2, screen frame, NaN where not decoded),
+    ``std_xy_mm`` (predicted σ), ``decoded`` (bool), ``phase_flags`` (uint8,
+    :class:`pmdsim.evaluation.phase.PhaseFlag`), ``registration_status`` (uint8,
+    :class:`pmdsim.evaluation.registration.RegistrationStatus`), ``normals`` (H×W×3, unit, sample frame),
+    ``points_mm`` (H×W×3, sample frame), ``height_mm`` (H×W, sample frame, NaN where not
+    reconstructed) and ``reconstructed`` (bool).
+    """
+    from ..evaluation.phase import PhaseFlag
+    from ..evaluation.registration import RegistrationStatus
+
+    kw = _GZIP_FLOAT
+    with h5py.File(path, "w", track_order=True) as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v if v is not None else ""
+        f.attrs["phase_flags"] = json.dumps({fl.name: int(fl) for fl in PhaseFlag})
+        f.attrs["registration_status"] = json.dumps({s.name: int(s) for s in RegistrationStatus})
+        for cam, (decoded, reg, rec) in results.items():
+            g = f.create_group(cam)
+            g.create_dataset("screen_xy_mm", data=decoded.screen_xy_mm, **kw).attrs["frame"] = "screen"
+            g.create_dataset("std_xy_mm", data=decoded.std_xy_mm, **kw)
+            g.create_dataset("decoded", data=decoded.valid, **kw)
+            g.create_dataset("phase_flags", data=decoded.flags, **kw)
+            g.create_dataset("registration_status", data=reg.status, **kw)
+            g.create_dataset("normals", data=rec.normals, **kw).attrs["frame"] = "sample"
+            g.create_dataset("points_mm", data=rec.points, **kw).attrs["frame"] = "sample"
+            d = g.create_dataset("height_mm", data=rec.height_mm, **kw)
+            d.attrs["frame"] = "sample"
+            d.attrs["description"] = "height along sample +z (docs/conventions.md), NaN where not reconstructed"
+            g.create_dataset("reconstructed", data=rec.reconstructed, **kw)
+            g.attrs["method"] = rec.method
+            g.attrs["seed_pixel"] = list(rec.seed_pixel)
+            g.attrs["converged"] = bool(rec.converged)
+            g.attrs["iterations"] = int(rec.iterations)
