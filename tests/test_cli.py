@@ -24,6 +24,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 import pmdsim.cli
+import pmdsim.studies.jobs
 from pmdsim.cli import main
 from pmdsim.setup import default_setup
 
@@ -347,9 +348,9 @@ class _InterruptAfter:
 
 
 def test_interrupted_run_leaves_nothing(tmp_path, monkeypatch, small_setup_file):
-    assert pmdsim.cli.write_png is pmdsim.io.write_png  # the name simulate_cmd calls
+    assert pmdsim.studies.jobs.write_png is pmdsim.io.write_png  # the name simulate_to_dir calls
     fake = _InterruptAfter(pmdsim.io.write_png, 5)
-    monkeypatch.setattr(pmdsim.cli, "write_png", fake)
+    monkeypatch.setattr(pmdsim.studies.jobs, "write_png", fake)
     out = tmp_path / "OUT"
     r = run_inprocess("simulate", "--setup", str(small_setup_file), "--out", str(out), "--quiet")
     assert fake.calls > 5  # the interruption happened
@@ -363,7 +364,7 @@ def test_interrupted_forced_run_keeps_old_output(tmp_path, monkeypatch, run_a, s
     shutil.copytree(run_a["out"], out)
     before = snapshot(out)
     fake = _InterruptAfter(pmdsim.io.write_png, 30)
-    monkeypatch.setattr(pmdsim.cli, "write_png", fake)
+    monkeypatch.setattr(pmdsim.studies.jobs, "write_png", fake)
     r = run_inprocess("simulate", "--setup", str(small_setup_file), "--out", str(out), "--force", "--quiet")
     assert fake.calls > 30 and r.exit_code != 0
     assert snapshot(out) == before
@@ -374,7 +375,7 @@ def test_interrupt_while_writing_mapping(tmp_path, monkeypatch, small_setup_file
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pmdsim.cli, "write_mapping_h5", boom)
+    monkeypatch.setattr(pmdsim.studies.jobs, "write_mapping_h5", boom)
     out = tmp_path / "OUT"
     r = run_inprocess("simulate", "--setup", str(small_setup_file), "--out", str(out), "--quiet")
     assert r.exit_code != 0

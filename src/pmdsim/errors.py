@@ -12,6 +12,7 @@ __all__ = [
     "SetupError",
     "OutputExistsError",
     "ImageSetError",
+    "ComputationError",
 ]
 
 
@@ -32,3 +33,10 @@ class OutputExistsError(PmdsimError, FileExistsError):
 
 class ImageSetError(PmdsimError, ValueError):
     """An image set (manifest plus image files) is missing, inconsistent or unreadable."""
+
+
+class ComputationError(PmdsimError, RuntimeError):
+    """The inputs were valid but the computation failed (e.g. a calibration did not converge).
+
+    The CLI exits with code 1 for these and 2 for bad input.
+    """

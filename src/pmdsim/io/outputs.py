@@ -21,7 +21,7 @@ from .. import __version__
 from ..errors import OutputExistsError
 
 __all__ = ["MANIFEST_NAME", "MAPPING_NAME", "IMAGESET_FORMAT", "provenance", "atomic_output_dir", "atomic_file",
-           "write_json"]
+           "check_output_target", "write_json"]
 
 
 MANIFEST_NAME = "manifest.json"
@@ -77,6 +77,14 @@ def atomic_output_dir(target: str | Path, *, force: bool = False) -> Iterator[Pa
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def check_output_target(target: str | Path, *, force: bool = False) -> None:
+    """Raise :class:`~pmdsim.errors.OutputExistsError` if ``target`` exists and ``force`` is not
+    given — before a long computation, so that it does not fail only when writing."""
+    target = Path(target)
+    if target.exists() and not force:
+        raise OutputExistsError(f"output {str(target)!r} exists; pass --force to replace it")
 
 
 @contextlib.contextmanager

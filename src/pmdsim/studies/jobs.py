@@ -1,0 +1,273 @@
+"""One measurement, disk to disk: simulate an image set, evaluate one, calibrate from several.
+
+These are what ``pmdsim simulate``, ``pmdsim evaluate`` and ``pmdsim calibrate`` run; the CLI
+only parses its options, calls one of them and prints the returned summary. Every function
+writes atomically (:func:`pmdsim.io.atomic_output_dir`, :func:`pmdsim.io.atomic_file`) and
+records the pmdsim version and the producing command (``command``).
+
+``progress``, where accepted, is called with a short message after each step; ``n_steps``
+functions say how many calls to expect (for a progress bar).
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..calibration import (
+    CalibrationResult,
+    calibrate,
+    calibrated_setup,
+    calibration_summary,
+    nominal_state,
+    observations_from_mapping,
+)
+from ..errors import ComputationError, PmdsimError
+from ..evaluation.pipeline import evaluate_decoded
+from ..io import (
+    IMAGESET_FORMAT,
+    MANIFEST_NAME,
+    MAPPING_NAME,
+    atomic_file,
+    atomic_output_dir,
+    provenance,
+    write_evaluation_h5,
+    write_json,
+    write_mapping_h5,
+    write_png,
+)
+from ..io.imageset import decode_camera, load_manifest
+from ..setup import Setup
+from ..simulation.render import image_specs, render_images, trace_setup_camera
+from .figures import height_map_figure
+from .report import json_ready
+
+__all__ = [
+    "JobInputError",
+    "simulation_steps",
+    "simulate_to_dir",
+    "evaluate_image_set",
+    "calibrate_image_sets",
+    "CalibrationNotConverged",
+]
+
+Progress = Callable[[str], None]
+
+
+class JobInputError(PmdsimError, ValueError):
+    """The inputs of a job do not fit together (e.g. a camera of the images is not in the setup)."""
+
+
+class CalibrationNotConverged(ComputationError):
+    """The calibration did not converge; nothing was written."""
+
+
+def _tick(progress: Progress | None, msg: str) -> None:
+    if progress is not None:
+        progress(msg)
+
+
+# ============================================================================ simulate
+def simulation_steps(setup: Setup) -> int:
+    """Number of progress calls of :func:`simulate_to_dir`: one per traced camera and image."""
+    return sum(1 + len(image_specs(setup, c)) for c in setup.cameras)
+
+
+@dataclass(frozen=True)
+class SimulationSummary:
+    """What :func:`simulate_to_dir` wrote: image count, valid pixels per camera, seconds."""
+
+    n_images: int
+    valid_pixels: dict[str, tuple[int, int]]  # camera → (valid, total)
+    seconds: float
+
+    def as_text(self, out_dir) -> str:
+        valid = ", ".join(f"{c}: {v}/{n} valid pixels" for c, (v, n) in self.valid_pixels.items())
+        return (f"wrote {self.n_images} images, {MANIFEST_NAME} and {MAPPING_NAME} to {out_dir} in "
+                f"{self.seconds:.1f} s ({valid})")
+
+
+def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, command: str | None = None,
+                    calibration_pose: int | None = None, progress: Progress | None = None) -> SimulationSummary:
+    """Simulate a measurement (paper §2) and write it as an image set.
+
+    Writes into ``out_dir``: ``{camera}_{direction}_p{i}_s{k}.png`` fringe images, ``manifest.json``
+    (provenance, the setup as TOML, one entry per image) and ``mapping.h5`` (per camera
+    ``screen_xy_mm`` (H, W, 2), ``valid`` and ``status``). ``calibration_pose`` K images the
+    calibration mirror in pose K (noise stream K + 1, as the in-memory experiments use) instead
+    of the sample.
+    """
+    if calibration_pose is not None:
+        setup = setup.with_mirror_pose(calibration_pose)
+    prov = provenance(command, setup.to_toml())
+    t0 = time.perf_counter()
+    with atomic_output_dir(out_dir, force=force) as tmp:
+        mappings = {}
+        entries = []
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            for cam in setup.cameras:
+                m = trace_setup_camera(setup, cam)
+                mappings[cam] = m
+                _tick(progress, f"traced {cam}")
+                futures = []
+                stream = None if calibration_pose is None else calibration_pose + 1
+                for spec, img in render_images(setup, cam, m, stream=stream):
+                    futures.append(pool.submit(write_png, tmp / spec.file, img))
+                    entries.append(spec.as_manifest_entry())
+                for f in futures:
+                    f.result()
+                    _tick(progress, "image written")
+        write_mapping_h5(tmp / MAPPING_NAME, mappings, dict(prov))
+        sx, sy = setup.screen.size_mm
+        manifest = {
+            "format": IMAGESET_FORMAT,
+            "format_version": 1,
+            **prov,
+            "bit_depth": setup.patterns.bit_depth,
+            "screen_size_mm": [sx, sy],
+            "cameras": {c: {"image_size_px": [cs.camera.width_px, cs.camera.height_px],
+                            "status_counts": mappings[c].status_counts()} for c, cs in setup.cameras.items()},
+            "images": entries,
+        }
+        write_json(tmp / MANIFEST_NAME, manifest)
+    return SimulationSummary(len(entries), {c: (int(m.valid.sum()), int(m.valid.size)) for c, m in mappings.items()},
+                             time.perf_counter() - t0)
+
+
+# ============================================================================ evaluate
+@dataclass(frozen=True)
+class EvaluationSummary:
+    """Per camera: decoded, reconstructed pixels, height range (µm) and convergence; seconds."""
+
+    cameras: dict[str, dict]
+    seconds: float
+
+    def lines(self) -> list[str]:
+        out = []
+        for cam, c in self.cameras.items():
+            rng = (f"height {c['height_min_um']:.3f} … {c['height_max_um']:.3f} µm (sample frame)"
+                   if c["reconstructed"] else "no height")
+            out.append(f"{cam}: {c['decoded']}/{c['pixels']} pixels decoded, {c['reconstructed']} reconstructed; "
+                       f"{rng}, {'converged' if c['converged'] else 'NOT converged'}")
+        return out
+
+
+def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str = "stepwise",
+                       screen_model: str = "planar", seed_pixel=None, seed_height_mm: float = 0.0,
+                       noise_std=None, force: bool = False, command: str | None = None,
+                       progress: Progress | None = None) -> EvaluationSummary:
+    """Decode, register and reconstruct every camera of an image set (paper §2.5).
+
+    ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
+    "setup" (the setup's screen surface). Writes ``evaluation.h5`` (per camera
+    ``screen_xy_mm``, ``std_xy_mm``, ``decoded``, ``phase_flags``, ``registration_status``,
+    ``normals``, ``points_mm``, ``height_mm``, ``reconstructed``) and ``height_{camera}.png``.
+    """
+    if screen_model not in ("planar", "setup"):
+        raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
+    manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
+    unknown = [c for c in manifest.cameras if c not in setup.cameras]
+    if unknown:
+        raise JobInputError(f"camera(s) {unknown} of {image_dir}/manifest.json are not in the setup "
+                            f"(setup cameras: {list(setup.cameras)})")
+    prov = provenance(command, setup.to_toml())
+    model_surface = None if screen_model == "planar" else setup.screen.surface
+    t0 = time.perf_counter()
+    results = {}
+    with atomic_output_dir(out_dir, force=force) as tmp:
+        for cam in manifest.cameras:
+            decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std)
+            reg, rec = evaluate_decoded(setup, cam, decoded, screen_model=model_surface, method=method,
+                                        seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
+            results[cam] = (decoded, reg, rec)
+            p = rec.points
+            height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                              title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model)",
+                              label="height (µm)", path=tmp / f"height_{cam}.png")
+            _tick(progress, f"evaluated {cam}")
+        write_evaluation_h5(tmp / "evaluation.h5", results,
+                            {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir)})
+    cams = {}
+    for cam, (decoded, reg, rec) in results.items():
+        h = rec.height_mm[rec.reconstructed] * 1e3
+        cams[cam] = {"pixels": int(decoded.valid.size), "decoded": int(decoded.valid.sum()),
+                     "reconstructed": int(rec.reconstructed.sum()),
+                     "height_min_um": float(np.min(h)) if h.size else float("nan"),
+                     "height_max_um": float(np.max(h)) if h.size else float("nan"),
+                     "converged": bool(rec.converged)}
+    return EvaluationSummary(cams, time.perf_counter() - t0)
+
+
+# ============================================================================ calibrate
+@dataclass(frozen=True)
+class CalibrationRun:
+    """A finished calibration: the result, the calibrated setup and its summary (JSON-ready)."""
+
+    result: CalibrationResult
+    model: Setup
+    summary: dict
+
+
+def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_path: str | Path, *,
+                         stride: int | None = None, max_iter: int = 100, force: bool = False,
+                         command: str | None = None, progress: Progress | None = None) -> CalibrationRun:
+    """Holistic calibration with a planar mirror (paper §4) from one image set per mirror pose.
+
+    ``image_dirs`` are in the order of ``nominal``'s calibration poses (base, lifts, tilts).
+    Cameras and mirror planes are estimated jointly from ``nominal``'s values; the screen is held
+    at its nominal pose (the gauge) and planar. Writes a setup TOML (``out_path``) whose sample
+    frame is the calibrated table plane (pose 0), with the fit and the standard deviations in
+    ``[calibration_report]``.
+
+    Raises
+    ------
+    JobInputError
+        If the number of image sets differs from the setup's poses or a camera is unknown.
+    CalibrationNotConverged
+        If the calibration does not converge (nothing is written).
+    """
+    from ..io.outputs import check_output_target
+    from .. import __version__
+
+    nominal = nominal.with_bulge(0.0)
+    poses = nominal.calibration.mirror_poses(nominal.sample)
+    if len(image_dirs) != len(poses):
+        raise JobInputError(f"got {len(image_dirs)} image directories, but the setup lists {len(poses)} calibration "
+                            f"poses ({', '.join(label for label, _ in poses)}); give one per pose, in order")
+    check_output_target(out_path, force=force)
+    stride = stride or nominal.calibration.observation_stride_px
+    obs = []
+    for k, d in enumerate(image_dirs):
+        manifest = load_manifest(d, screen_size_mm=nominal.screen.size_mm)
+        for cam in manifest.cameras:
+            if cam not in nominal.cameras:
+                raise JobInputError(f"camera {cam!r} of {d} is not in the setup ({list(nominal.cameras)})")
+            dec = decode_camera(manifest, cam, screen_size_mm=nominal.screen.size_mm)
+            obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=stride,
+                                                 screen_std_xy_mm=dec.std_xy_mm))
+        _tick(progress, f"decoded pose {k}")
+    start = nominal_state(nominal, [T for _, T in poses])
+    result = calibrate(obs, start, max_iter=max_iter)
+    if not result.converged:
+        raise CalibrationNotConverged(f"the calibration did not converge: {result.reason} (RMS {result.rms_px:.4g} px "
+                                      f"after {result.iterations} iterations); nothing written")
+    model = calibrated_setup(nominal, result)
+    summary = json_ready(calibration_summary(result, model))
+    report = {"pmdsim_version": __version__, "command": command or "",
+              "converged": summary["converged"], "reason": summary["reason"], "iterations": summary["iterations"],
+              "rms_px": summary["rms_px"], "n_residuals": summary["n_residuals"],
+              "condition_number": summary["condition_number"],
+              "determination": result.determination_report(),
+              "std": {name: c["std"] for name, c in summary["cameras"].items()}}
+    from ..setup.toml import dump_toml
+
+    doc = model.to_dict()
+    doc["calibration_report"] = report
+    with atomic_file(out_path, force=force, mode="w") as f:
+        f.write(dump_toml(doc))
+    return CalibrationRun(result, model, summary)
