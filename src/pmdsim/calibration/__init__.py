@@ -3,15 +3,20 @@
 Pixel ↔ decoded screen-point correspondences of several cameras and mirror poses → cameras'
 intrinsics and poses, mirror planes and (optionally) the screen's free control heights, with
 covariance and a report of how well the data determine them. The modules, from the bottom:
-the numba model and Jacobian kernel, the parameter state and observations, the free-form
-screen model, the Levenberg–Marquardt solver, uncertainty and determination reports, and
-:mod:`.setup_bridge` between a :class:`~pmdsim.setup.Setup` and the parameter state.
-Gauge and parameterisation: docs/conventions.md and :mod:`.core`.
+:mod:`.errors` (exceptions), :mod:`.screen` (free-form screen model, §5), :mod:`.model`
+(parameter names/units/blocks, state, observations; gauge, forward model and parameterisation),
+:mod:`.kernel` (numba model and Jacobian kernels), :mod:`.result` (covariance, σ, weak
+directions, determination report), :mod:`.solver` (Levenberg–Marquardt, conditioning and
+degeneracy checks), :mod:`.spread` (Monte Carlo spread comparison), and :mod:`.setup_bridge`
+between a :class:`~pmdsim.setup.Setup` and the parameter state.
+Gauge and parameterisation: docs/conventions.md and :mod:`.model`.
 
 May import: :mod:`pmdsim.errors`, :mod:`pmdsim.geometry`, :mod:`pmdsim.setup`.
 """
 
-from .core import (
+from .errors import CalibrationDataError, CalibrationDegenerateError, CalibrationError
+from .screen import ScreenModel
+from .model import (
     CAMERA_PARAMETERS,
     DEFAULT_CONDITION_LIMIT,
     MIN_CORRESPONDENCES,
@@ -22,27 +27,20 @@ from .core import (
     SCREEN_HEIGHT_UNIT_MM,
     SCREEN_WEIGHT_MIN,
     WEAK_DIRECTIONS,
-    CalibrationDataError,
-    CalibrationDegenerateError,
-    CalibrationError,
-    CalibrationResult,
     CalibrationState,
     CameraParams,
     MirrorPlane,
     Observations,
-    ScreenModel,
-    SpreadComparison,
-    WeakDirection,
-    calibrate,
-    compare_spread,
     mirror_plane_from_pose,
     nominal_state,
     observations_from_mapping,
     parameter_block,
     parameter_group,
     perturbed_state,
-    residuals_and_jacobian,
 )
+from .result import CalibrationResult, WeakDirection
+from .solver import calibrate, residuals_and_jacobian
+from .spread import SpreadComparison, compare_spread
 from .setup_bridge import (
     calibrated_setup,
     calibration_deviation,

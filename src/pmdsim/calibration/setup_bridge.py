@@ -31,7 +31,7 @@ def nominal_setup(truth: Setup) -> Setup:
 def free_screen_model(nominal: Setup, screen_grid: int):
     """A flat n × n free-form :class:`~pmdsim.calibration.ScreenModel` spanning the nominal
     screen's grid (border held at 0 = the gauge, (n − 2)² free interior heights)."""
-    from .core import ScreenModel
+    from .screen import ScreenModel
 
     if isinstance(screen_grid, bool) or int(screen_grid) != screen_grid or screen_grid < 3:
         raise ValueError(f"screen_grid must be an integer ≥ 3, got {screen_grid!r}")

@@ -1,0 +1,249 @@
+"""Numba kernels of the calibration: forward model and analytic Jacobian, JᵀJ/Jᵀr accumulation.
+
+The forward model (mirroring, rigid transform, projection with distortion) and the per-residual
+Jacobian are described in :mod:`pmdsim.calibration.model`; the kernels work on packed arrays
+prepared by :mod:`pmdsim.calibration.solver`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .model import _NB, _NJ
+
+
+# ============================================================================ kernels
+@numba.njit(cache=True)
+def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, jac):
+    """Residual (predicted − observed, px) of one correspondence and, if ``want_jac``, its
+    Jacobian (2 × 17) w.r.t. the block's parameters in natural units, written to ``jac[:, :17]``,
+    and the derivatives w.r.t. the screen point, ∂r/∂q_z, ∂r/∂q_x, ∂r/∂q_y, written to
+    ``jac[:, 17]``, ``jac[:, 18]``, ``jac[:, 19]`` (q's coordinates taken independently).
+
+    intr: (9,) fx, fy, ppx, ppy, k1, k2, p1, p2, k3; rot: (3, 3) R_screen_cam; cen: (3,) camera
+    centre in the screen frame; mir: (4,) n, d; e1, e2: tangent basis of n.
+    Returns (ru, rv, ok) with ok False if the virtual point is not in front of the camera.
+    """
+    nx, ny, nz, dd = mir[0], mir[1], mir[2], mir[3]
+    s = nx * qx + ny * qy + nz * qz - dd
+    # Virtual (mirrored) screen point.
+    wx = qx - 2.0 * s * nx - cen[0]
+    wy = qy - 2.0 * s * ny - cen[1]
+    wz = qz - 2.0 * s * nz - cen[2]
+    # p = Rᵀ w.
+    px = rot[0, 0] * wx + rot[1, 0] * wy + rot[2, 0] * wz
+    py = rot[0, 1] * wx + rot[1, 1] * wy + rot[2, 1] * wz
+    pz = rot[0, 2] * wx + rot[1, 2] * wy + rot[2, 2] * wz
+    if not pz > 0.0:
+        return 0.0, 0.0, False
+    fx, fy, ppx, ppy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2, k3 = intr[4], intr[5], intr[6], intr[7], intr[8]
+    iz = 1.0 / pz
+    x = px * iz
+    y = py * iz
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    ru = fx * xd + ppx - u_obs
+    rv = fy * yd + ppy - v_obs
+    if not want_jac:
+        return ru, rv, True
+    for i in range(2):
+        for j in range(_NJ):
+            jac[i, j] = 0.0
+    # Intrinsics.
+    jac[0, 0] = xd
+    jac[1, 1] = yd
+    jac[0, 2] = 1.0
+    jac[1, 3] = 1.0
+    jac[0, 4] = fx * x * r2
+    jac[1, 4] = fy * y * r2
+    jac[0, 5] = fx * x * r2 * r2
+    jac[1, 5] = fy * y * r2 * r2
+    jac[0, 6] = fx * 2.0 * x * y
+    jac[1, 6] = fy * (r2 + 2.0 * y * y)
+    jac[0, 7] = fx * (r2 + 2.0 * x * x)
+    jac[1, 7] = fy * 2.0 * x * y
+    # d(xd, yd)/d(x, y).
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    c = b
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    # G = d(u, v)/d p (2 × 3); dx/dp = (1/z, 0, −x/z), dy/dp = (0, 1/z, −y/z).
+    g00 = fx * a * iz
+    g01 = fx * b * iz
+    g02 = -fx * (a * x + b * y) * iz
+    g10 = fy * c * iz
+    g11 = fy * d * iz
+    g12 = -fy * (c * x + d * y) * iz
+    # H = G Rᵀ = d(u, v)/d w (screen frame): H[i, k] = Σ_j G[i, j] R[k, j].
+    h00 = g00 * rot[0, 0] + g01 * rot[0, 1] + g02 * rot[0, 2]
+    h01 = g00 * rot[1, 0] + g01 * rot[1, 1] + g02 * rot[1, 2]
+    h02 = g00 * rot[2, 0] + g01 * rot[2, 1] + g02 * rot[2, 2]
+    h10 = g10 * rot[0, 0] + g11 * rot[0, 1] + g12 * rot[0, 2]
+    h11 = g10 * rot[1, 0] + g11 * rot[1, 1] + g12 * rot[1, 2]
+    h12 = g10 * rot[2, 0] + g11 * rot[2, 1] + g12 * rot[2, 2]
+    # Rotation increment R ← exp([δ]×) R: dp/dδ = Rᵀ [w]×, so d(u, v)_i/dδ = H_i × w.
+    jac[0, 8] = h01 * wz - h02 * wy
+    jac[0, 9] = h02 * wx - h00 * wz
+    jac[0, 10] = h00 * wy - h01 * wx
+    jac[1, 8] = h11 * wz - h12 * wy
+    jac[1, 9] = h12 * wx - h10 * wz
+    jac[1, 10] = h10 * wy - h11 * wx
+    # Camera centre: dp/dc = −Rᵀ.
+    jac[0, 11] = -h00
+    jac[0, 12] = -h01
+    jac[0, 13] = -h02
+    jac[1, 11] = -h10
+    jac[1, 12] = -h11
+    jac[1, 13] = -h12
+    # Mirror: dq'/dd = 2n, dq'/da = −2 (s e1 + (e1·q) n), likewise b with e2.
+    hn0 = h00 * nx + h01 * ny + h02 * nz
+    hn1 = h10 * nx + h11 * ny + h12 * nz
+    he10 = h00 * e1[0] + h01 * e1[1] + h02 * e1[2]
+    he11 = h10 * e1[0] + h11 * e1[1] + h12 * e1[2]
+    he20 = h00 * e2[0] + h01 * e2[1] + h02 * e2[2]
+    he21 = h10 * e2[0] + h11 * e2[1] + h12 * e2[2]
+    e1q = e1[0] * qx + e1[1] * qy + e1[2] * qz
+    e2q = e2[0] * qx + e2[1] * qy + e2[2] * qz
+    jac[0, 14] = -2.0 * (s * he10 + e1q * hn0)
+    jac[1, 14] = -2.0 * (s * he11 + e1q * hn1)
+    jac[0, 15] = -2.0 * (s * he20 + e2q * hn0)
+    jac[1, 15] = -2.0 * (s * he21 + e2q * hn1)
+    jac[0, 16] = 2.0 * hn0
+    jac[1, 16] = 2.0 * hn1
+    # Screen point: dq'/dq = I − 2 n nᵀ, so d(u, v)/dq_i = H e_i − 2 n_i H n.
+    jac[0, _NB] = h02 - 2.0 * nz * hn0
+    jac[1, _NB] = h12 - 2.0 * nz * hn1
+    jac[0, _NB + 1] = h00 - 2.0 * nx * hn0
+    jac[1, _NB + 1] = h10 - 2.0 * nx * hn1
+    jac[0, _NB + 2] = h01 - 2.0 * ny * hn0
+    jac[1, _NB + 2] = h11 - 2.0 * ny * hn1
+    return ru, rv, True
+
+
+@numba.njit(cache=True)
+def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj, h_unit,
+               want_normal, jtj, jtr, sandwich, slope, qstd):
+    """Serial work item: correspondences start…end of one block. Accumulates the block's
+    (scaled) JᵀJ (full square, the 17 block parameters then the F free screen heights) and Jᵀr
+    if ``want_normal``. Returns (SSR, whitened SSR, number behind camera).
+
+    Screen heights (F = ``fi.shape[0]`` may be 0): the column of free height f = (fj[f], fi[f])
+    is (∂r/∂q_z)·wy[k, fj[f]]·wx[k, fi[f]] — rank one per correspondence, which the
+    accumulation exploits.
+
+    ``sandwich`` (with ``want_normal``): the noise is in the decoded screen point (x_q, y_q),
+    standard deviations ``qstd[k]`` (2,), and propagates to the residual by
+    B_k = ∂r/∂(x_q, y_q)·diag(qstd[k]) (2 × 2; with the screen's height slope ``slope[k]``
+    (∂h/∂x, ∂h/∂y), since q_z = h(x_q, y_q)): Cov(r_k) ∝ B_k B_kᵀ. Then ``jtj`` receives
+    Σ_k J_kᵀ B_k B_kᵀ J_k (the middle of the sandwich covariance) instead of JᵀJ, and the
+    whitened SSR Σ_k r_kᵀ (B_k B_kᵀ)⁻¹ r_k is returned."""
+    nf = fi.shape[0]
+    npar = _NB + nf
+    jac = np.zeros((2, _NJ))
+    acc = np.zeros((npar, npar))
+    accr = np.zeros(npar)
+    sw = np.zeros(nf)
+    jd = np.zeros(_NB)
+    ssr = 0.0
+    ssr_w = 0.0
+    nbad = 0
+    intr_c = intr[cam]
+    rot_c = rot[cam]
+    cen_c = cen[cam]
+    mir_k = mir[pose]
+    e1_k = e1[pose]
+    e2_k = e2[pose]
+    for k in range(start, end):
+        ru, rv, ok = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr_c, rot_c,
+                                cen_c, mir_k, e1_k, e2_k, want_normal, jac)
+        if not ok:
+            nbad += 1
+            continue
+        ssr += ru * ru + rv * rv
+        if want_normal:
+            for j in range(_NB):
+                jac[0, j] *= units[j]
+                jac[1, j] *= units[j]
+            if sandwich:
+                # B = ∂r/∂(x_q, y_q) with q_z = h(x_q, y_q), times diag(qstd).
+                b00 = (jac[0, _NB + 1] + jac[0, _NB] * slope[k, 0]) * qstd[k, 0]
+                b10 = (jac[1, _NB + 1] + jac[1, _NB] * slope[k, 0]) * qstd[k, 0]
+                b01 = (jac[0, _NB + 2] + jac[0, _NB] * slope[k, 1]) * qstd[k, 1]
+                b11 = (jac[1, _NB + 2] + jac[1, _NB] * slope[k, 1]) * qstd[k, 1]
+                det = b00 * b11 - b01 * b10
+                e0 = (b11 * ru - b01 * rv) / det  # B⁻¹ r: the residual on the screen, in σ
+                e1w = (-b10 * ru + b00 * rv) / det
+                ssr_w += e0 * e0 + e1w * e1w
+                # J ← Bᵀ J (rows), so that the accumulated JᵀJ is Jᵀ B Bᵀ J.
+                for j in range(_NB + 1):
+                    j0 = jac[0, j]
+                    j1 = jac[1, j]
+                    jac[0, j] = b00 * j0 + b10 * j1
+                    jac[1, j] = b01 * j0 + b11 * j1
+            for i in range(_NB):
+                a0 = jac[0, i]
+                a1 = jac[1, i]
+                accr[i] += a0 * ru + a1 * rv
+                for j in range(_NB):  # full square: contiguous, vectorises better than a triangle
+                    acc[i, j] += a0 * jac[0, j] + a1 * jac[1, j]
+            if nf > 0:
+                dz0 = jac[0, _NB] * h_unit
+                dz1 = jac[1, _NB] * h_unit
+                for f in range(nf):
+                    sw[f] = wy[k, fj[f]] * wx[k, fi[f]]
+                gz = dz0 * ru + dz1 * rv
+                cz = dz0 * dz0 + dz1 * dz1
+                for i in range(_NB):
+                    jd[i] = jac[0, i] * dz0 + jac[1, i] * dz1
+                for f in range(nf):
+                    sf = sw[f]
+                    accr[_NB + f] += gz * sf
+                    for i in range(_NB):
+                        acc[i, _NB + f] += jd[i] * sf
+                    csf = cz * sf
+                    for g in range(nf):
+                        acc[_NB + f, _NB + g] += csf * sw[g]
+    if want_normal:
+        for f in range(nf):
+            for i in range(_NB):
+                acc[_NB + f, i] = acc[i, _NB + f]
+        for i in range(npar):
+            jtr[i] = accr[i]
+            for j in range(npar):
+                jtj[i, j] = acc[i, j]
+    return ssr, ssr_w, nbad
+
+
+@numba.njit(cache=True, parallel=True)
+def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj,
+                   h_unit, want_normal, jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w):
+    for c in numba.prange(c_start.shape[0]):
+        s, sw, b = _chunk_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, intr, rot, cen, mir,
+                              e1, e2, units, wx, wy, fi, fj, h_unit, want_normal, jtj[c], jtr[c],
+                              sandwich, slope, qstd)
+        ssr[c] = s
+        ssr_w[c] = sw
+        nbad[c] = b
+
+
+@numba.njit(cache=True)
+def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac, ok):
+    """Residuals (N, 2), Jacobian blocks (N, 2, 18) in natural units (17 block columns, then
+    ∂r/∂q_z) and validity, per row."""
+    tmp = np.zeros((2, _NJ))
+    for k in range(uv.shape[0]):
+        c = cam_idx[k]
+        p = pose_idx[k]
+        ru, rv, good = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr[c], rot[c],
+                                  cen[c], mir[p], e1[p], e2[p], True, tmp)
+        res[k, 0] = ru
+        res[k, 1] = rv
+        ok[k] = good
+        for i in range(2):
+            for j in range(_NJ):
+                jac[k, i, j] = tmp[i, j]
