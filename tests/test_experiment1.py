@@ -71,7 +71,7 @@ def test_true_screen_model_removes_the_error():
     seed = (150, 240)
     reg, rec = evaluate_decoded(truth, "left", decoded, screen_model=truth.screen.surface, seed_pixel=seed,
                                 seed_height_mm=float(m.p_sample_mm[seed][2]))
-    p = rec.points
+    p = rec.p_sample_mm
     metrics = surface_error_metrics(p[..., 0], p[..., 1], rec.height_mm)
     assert metrics["max_height_diff_um"] < 0.1
     # And the reconstructed points lie on the true view rays' sample intersections.

@@ -72,9 +72,9 @@ def test_sagged_mirror_imprints_its_form_on_the_reconstruction():
     gx, gy = truth.sample.grid_x_mm, truth.sample.grid_y_mm
     cx, cy = 0.5 * (gx[0] + gx[-1]), 0.5 * (gy[0] + gy[-1])
     for c in e.cases:
-        ok = c.valid
-        x = c.points_mm[..., 0][ok].astype(float)
-        y = c.points_mm[..., 1][ok].astype(float)
+        ok = c.reconstructed
+        x = c.p_sample_mm[..., 0][ok].astype(float)
+        y = c.p_sample_mm[..., 1][ok].astype(float)
         a = np.column_stack([np.ones_like(x), x, y])
         err = c.height_error_mm[ok]
         zm = _paraboloid(cal, x - cx + 200.0, y - cy + 200.0)

@@ -180,10 +180,10 @@ def _check_exact(rec, o, d, z_true, n_true, valid, seed, seed_height, method):
     assert err.max() < TOL_EXACT_MM, err.max()
     assert np.all(np.isnan(rec.height_mm[~valid]))
     # Points lie on the view rays at the reconstructed heights.
-    np.testing.assert_array_equal(rec.points[..., 2][valid], rec.height_mm[valid])
-    off_ray = np.cross(rec.points - o, d)[valid]
+    np.testing.assert_array_equal(rec.p_sample_mm[..., 2][valid], rec.height_mm[valid])
+    off_ray = np.cross(rec.p_sample_mm - o, d)[valid]
     assert np.abs(off_ray).max() < 1e-9 * np.abs(d).max()
-    np.testing.assert_allclose(np.abs(np.sum(rec.normals * n_true, axis=-1))[valid], 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(rec.n_sample * n_true, axis=-1))[valid], 1.0, atol=1e-12)
     return err.max()
 
 
@@ -206,7 +206,7 @@ def test_camera_above_the_surface(method):
     valid = np.ones((H, W), bool)
     rec = _run(method, o, d, q, valid, seed_pixel=(10, 190), seed_height_mm=z_true[10, 190])
     _check_exact(rec, o, d, z_true, n_true, valid, (10, 190), z_true[10, 190], method)
-    assert np.all(np.sum(rec.normals * (o - rec.points), axis=-1) > 0)
+    assert np.all(np.sum(rec.n_sample * (o - rec.p_sample_mm), axis=-1) > 0)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -262,7 +262,7 @@ def test_irregular_mask(method):
     assert np.array_equal(rec.reconstructed, component)
     assert np.all(np.isfinite(rec.height_mm[component]))
     assert np.all(np.isnan(rec.height_mm[~component]))
-    assert np.all(np.isnan(rec.points[~component])) and np.all(np.isnan(rec.normals[~component]))
+    assert np.all(np.isnan(rec.p_sample_mm[~component])) and np.all(np.isnan(rec.n_sample[~component]))
     err = np.abs(rec.height_mm - z_true)[component].max()
     assert err < TOL_SPEC_MM
     assert err < TOL_EXACT_MM, err
@@ -328,7 +328,7 @@ def test_noisy_least_squares_is_a_minimum(noisy):
 def coarse_start(monkeypatch):
     """Make the least-squares integration start coarse to fine already for these small images
     (160×200 → 80×100 → 40×50; the 40×50 level starts stepwise)."""
-    import pmdsim.evaluation.reconstruction as rc
+    import pmdsim.evaluation.least_squares as rc
 
     monkeypatch.setattr(rc, "_COARSE_START_MIN_PIXELS", 4000)
     calls = []

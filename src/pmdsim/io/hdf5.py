@@ -63,8 +63,8 @@ def reconstructions_h5(path: str | Path, attrs: dict[str, Any]):
             d = g.create_dataset("height_mm", data=c.height_mm, **kw)
             d.attrs["frame"] = "sample"
             g.create_dataset("height_error_um", data=(c.height_error_mm * 1e3).astype(np.float32), **kw)
-            g.create_dataset("points_mm", data=c.points_mm, **kw)
-            g.create_dataset("valid", data=c.valid, **kw)
+            g.create_dataset("points_mm", data=c.p_sample_mm, **kw)
+            g.create_dataset("valid", data=c.reconstructed, **kw)
             for k, v in c.as_record().items():
                 g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v
 
@@ -110,8 +110,8 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) 
             g.create_dataset("decoded", data=decoded.valid, **kw)
             g.create_dataset("phase_flags", data=decoded.flags, **kw)
             g.create_dataset("registration_status", data=reg.status, **kw)
-            g.create_dataset("normals", data=rec.normals, **kw).attrs["frame"] = "sample"
-            g.create_dataset("points_mm", data=rec.points, **kw).attrs["frame"] = "sample"
+            g.create_dataset("normals", data=rec.n_sample, **kw).attrs["frame"] = "sample"
+            g.create_dataset("points_mm", data=rec.p_sample_mm, **kw).attrs["frame"] = "sample"
             d = g.create_dataset("height_mm", data=rec.height_mm, **kw)
             d.attrs["frame"] = "sample"
             d.attrs["description"] = "height along sample +z (docs/conventions.md), NaN where not reconstructed"

@@ -50,9 +50,9 @@ class CaseResult:
         Reconstructed height (sample frame), NaN outside the reconstructed FOV.
     height_error_mm : ndarray (H, W)
         z_reconstructed − z_true at the reconstructed points, NaN outside.
-    points_mm : ndarray (H, W, 3), float32
-        Reconstructed points (sample frame).
-    valid : ndarray (H, W) bool
+    p_sample_mm : ndarray (H, W, 3), float32
+        Reconstructed points (sample frame), mm; NaN outside.
+    reconstructed : ndarray (H, W) bool
         Reconstructed pixels.
     """
 
@@ -65,14 +65,14 @@ class CaseResult:
     iterations: int
     height_mm: np.ndarray
     height_error_mm: np.ndarray
-    points_mm: np.ndarray
-    valid: np.ndarray
+    p_sample_mm: np.ndarray
+    reconstructed: np.ndarray
 
     @classmethod
     def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":
         return cls(float(bulge_mm), camera, metrics, rec.method, tuple(int(v) for v in rec.seed_pixel),
                    bool(rec.converged), int(rec.iterations), rec.height_mm, height_error_mm,
-                   rec.points.astype(np.float32), rec.reconstructed)
+                   rec.p_sample_mm.astype(np.float32), rec.reconstructed)
 
     def as_record(self) -> dict:
         """The results.json object: the contract keys first, then the rest of the metrics."""
@@ -116,7 +116,7 @@ def run_experiment1_case(bulge_mm: float, camera: str, *, base: Setup | None = N
     if not np.isfinite(seed_height):
         raise RuntimeError(f"the central pixel of camera {camera!r} does not see the sample; cannot seed")
     reg, rec = evaluate_decoded(model, camera, decoded, method=method, seed_pixel=seed, seed_height_mm=seed_height)
-    p = rec.points
+    p = rec.p_sample_mm
     true_h = truth.sample.surface.height(p[..., 0], p[..., 1])
     err = np.where(rec.reconstructed, rec.height_mm - true_h, np.nan)
     metrics = surface_error_metrics(p[..., 0], p[..., 1], err)

@@ -113,7 +113,7 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         seed_px = (c.height_px // 2, c.width_px // 2)
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
-        p = rec.points
+        p = rec.p_sample_mm
         # The sample is the plane of the base mirror pose: relative to the calibrated table
         # plane its true height is 0, so the reconstructed height is the error.
         err = np.where(rec.reconstructed, rec.height_mm, np.nan)

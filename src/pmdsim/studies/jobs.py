@@ -185,7 +185,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             reg, rec = evaluate_decoded(setup, cam, decoded, screen_model=model_surface, method=method,
                                         seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
             results[cam] = (decoded, reg, rec)
-            p = rec.points
+            p = rec.p_sample_mm
             height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
                               title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model)",
                               label="height (µm)", path=tmp / f"height_{cam}.png")

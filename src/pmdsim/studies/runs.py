@@ -134,7 +134,7 @@ def write_experiment(number: int, out_dir: str | Path, base: Setup, *, bulges: S
             row = []
             for c in cases:
                 if c.bulge_mm == b:
-                    p = c.points_mm
+                    p = c.p_sample_mm
                     row.append((p[..., 0], p[..., 1], c.height_error_mm * 1e3,
                                 f"Δh = {b:g} mm, {c.camera} camera: PV {c.metrics['max_height_diff_um']:.3g} µm"))
             panels.append(row)

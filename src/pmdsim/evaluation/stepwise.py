@@ -1,0 +1,404 @@
+"""Stepwise integration (paper §2.5): breadth-first wavefronts from a seed of known height, each
+new pixel solved from all its reconstructed 4-neighbours by the trapezoidal rule with a
+predictor–corrector iteration. Notation: :mod:`pmdsim.evaluation.reconstruction`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .integration import (
+    Reconstruction,
+    ReconstructionError,
+    _bisector_slopes,
+    _check_inputs,
+    _check_seed,
+    _points_and_normals,
+)
+
+__all__ = ["reconstruct_stepwise", "STEP_TOL_MM", "STEP_MAX_ITER"]
+
+
+#: Convergence tolerance of the corrector iteration of one integration step (|Δz|), in mm.
+STEP_TOL_MM = 1e-12
+
+
+#: Maximum number of corrector iterations of one integration step.
+STEP_MAX_ITER = 50
+
+
+# Neighbour offsets in the order in which the stepwise integration visits them.
+_NB_DV = np.array([-1, 1, 0, 0], dtype=np.int64)
+
+
+_NB_DU = np.array([0, 0, -1, 1], dtype=np.int64)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _solve_pixel(o, d, q, state, vb, ub, tol, max_iter, nb_dv, nb_du):
+    """One integration step: the height of pixel (vb, ub) from all its 4-neighbours a_i whose
+    flag in ``state`` (see :func:`_expand_kernel`) is 1 (reconstructed):
+
+        Σ_i [z_b − z_ai − G_i·(xy_b − xy_ai)] = 0,  G_i = ½(g_ai + g_b) (trapezoidal rule),
+
+    linear in t_b for fixed G_i; predictor G_i = g_ai, then correctors until |Δz| < ``tol``
+    (at most ``max_iter``). Returns (ok, t_b, g_b,x, g_b,y, correctors used, last |Δz|); not
+    ok if the ray misses the plane in front of the camera or the normal is unusable."""
+    H = state.shape[0]
+    W = state.shape[1]
+    ox = o[0]
+    oy = o[1]
+    oz = o[2]
+    dx = d[vb, ub, 0]
+    dy = d[vb, ub, 1]
+    dz = d[vb, ub, 2]
+    qx = q[vb, ub, 0]
+    qy = q[vb, ub, 1]
+    qz = q[vb, ub, 2]
+    ok = False
+    z_prev = 0.0
+    change = np.inf
+    used = 0
+    tb = 0.0
+    gbx = 0.0
+    gby = 0.0
+    have_gb = False
+    for it in range(max_iter + 1):
+        num = 0.0
+        den = 0.0
+        for k in range(4):
+            va = vb + nb_dv[k]
+            ua = ub + nb_du[k]
+            if va < 0 or va >= H or ua < 0 or ua >= W:
+                continue
+            if state[va, ua, 3] != 1.0:
+                continue
+            Gx = state[va, ua, 1] if not have_gb else 0.5 * (state[va, ua, 1] + gbx)
+            Gy = state[va, ua, 2] if not have_gb else 0.5 * (state[va, ua, 2] + gby)
+            ta = state[va, ua, 0]
+            rax = ta * d[va, ua, 0]
+            ray = ta * d[va, ua, 1]
+            raz = ta * d[va, ua, 2]
+            # (t_b d_z − r_a,z) − G·(t_b d_xy − r_a,xy) = 0 summed over the neighbours.
+            num += raz - (Gx * rax + Gy * ray)
+            den += dz - (Gx * dx + Gy * dy)
+        tb = num / den
+        if not (tb > 0.0) or not np.isfinite(tb):
+            ok = False
+            break
+        bz = oz + tb * dz
+        gbx, gby = _bisector_slopes(ox + tb * dx, oy + tb * dy, bz, ox, oy, oz, qx, qy, qz)
+        if not (np.isfinite(gbx) and np.isfinite(gby)):
+            ok = False
+            break
+        ok = True
+        have_gb = True
+        if it > 0:
+            change = abs(bz - z_prev)
+            used = it
+            if change < tol:
+                break
+        z_prev = bz
+    return ok, tb, gbx, gby, used, change
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
+    """Layered (wavefront) stepwise integration from the reconstructed pixels ``cur[:n_cur]``.
+
+    ``state`` (H, W, 4) holds per pixel [t, g_x, g_y, flag] with flag −1 = not valid,
+    0 = valid and not yet reached, 2 = in the wavefront being solved, 1 = reconstructed
+    (t: ray parameter of the point, g: slopes there). ``cur`` (H·W,) int64 lists the flat
+    indices v·W + u of the wavefront to start from (flag 1, t and g set); it is used as
+    workspace. The wavefront k + 1 is every valid, unreached 4-neighbour of wavefront k; each
+    of its pixels is solved from *all* its reconstructed 4-neighbours at once (the pixels of
+    one wavefront are never 4-adjacent when the start is a single pixel, as the pixel grid is
+    bipartite; in general they are solved from the neighbours reconstructed before the
+    wavefront, so the order within a wavefront does not matter). Returns (largest corrector
+    count, largest final |Δz|, number of pixels that missed ``tol``)."""
+    H = state.shape[0]
+    W = state.shape[1]
+    nxt = np.empty(H * W, dtype=np.int64)
+    max_used = 0
+    max_change = 0.0
+    n_unconverged = 0
+    while n_cur > 0:
+        # The next wavefront: valid, unreached neighbours of the current one.
+        n_nxt = 0
+        for i in range(n_cur):
+            idx = cur[i]
+            va = idx // W
+            ua = idx - va * W
+            for k in range(4):
+                vb = va + nb_dv[k]
+                ub = ua + nb_du[k]
+                if vb < 0 or vb >= H or ub < 0 or ub >= W:
+                    continue
+                if state[vb, ub, 3] != 0.0:
+                    continue
+                state[vb, ub, 3] = 2.0
+                nxt[n_nxt] = vb * W + ub
+                n_nxt += 1
+        # Solve each pixel of the wavefront from all its reconstructed neighbours.
+        n_solved = 0
+        for i in range(n_nxt):
+            idx = nxt[i]
+            vb = idx // W
+            ub = idx - vb * W
+            ok, tb, gbx, gby, used, change = _solve_pixel(o, d, q, state, vb, ub, tol, max_iter, nb_dv, nb_du)
+            if not ok:
+                state[vb, ub, 3] = 0.0  # may be reached again from a later wavefront
+                continue
+            if change >= tol:
+                n_unconverged += 1
+            if used > max_used:
+                max_used = used
+            if change > max_change:
+                max_change = change
+            state[vb, ub, 0] = tb
+            state[vb, ub, 1] = gbx
+            state[vb, ub, 2] = gby
+            cur[n_solved] = idx  # reuse cur as the list of solved pixels of this wavefront
+            n_solved += 1
+        for i in range(n_solved):
+            idx = cur[i]
+            vb = idx // W
+            ub = idx - vb * W
+            state[vb, ub, 3] = 1.0
+        n_cur = n_solved
+    return max_used, max_change, n_unconverged
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
+    """Stepwise integration from the seed (sv, su) at height z0: :func:`_expand_kernel` from
+    the seed alone. Returns its statistics; the corrector count is −1 if the seed's normal is
+    unusable."""
+    H = state.shape[0]
+    W = state.shape[1]
+    t = (z0 - o[2]) / d[sv, su, 2]
+    px = o[0] + t * d[sv, su, 0]
+    py = o[1] + t * d[sv, su, 1]
+    gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
+    if not (np.isfinite(gx) and np.isfinite(gy)):
+        return -1, 0.0, 0
+    state[sv, su, 0] = t
+    state[sv, su, 1] = gx
+    state[sv, su, 2] = gy
+    state[sv, su, 3] = 1.0
+    cur = np.empty(H * W, dtype=np.int64)
+    cur[0] = sv * W + su
+    return _expand_kernel(o, d, q, state, cur, 1, tol, max_iter, nb_dv, nb_du)
+
+
+def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
+    """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
+    H, W = valid.shape
+    state = np.full((H, W, 4), np.nan)
+    state[..., 3] = np.where(valid, 0.0, -1.0)
+    max_used, max_change, n_unconv = _stepwise_kernel(
+        o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
+    if max_used < 0:
+        raise ReconstructionError(
+            f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
+            f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
+            "choose another seed_pixel or check q")
+    done = state[..., 3] == 1.0
+    z = np.where(done, o[2] + state[..., 0] * d[..., 2], np.nan)
+    z[seed] = z0
+    return z, done, max_used, max_change, n_unconv
+
+
+@numba.njit(cache=True, inline="always")
+def _between(z0, z1, z2, z3):
+    """Height of a pixel from the heights two apart along a row or column: z1, z2 on either
+    side (z0 beyond z1, z3 beyond z2, at distance 3): linear interpolation, or linear
+    extrapolation from one side if the other is unknown; NaN if neither works."""
+    if np.isfinite(z1) and np.isfinite(z2):
+        return 0.5 * (z1 + z2)
+    if np.isfinite(z1) and np.isfinite(z0):
+        return 1.5 * z1 - 0.5 * z0
+    if np.isfinite(z2) and np.isfinite(z3):
+        return 1.5 * z2 - 0.5 * z3
+    return np.nan
+
+
+@numba.njit(cache=True)
+def _interpolate_coarse(S, z, a, b):
+    """Heights z (H, W) known on some pixels (a + 2i, b + 2j) (NaN elsewhere): linear
+    interpolation to the pixels of S between, first along the rows, at (a + 2i, b + 2j + 1),
+    then along the columns, at (a + 2i + 1, ·) — bilinear between four known pixels —, with
+    linear extrapolation from one side where the other side is unknown or outside the image
+    (:func:`_between`). Returns the number of pixels of S that are still NaN."""
+    H, W = S.shape
+    ua = (b + 1) % 2  # first column between known ones (or before the first)
+    for i in range((H - a + 1) // 2):
+        v = a + 2 * i
+        for u in range(ua, W, 2):
+            if S[v, u]:
+                z[v, u] = _between(z[v, u - 3] if u >= 3 else np.nan, z[v, u - 1] if u >= 1 else np.nan,
+                                   z[v, u + 1] if u + 1 < W else np.nan,
+                                   z[v, u + 3] if u + 3 < W else np.nan)
+    va = (a + 1) % 2
+    for i in range((H - va + 1) // 2):
+        v = va + 2 * i
+        for u in range(W):
+            if S[v, u]:
+                z[v, u] = _between(z[v - 3, u] if v >= 3 else np.nan, z[v - 1, u] if v >= 1 else np.nan,
+                                   z[v + 1, u] if v + 1 < H else np.nan,
+                                   z[v + 3, u] if v + 3 < H else np.nan)
+    n_left = 0
+    for v in range(H):
+        for u in range(W):
+            if S[v, u] and np.isnan(z[v, u]):
+                n_left += 1
+    return n_left
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _fill_kernel(o, d, q, S, z, tol, max_iter, nb_dv, nb_du):
+    """Complete the heights z (H, W) on the pixels of S by stepwise integration
+    (:func:`_expand_kernel`) from all pixels of S whose height is finite. Filled heights are
+    written to z; pixels that cannot be reached stay NaN. Returns the number of pixels that
+    are still NaN.
+
+    Only the known pixels with an unknown 4-neighbour in S (the frontier) are ever used, so
+    only their slopes are computed; a known pixel whose normal is unusable becomes unknown
+    (and is solved again from its neighbours). The wavefronts start from the frontier in
+    row-major order."""
+    H, W = S.shape
+    ox = o[0]
+    oy = o[1]
+    oz = o[2]
+    state = np.empty((H, W, 4))
+    for v in numba.prange(H):
+        for u in range(W):
+            state[v, u, 1] = np.nan  # slopes not computed
+            if not S[v, u]:
+                state[v, u, 3] = -1.0
+            elif np.isfinite(z[v, u]):
+                state[v, u, 3] = 1.0
+            else:
+                state[v, u, 3] = 0.0
+    n_invalidated = 1
+    while n_invalidated > 0:  # until no known pixel next to an unknown one is unusable
+        n_invalidated = 0
+        for v in numba.prange(H):
+            for u in range(W):
+                if state[v, u, 3] != 1.0 or np.isfinite(state[v, u, 1]):
+                    continue
+                frontier = False
+                for k in range(4):
+                    va = v + nb_dv[k]
+                    ua = u + nb_du[k]
+                    if 0 <= va < H and 0 <= ua < W and state[va, ua, 3] == 0.0:
+                        frontier = True
+                if not frontier:
+                    continue
+                zz = z[v, u]
+                t = (zz - oz) / d[v, u, 2]
+                gx, gy = _bisector_slopes(ox + t * d[v, u, 0], oy + t * d[v, u, 1], zz, ox, oy, oz,
+                                          q[v, u, 0], q[v, u, 1], q[v, u, 2])
+                if np.isfinite(gx) and np.isfinite(gy) and t > 0.0:
+                    state[v, u, 0] = t
+                    state[v, u, 1] = gx
+                    state[v, u, 2] = gy
+                else:
+                    z[v, u] = np.nan
+                    state[v, u, 3] = 0.0
+                    n_invalidated += 1
+    cur = np.empty(H * W, dtype=np.int64)
+    n_cur = 0
+    for v in range(H):
+        for u in range(W):
+            if state[v, u, 3] == 1.0 and np.isfinite(state[v, u, 1]):
+                cur[n_cur] = v * W + u
+                n_cur += 1
+    if n_cur > 0:
+        _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du)
+    n_missing = 0
+    for v in range(H):
+        for u in range(W):
+            if S[v, u] and not np.isfinite(z[v, u]):
+                if state[v, u, 3] == 1.0:
+                    z[v, u] = oz + state[v, u, 0] * d[v, u, 2]
+                else:
+                    n_missing += 1
+    return n_missing
+
+
+def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) -> Reconstruction:
+    """Stepwise integration of the surface from an initial point (paper §2.5).
+
+    Starting from the seed pixel, whose height is given, the reconstruction expands over valid
+    4-connected neighbours, driven by the normals at the border of the current reconstruction.
+
+    **Expansion order.** In wavefronts from the seed: wavefront k + 1 is every valid,
+    not yet reconstructed 4-neighbour of wavefront k (so wavefront k holds the pixels at
+    4-connected distance k from the seed). Each pixel of a wavefront is solved from *all* its
+    reconstructed 4-neighbours together (one or two for a full grid: those of the previous
+    wavefront), so the result does not depend on the order in which neighbours are visited,
+    and where the measured slope field is not exactly a gradient (a wrong screen model, noise)
+    the errors of the different paths are averaged instead of following one arbitrary path.
+    A pixel whose step fails (see below) stays unreconstructed in its wavefront and may be
+    reached again from a later one.
+
+    **One step.** The height of b solves the trapezoidal rule for its reconstructed
+    neighbours a_i, summed:
+
+        Σ_i [ z_b − z_ai − ½ (g_ai + g_b) · (xy_b − xy_ai) ] = 0
+
+    with p_b = o + t_b·d_b on b's view ray and g = (−n_x/n_z, −n_y/n_z) the slopes of the
+    bisector normal (see :func:`normals_from_registration`). For fixed mean slopes G_i the
+    equation is linear in t_b (for one neighbour: p_b is the intersection of b's ray with the
+    plane through p_a of slope G). The predictor uses G_i = g_ai; each corrector recomputes g_b
+    at the new p_b and uses G_i = ½(g_ai + g_b), until the height changes by less than
+    :data:`STEP_TOL_MM` (at most :data:`STEP_MAX_ITER` correctors; the last iterate is kept
+    either way). The rule is exact for height functions of degree ≤ 2 (planes, paraboloids).
+    A step that fails (the ray misses the plane in front of the camera, or the normal is
+    undefined or perpendicular to z) is skipped and b may be reached from a later wavefront.
+
+    Parameters
+    ----------
+    o : array_like, shape (3,)
+        Camera projection centre in the reconstruction frame, mm.
+    d : array_like, shape (H, W, 3)
+        View-ray direction per pixel (any non-zero length), reconstruction frame.
+        Valid pixels need d_z ≠ 0.
+    q : array_like, shape (H, W, 3)
+        Screen point per pixel from the deflectometric registration, reconstruction frame, mm.
+    valid : array_like of bool, shape (H, W)
+        Pixels that may be reconstructed.
+    seed_pixel : tuple of int, optional
+        (row, column) of the initial point. Default: the valid pixel nearest (Euclidean, in
+        pixels) to the centroid of ``valid``; ties go to the first in row-major order.
+    seed_height_mm : float
+        Height z of the initial point, mm (the integration constant).
+
+    Returns
+    -------
+    Reconstruction
+        Pixels not 4-connected to the seed through valid pixels stay NaN / not reconstructed.
+
+    Raises
+    ------
+    ReconstructionError
+        Shape mismatches, no valid pixels, a seed pixel out of range or invalid, a seed height
+        behind the camera, or valid rays with d_z = 0.
+    """
+    o, d, q, valid = _check_inputs(o, d, q, valid)
+    seed, z0 = _check_seed(seed_pixel, seed_height_mm, o, d, valid)
+    z, done, max_used, max_change, n_unconv = _run_stepwise(o, d, q, valid, seed, z0)
+    points, normals = _points_and_normals(o, d, q, z)
+    return Reconstruction(
+        height_mm=z,
+        p_sample_mm=points,
+        n_sample=normals,
+        reconstructed=done,
+        method="stepwise",
+        iterations=int(max_used),
+        converged=bool(n_unconv == 0),
+        seed_pixel=seed,
+        final_change_mm=float(max_change),
+    )
