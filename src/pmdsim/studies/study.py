@@ -81,10 +81,13 @@ def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str) 
 
 
 def _metrics_calibrate(truth, spec: CaseSpec) -> dict:
+    """Experiment 2's chain (:func:`~.experiment2.calibrate_and_reconstruct`); start values
+    perturbed by ``default_rng([seed, mc_sample or 0])``."""
     from .experiment2 import calibrate_and_reconstruct
 
     grid = None if spec.screen_model == "planar" else int(spec.screen_model[4:])
-    e = calibrate_and_reconstruct(truth, method=spec.method, start_seed=[spec.seed], screen_grid=grid)
+    e = calibrate_and_reconstruct(truth, method=spec.method, start_seed=[spec.seed, spec.mc_sample or 0],
+                                  screen_grid=grid)
     out = {}
     for case in e.cases:
         if case.camera not in spec.cameras:
@@ -99,7 +102,7 @@ def _metrics_calibrate(truth, spec: CaseSpec) -> dict:
     return out
 
 
-def run_case(spec: CaseSpec, metrics: tuple) -> dict:
+def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None) -> dict:
     """Compute one case (on a worker) and return its record (plain data, JSON-ready).
 
     Parameters
@@ -108,6 +111,10 @@ def run_case(spec: CaseSpec, metrics: tuple) -> dict:
         The case (setups as TOML text; see :mod:`.study_file`).
     metrics : tuple of str
         The metrics to record per camera.
+    numba_threads : int, optional
+        Numba threads of this case (``numba.set_num_threads``, at most the pool size); None:
+        numba's default. (Setting ``NUMBA_NUM_THREADS`` in a worker's environment instead
+        breaks numba's first compilation there: the pool was already launched.)
 
     Returns
     -------
@@ -119,6 +126,10 @@ def run_case(spec: CaseSpec, metrics: tuple) -> dict:
 
     from ..setup import parse_setup
 
+    if numba_threads is not None:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(numba_threads), numba.config.NUMBA_NUM_THREADS)))
     t0 = time.perf_counter()
     rec = {"case_key": spec.key, "case_index": spec.index, **spec.params, "mc_sample": spec.mc_sample,
            "seed": spec.seed, "status": "ok", "error": None}
@@ -247,11 +258,10 @@ def _local_cluster(n_workers: int | None):
 
     cores = os.cpu_count() or 1
     n = max(1, n_workers or cores)
-    numba_threads = max(1, cores // n)
-    # workers × numba threads = cores; one Dask thread per worker (the parallelism is numba's).
-    return LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, host="127.0.0.1",
-                        env={"NUMBA_NUM_THREADS": str(numba_threads), "OMP_NUM_THREADS": "1",
-                             "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+    # workers × numba threads = cores (run_case sets the threads); one Dask thread per worker.
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                           host="127.0.0.1")
+    return cluster, max(1, cores // n)
 
 
 def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_workers: int | None = None,
@@ -316,10 +326,11 @@ def _run_on_dask(todo: list[CaseSpec], metrics: tuple, finished, scheduler: str 
                  n_workers: int | None) -> None:
     from distributed import Client, as_completed
 
-    cluster = None if scheduler else _local_cluster(n_workers)
+    cluster, threads = (None, None) if scheduler else _local_cluster(n_workers)
     client = Client(scheduler if scheduler else cluster)
     try:
-        futures = [client.submit(run_case, c, metrics, key=f"pmdsim-case-{c.key}", pure=False) for c in todo]
+        futures = [client.submit(run_case, c, metrics, threads, key=f"pmdsim-case-{c.key}", pure=False)
+                   for c in todo]
         for fut in as_completed(futures):
             try:
                 rec = fut.result()
