@@ -330,3 +330,50 @@ def test_summary_quantiles_match_statistics_module():
         assert s[f"q{round(q * 100):02d}"] == pytest.approx(cuts[round(q * 20) - 1], rel=1e-12)
     assert s["mean"] == pytest.approx(statistics.fmean(values.tolist()), rel=1e-12)
     assert s["std"] == pytest.approx(statistics.stdev(values.tolist()), rel=1e-12)
+
+
+def test_unreachable_scheduler_is_one_clear_error(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a loopback port that nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    study = load_study(_write(tmp_path, GOOD))
+    with pytest.raises(StudyError, match=rf"cannot connect to the Dask scheduler 'tcp://127\.0\.0\.1:{port}'"):
+        run_study(study, tmp_path / "out", scheduler=f"tcp://127.0.0.1:{port}", connect_timeout_s=2)
+    assert not list((tmp_path / "out" / CASES_DIR).glob("*.json"))
+
+
+MC = """
+format = "pmdsim-study"
+action = "simulate+evaluate"
+downsample = 8
+metrics = ["max_dev_plane_um", "tilt_urad"]
+[[parameters]]
+path = "cameras.left.angles_deg"
+applies_to = "model"
+mode = "offset"
+distribution = "normal"
+mean = 0.0
+std = 0.01
+[monte_carlo]
+samples = 6
+seed = 5
+"""
+
+
+def test_monte_carlo_study_summary_and_histogram(tmp_path):
+    from pmdsim.studies.study_summary import write_study_outputs
+
+    study = load_study(_write(tmp_path, MC))
+    run = run_study(study, tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (6, 0)
+    written = write_study_outputs(study, tmp_path / "out")
+    assert "hist_metrics.png" in written and (tmp_path / "out" / "hist_metrics.png").stat().st_size > 0
+    rows = _rows(tmp_path / "out")
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    v = [r["left.tilt_urad"] for r in rows]
+    assert summary["left.tilt_urad"]["n"] == 6
+    assert summary["left.tilt_urad"]["q50"] == pytest.approx(statistics.median(v), rel=1e-12)
+    # An angle error of the evaluation's left camera leaves the right camera's result unchanged.
+    assert len({r["right.tilt_urad"] for r in rows}) == 1

@@ -34,7 +34,7 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
-from .study_file import CaseSpec, Study
+from .study_file import CaseSpec, Study, StudyError
 
 __all__ = ["run_case", "run_study", "StudyRun", "write_results", "read_records", "CASES_DIR", "RESULTS_PARQUET",
            "RESULTS_CSV"]
@@ -265,7 +265,7 @@ def _local_cluster(n_workers: int | None):
 
 
 def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_workers: int | None = None,
-              progress: Progress | None = None, serial: bool = False) -> StudyRun:
+              progress: Progress | None = None, serial: bool = False, connect_timeout_s: float = 30.0) -> StudyRun:
     """Run every case of ``study`` that ``OUT/cases/`` does not hold yet, then write the results.
 
     Parameters
@@ -280,6 +280,13 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
         Called with ``{"done", "failed", "total", "eta_s", "record"}`` after each finished case.
     serial : bool
         Run the cases in this process, one after another (no Dask; the reference of the tests).
+    connect_timeout_s : float
+        How long to try to reach the scheduler.
+
+    Raises
+    ------
+    StudyError
+        The scheduler cannot be reached (nothing is computed).
     """
     t0 = time.perf_counter()
     out = Path(out)
@@ -313,7 +320,7 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
             for c in todo:
                 finished(run_case(c, study.metrics))
         else:
-            _run_on_dask(todo, study.metrics, finished, scheduler, n_workers)
+            _run_on_dask(todo, study.metrics, finished, scheduler, n_workers, connect_timeout_s)
     finally:
         write_results(out, study, cases)
     recs = read_records(out, cases)
@@ -323,11 +330,17 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
 
 
 def _run_on_dask(todo: list[CaseSpec], metrics: tuple, finished, scheduler: str | None,
-                 n_workers: int | None) -> None:
+                 n_workers: int | None, connect_timeout_s: float) -> None:
     from distributed import Client, as_completed
 
     cluster, threads = (None, None) if scheduler else _local_cluster(n_workers)
-    client = Client(scheduler if scheduler else cluster)
+    try:
+        client = Client(scheduler if scheduler else cluster, timeout=connect_timeout_s)
+    except (OSError, TimeoutError) as e:
+        if cluster is not None:
+            cluster.close()
+        raise StudyError(f"cannot connect to the Dask scheduler {scheduler or cluster.scheduler_address!r} "
+                         f"within {connect_timeout_s:g} s: {e}") from None
     try:
         futures = [client.submit(run_case, c, metrics, threads, key=f"pmdsim-case-{c.key}", pure=False)
                    for c in todo]
