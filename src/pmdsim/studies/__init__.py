@@ -31,7 +31,8 @@ from .experiment3 import (
     run_experiment3,
     screen_deformation,
     screen_shape_error_um,
-)from .study import StudyRun, run_case, run_study, write_results
+)
+from .study import StudyRun, run_case, run_study, write_results
 from .study_file import Study, StudyError, load_study, parse_study
 
 __all__ = [
