@@ -279,8 +279,8 @@ def test_interrupted_study_rerun_computes_only_missing(tmp_path):
     proc = subprocess.Popen(cmd, env=_env(), stderr=subprocess.PIPE, text=True)
     _wait_for_records(out, 1, proc)
     proc.send_signal(signal.SIGINT)  # Ctrl-C
-    proc.communicate(timeout=120)
-    assert proc.returncode != 0
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err
     first = _records(out)
     n_done = len(first)
     assert 1 <= n_done < 6

@@ -551,7 +551,12 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
             note = f"  [case {rec['case_index']} failed: {rec['error']}]" if rec["status"] == "failed" else ""
             click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}{note}", err=True)
 
-    run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
+    try:
+        run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
+    except KeyboardInterrupt:
+        click.echo(f"pmdsim: interrupted; the finished cases are recorded in {out_dir}: rerun the same command "
+                   "to compute the rest", err=True)
+        sys.exit(130)
     written = write_study_outputs(study, out_dir)
     click.echo(f"{run.n_computed} cases computed, {run.n_reused} reused, {run.n_failed} failed, "
                f"{run.n_missing} missing, in {run.elapsed_s:.1f} s → {out_dir} ({', '.join(written)})", err=True)
