@@ -377,3 +377,21 @@ def test_monte_carlo_study_summary_and_histogram(tmp_path):
     assert summary["left.tilt_urad"]["q50"] == pytest.approx(statistics.median(v), rel=1e-12)
     # An angle error of the evaluation's left camera leaves the right camera's result unchanged.
     assert len({r["right.tilt_urad"] for r in rows}) == 1
+
+
+def test_calibrate_evaluate_case_equals_experiment2_chain(tmp_path):
+    from pmdsim.studies.experiment2 import calibrate_and_reconstruct
+
+    p = _write(tmp_path, GOOD.replace('action = "simulate+evaluate"',
+                                      'action = "calibrate+evaluate"\nscreen_model = "grid3"\nseed = 4')
+               .replace("values = [0.0, 1.0]", "values = [2.0]"))
+    run = run_study(load_study(p), tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (1, 0)
+    (row,) = _rows(tmp_path / "out")
+    ref = calibrate_and_reconstruct(default_setup().binned(8).with_bulge(2.0), start_seed=[4, 0], screen_grid=3)
+    assert row["left.calibration_rms_px"] == ref.result.rms_px
+    assert row["left.calibration_iterations"] == ref.result.iterations
+    for case in ref.cases:
+        for k in ("max_height_diff_um", "max_dev_plane_um", "tilt_urad"):
+            assert row[f"{case.camera}.{k}"] == case.metrics[k]
+    assert row["right.fx_error_px"] == ref.deviation["right"]["fx_px"]
