@@ -395,3 +395,22 @@ def test_calibrate_evaluate_case_equals_experiment2_chain(tmp_path):
         for k in ("max_height_diff_um", "max_dev_plane_um", "tilt_urad"):
             assert row[f"{case.camera}.{k}"] == case.metrics[k]
     assert row["right.fx_error_px"] == ref.deviation["right"]["fx_px"]
+
+
+def test_save_maps_writes_each_case_reconstruction(tmp_path):
+    import h5py
+
+    p = _write(tmp_path, GOOD.replace("downsample = 8", "downsample = 8\nsave_maps = true")
+               .replace("values = [0.0, 1.0]", "values = [1.0]"))
+    run_study(load_study(p), tmp_path / "out", serial=True)
+    (row,) = _rows(tmp_path / "out")
+    with h5py.File(tmp_path / "out" / "maps" / f"{row['case_key']}.h5", "r") as f:
+        assert json.loads(f.attrs["params"]) == {"screen.bulge_mm": 1.0}
+        for cam in ("left", "right"):
+            h = f[cam]["height_mm"][()]
+            assert h.shape == (150, 240) and f[cam]["valid"][()].sum() == row[f"{cam}.n_pixels"]
+            # The true sample is the plane z = 0 of the sample frame: the height is the error.
+            assert (np.nanmax(h) - np.nanmin(h)) * 1e3 == pytest.approx(row[f"{cam}.max_height_diff_um"], rel=1e-12)
+    # Without save_maps nothing heavy is written.
+    run_study(load_study(_write(tmp_path, GOOD, "plain.toml")), tmp_path / "out2", serial=True)
+    assert not (tmp_path / "out2" / "maps").exists()

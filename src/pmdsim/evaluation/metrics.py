@@ -25,10 +25,11 @@ def _plane_fit(x, y, e) -> tuple[float, float, float, float, float]:
 
     With centred coordinates Σ(x − x̄) = Σ(y − ȳ) = 0, so the normal equations of
     [x − x̄, y − ȳ, 1] decouple: c = ē, and (a, b) solve the 2 × 2 system
-    [[Sxx, Sxy], [Sxy, Syy]]·(a, b) = (Sxe, Sye) of centred sums (computed as BLAS dot
-    products). The same solution as ``lstsq`` of the (n, 3) design matrix, whose QR/SVD cost
-    dominated the metrics (0.3–0.9 s at 2.3 M points, docs/benchmarks.md); centring keeps the
-    2 × 2 system as well conditioned as the spread of x and y allows.
+    [[Sxx, Sxy], [Sxy, Syy]]·(a, b) = (Sxe, Sye) of centred sums. The same solution as
+    ``lstsq`` of the (n, 3) design matrix, whose QR/SVD cost dominated the metrics (0.15–0.7 s
+    at 2.2 M points, docs/benchmarks.md); centring keeps the
+    2 × 2 system as well conditioned as the spread of x and y allows. The sums are numpy's
+    pairwise sums (the same result on any number of threads).
 
     Parameters
     ----------
@@ -41,8 +42,10 @@ def _plane_fit(x, y, e) -> tuple[float, float, float, float, float]:
     """
     xm, ym, em = x.mean(), y.mean(), e.mean()
     xc, yc, ec = x - xm, y - ym, e - em
-    sxx, syy, sxy = xc @ xc, yc @ yc, xc @ yc
-    sxe, sye = xc @ ec, yc @ ec
+    # numpy's pairwise sums, not BLAS dot products: a multi-threaded BLAS sums in an order that
+    # depends on its thread count, and results must not depend on where a case runs.
+    sxx, syy, sxy = np.sum(xc * xc), np.sum(yc * yc), np.sum(xc * yc)
+    sxe, sye = np.sum(xc * ec), np.sum(yc * ec)
     det = sxx * syy - sxy * sxy
     if not det > 0:
         raise ValueError("surface metrics need points that span a plane (x and y are collinear)")

@@ -34,12 +34,14 @@ from typing import Callable
 import numpy as np
 
 from .. import __version__
+from .experiment1 import CaseResult
 from .study_file import CaseSpec, Study, StudyError
 
-__all__ = ["run_case", "run_study", "StudyRun", "write_results", "read_records", "CASES_DIR", "RESULTS_PARQUET",
-           "RESULTS_CSV"]
+__all__ = ["run_case", "run_study", "StudyRun", "write_results", "read_records", "CASES_DIR", "MAPS_DIR",
+           "RESULTS_PARQUET", "RESULTS_CSV"]
 
 CASES_DIR = "cases"
+MAPS_DIR = "maps"
 RESULTS_PARQUET = "results.parquet"
 RESULTS_CSV = "results.csv"
 
@@ -77,7 +79,8 @@ def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str) 
     out = {"valid_fraction": float(np.asarray(mapping.valid).mean()),
            "reconstructed_fraction": float(np.asarray(rec.reconstructed).mean())}
     out.update(surface_error_metrics(p[..., 0], p[..., 1], err))
-    return out
+    z = truth.screen.control_heights()
+    return out, CaseResult.from_reconstruction(float(z[z.shape[0] // 2, z.shape[1] // 2]), cam, rec, err, out)
 
 
 def _metrics_calibrate(truth, spec: CaseSpec) -> dict:
@@ -99,10 +102,32 @@ def _metrics_calibrate(truth, spec: CaseSpec) -> dict:
              "position_error_mm": float(d["position_mm"]), "rotation_error_deg": float(d["rotation_deg"]),
              "table_turn_deg": float(e.deviation["table_turn_deg"])}
         out[case.camera] = m
-    return out
+    return out, {c.camera: c for c in e.cases if c.camera in spec.cameras}
 
 
-def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None) -> dict:
+def _write_maps(path: str, maps: dict, spec: CaseSpec) -> None:
+    """The case's reconstructions as HDF5 (one group per camera; layout of
+    :func:`~pmdsim.io.hdf5.write_reconstructions_h5`), written atomically."""
+    from ..io.hdf5 import reconstructions_h5
+
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.partial-", dir=target.parent)
+    os.close(fd)
+    try:
+        attrs = {"pmdsim_version": __version__, "case_key": spec.key, "params": json.dumps(spec.params),
+                 "setup_toml": spec.truth_toml, "model_setup_toml": spec.model_toml}
+        with reconstructions_h5(tmp, attrs) as add:
+            for cam, c in maps.items():
+                add(c, group=cam)
+        os.replace(tmp, target)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None, maps_path: str | None = None) -> dict:
     """Compute one case (on a worker) and return its record (plain data, JSON-ready).
 
     Parameters
@@ -115,6 +140,9 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None) -
         Numba threads of this case (``numba.set_num_threads``, at most the pool size); None:
         numba's default. (Setting ``NUMBA_NUM_THREADS`` in a worker's environment instead
         breaks numba's first compilation there: the pool was already launched.)
+    maps_path : str, optional
+        Also write the reconstructions (height, error, points, valid per camera) to this HDF5
+        file (``OUT/maps/{key}.h5``: the workers must see OUT, e.g. a shared file system).
 
     Returns
     -------
@@ -136,13 +164,17 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None) -
     try:
         truth = parse_setup(tomllib.loads(spec.truth_toml))
         model = parse_setup(tomllib.loads(spec.model_toml))
+        maps = {}
         if spec.action == "simulate":
             per_cam = {c: _camera_metrics_simulate(truth, c) for c in spec.cameras}
         elif spec.action == "simulate+evaluate":
-            per_cam = {c: _camera_metrics_evaluate(truth, model, c, spec.method, spec.screen_model)
-                       for c in spec.cameras}
+            per_cam = {}
+            for c in spec.cameras:
+                per_cam[c], maps[c] = _camera_metrics_evaluate(truth, model, c, spec.method, spec.screen_model)
         else:
-            per_cam = _metrics_calibrate(truth, spec)
+            per_cam, maps = _metrics_calibrate(truth, spec)
+        if maps_path is not None and maps:
+            _write_maps(maps_path, maps, spec)
         for cam, m in per_cam.items():
             for k in metrics:
                 v = m[k]
@@ -314,13 +346,15 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
             progress({"done": state["done"], "failed": state["failed"], "total": len(cases),
                       "eta_s": left / rate if rate > 0 else float("nan"), "record": rec})
 
+    maps_dir = (out / MAPS_DIR).resolve() if study.save_maps else None
+    maps = {c.key: None if maps_dir is None else str(maps_dir / f"{c.key}.h5") for c in todo}
     t_start = time.perf_counter()
     try:
         if serial or not todo:
             for c in todo:
-                finished(run_case(c, study.metrics))
+                finished(run_case(c, study.metrics, None, maps[c.key]))
         else:
-            _run_on_dask(todo, study.metrics, finished, scheduler, n_workers, connect_timeout_s)
+            _run_on_dask(todo, study.metrics, maps, finished, scheduler, n_workers, connect_timeout_s)
     finally:
         write_results(out, study, cases)
     recs = read_records(out, cases)
@@ -329,7 +363,7 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
                     time.perf_counter() - t0)
 
 
-def _run_on_dask(todo: list[CaseSpec], metrics: tuple, finished, scheduler: str | None,
+def _run_on_dask(todo: list[CaseSpec], metrics: tuple, maps: dict, finished, scheduler: str | None,
                  n_workers: int | None, connect_timeout_s: float) -> None:
     from distributed import Client, as_completed
 
@@ -342,7 +376,7 @@ def _run_on_dask(todo: list[CaseSpec], metrics: tuple, finished, scheduler: str 
         raise StudyError(f"cannot connect to the Dask scheduler {scheduler or cluster.scheduler_address!r} "
                          f"within {connect_timeout_s:g} s: {e}") from None
     try:
-        futures = [client.submit(run_case, c, metrics, threads, key=f"pmdsim-case-{c.key}", pure=False)
+        futures = [client.submit(run_case, c, metrics, threads, maps[c.key], key=f"pmdsim-case-{c.key}", pure=False)
                    for c in todo]
         for fut in as_completed(futures):
             try:

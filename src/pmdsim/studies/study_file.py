@@ -9,6 +9,7 @@ does. Example (``examples/study_bulge_focal.toml``)::
     downsample = 8               # cameras binned 8 × 8 after the parameters are applied
     seed = 0                     # start-value seed of calibrate+evaluate
     metrics = ["max_height_diff_um", "max_dev_plane_um", "tilt_urad"]
+    save_maps = false            # true: OUT/maps/{case key}.h5 with each case's reconstructions
 
     [[parameters]]
     path = "screen.bulge_mm"     # any setup key, as in the setup TOML
@@ -79,7 +80,7 @@ METRICS = {
 }
 
 _TOP_KEYS = ("format", "name", "setup", "action", "downsample", "seed", "method", "screen_model", "cameras",
-             "metrics", "parameters", "monte_carlo")
+             "metrics", "save_maps", "parameters", "monte_carlo")
 _PARAM_KEYS = ("path", "name", "applies_to", "mode", "values", "distribution", "mean", "std", "low", "high")
 _MC_KEYS = ("samples", "seed")
 
@@ -167,6 +168,7 @@ class Study:
     parameters: tuple
     mc_samples: int | None
     mc_seed: int
+    save_maps: bool = False
 
     @property
     def grid_parameters(self) -> tuple:
@@ -399,8 +401,13 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
         i = next(i for i, p in enumerate(params) if p.distribution is not None)
         raise StudyError(f"{source}: parameters[{i}].distribution needs a [monte_carlo] table with samples")
     name = r.str("name", Path(source).stem)
+    save_maps = doc.get("save_maps", False)
+    if not isinstance(save_maps, bool):
+        r.fail("save_maps", f"must be true or false, got {save_maps!r}")
+    if save_maps and action == "simulate":
+        r.fail("save_maps", "needs an action that reconstructs (simulate+evaluate, calibrate+evaluate)")
     return Study(source, name, base, action, downsample, seed, method, screen_model, cameras, metrics,
-                 tuple(params), mc_samples, mc_seed)
+                 tuple(params), mc_samples, mc_seed, save_maps)
 
 
 def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, downsample: int) -> Parameter:
