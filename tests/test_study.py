@@ -414,3 +414,19 @@ def test_save_maps_writes_each_case_reconstruction(tmp_path):
     # Without save_maps nothing heavy is written.
     run_study(load_study(_write(tmp_path, GOOD, "plain.toml")), tmp_path / "out2", serial=True)
     assert not (tmp_path / "out2" / "maps").exists()
+
+
+def test_case_option_grid_screen_model(tmp_path):
+    # Perfect knowledge of the bulged screen (screen_model = "setup") reconstructs the plane
+    # exactly; the planar screen model leaves Experiment 1's error.
+    p = _write(tmp_path, GOOD.replace("values = [0.0, 1.0]", "values = [2.0]")
+               + '[[parameters]]\npath = "screen_model"\nvalues = ["planar", "setup"]\n')
+    run_study(load_study(p), tmp_path / "out", serial=True)
+    planar, exact = _rows(tmp_path / "out")
+    assert (planar["screen_model"], exact["screen_model"]) == ("planar", "setup")
+    assert planar["left.max_height_diff_um"] == run_experiment1_case(2.0, "left", downsample=8).metrics[
+        "max_height_diff_um"]
+    assert exact["left.max_height_diff_um"] < 0.1 and exact["right.max_height_diff_um"] < 0.1
+    bad = _write(tmp_path, GOOD + '[[parameters]]\npath = "screen_model"\nvalues = ["planar", "grid3"]\n', "bad.toml")
+    with pytest.raises(StudyError, match=r"parameters\[1\]\.values\[1\]"):
+        load_study(bad)

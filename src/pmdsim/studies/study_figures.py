@@ -48,7 +48,7 @@ def metric_vs_parameter_figure(rows: list[dict], metrics: list[str], parameter: 
     ok = [r for r in rows if r.get("status") == "ok"]
     nr, nc = _grid(len(metrics))
     fig = Figure(figsize=(4.2 * nc, 3.2 * nr))
-    groups = sorted({r.get(group_by) for r in ok}, key=_num) if group_by else [None]
+    groups = list(dict.fromkeys(r.get(group_by) for r in ok)) if group_by else [None]  # in case order
     for i, m in enumerate(metrics):
         ax = fig.add_subplot(nr, nc, i + 1)
         for g in groups:
@@ -57,7 +57,7 @@ def metric_vs_parameter_figure(rows: list[dict], metrics: list[str], parameter: 
             if not xy:
                 continue
             x, y = np.array(xy).T
-            label = None if group_by is None else f"{group_by} = {g:g}"
+            label = None if group_by is None else f"{group_by} = {g}"
             ax.plot(x, y, "o-", ms=3, lw=1, label=label)
         ax.set_xlabel(parameter)
         ax.set_ylabel(m)

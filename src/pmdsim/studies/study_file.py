@@ -32,6 +32,9 @@ does. Example (``examples/study_bulge_focal.toml``)::
     samples = 100
     seed = 1
 
+A parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
+instead of a setup key (a grid of values, e.g. ``values = ["planar", "grid3", "grid5"]``).
+
 Cases are the Cartesian product of the grid parameters (in file order, the last varying
 fastest) times the Monte-Carlo samples. A parameter is applied to the setup's plain-data form
 (:meth:`Setup.to_dict`, the key changed, then :func:`~pmdsim.setup.parse_setup`), so every setup
@@ -60,9 +63,13 @@ from ..errors import PmdsimError, SetupError
 from ..setup import Setup, default_setup, load_setup, parse_setup
 
 __all__ = ["StudyError", "Parameter", "Study", "CaseSpec", "parse_study", "load_study", "ACTIONS", "METRICS",
-           "STUDY_FORMAT"]
+           "STUDY_FORMAT", "OPTION_PATHS"]
 
 STUDY_FORMAT = "pmdsim-study"
+
+#: Parameter paths that name a case option instead of a setup key (grids only): vary the
+#: screen model, the reconstruction method or the calibration start seed from case to case.
+OPTION_PATHS = ("screen_model", "method", "seed")
 
 #: What a case does.
 ACTIONS = ("simulate", "simulate+evaluate", "calibrate+evaluate")
@@ -207,13 +214,14 @@ class Study:
 def _case_spec(study: Study, index: int, vals, truth: Setup, model: Setup, mc_sample) -> CaseSpec:
     truth_toml, model_toml = truth.to_toml(), model.to_toml()
     cams = study.cameras or tuple(truth.cameras)
-    ident = {"truth": truth_toml, "model": model_toml, "action": study.action, "cameras": list(cams),
-             "method": study.method, "screen_model": study.screen_model, "seed": study.seed,
+    opts = {"method": study.method, "screen_model": study.screen_model, "seed": study.seed}
+    opts.update({p.path: v for p, v in vals if p.path in OPTION_PATHS})
+    ident = {"truth": truth_toml, "model": model_toml, "action": study.action, "cameras": list(cams), **opts,
              "pmdsim_version": __version__}
     key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
     params = {p.name: (list(v) if isinstance(v, (list, tuple)) else v) for p, v in vals}
-    return CaseSpec(index, key, params, study.action, truth_toml, model_toml, cams, study.method,
-                    study.screen_model, study.seed, mc_sample)
+    return CaseSpec(index, key, params, study.action, truth_toml, model_toml, cams, opts["method"],
+                    opts["screen_model"], opts["seed"], mc_sample)
 
 
 # ============================================================================ applying a parameter
@@ -266,6 +274,7 @@ def build_case_setups(base: Setup, vals, downsample: int) -> tuple[Setup, Setup]
     """The (truth, model) setups of one case: truth parameters applied to the base setup's
     plain data, model parameters to the truth's, each parsed (validated) and binned."""
     truth_doc = base.to_dict()
+    vals = [(p, v) for p, v in vals if p.path not in OPTION_PATHS]
     for p, v in vals:
         if p.applies_to == "truth":
             truth_doc = apply_parameter(truth_doc, p.path, v, p.mode)
@@ -381,7 +390,8 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
     raw = doc.get("parameters", [])
     if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
         r.fail("parameters", "must be an array of tables ([[parameters]])")
-    params = [_parse_parameter(t, i, source, base, action, downsample) for i, t in enumerate(raw)]
+    choices = {"screen_model": screen_choices, "method": ("stepwise", "least_squares")}
+    params = [_parse_parameter(t, i, source, base, action, downsample, choices) for i, t in enumerate(raw)]
     names = [p.name for p in params]
     for i, n in enumerate(names):
         if n in names[:i]:
@@ -410,9 +420,12 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
                  tuple(params), mc_samples, mc_seed, save_maps)
 
 
-def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, downsample: int) -> Parameter:
+def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, downsample: int,
+                     choices: dict) -> Parameter:
     k = _Keys(t, f"parameters[{i}].", source, _PARAM_KEYS)
     path = k.str("path")
+    if path in OPTION_PATHS:
+        return _parse_option_parameter(t, k, i, path, choices)
     applies_to = k.str("applies_to", "truth", ("truth", "model"))
     if applies_to == "model" and action != "simulate+evaluate":
         k.fail("applies_to", f"'model' needs action 'simulate+evaluate' (the evaluation's setup), "
@@ -456,6 +469,25 @@ def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, dow
         except SetupError as e:
             raise StudyError(f"{source}: {where} = {v!r} (path {path!r}): {e}") from None
     return p
+
+
+def _parse_option_parameter(t: dict, k: _Keys, i: int, path: str, choices: dict) -> Parameter:
+    """A grid over a case option (:data:`OPTION_PATHS`), each value checked."""
+    extra = [x for x in t if x not in ("path", "name", "values")]
+    if extra:
+        k.fail(extra[0], f"does not apply to the case option {path!r} (a grid of values only)")
+    values = t.get("values")
+    if not isinstance(values, list):
+        k.fail("values", f"must be a list of values, got {values!r}")
+    if not values:
+        k.fail("values", "is an empty grid; give at least one value")
+    for j, v in enumerate(values):
+        if path == "seed":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                k.fail(f"values[{j}]", f"must be an integer ≥ 0 (a seed), got {v!r}")
+        elif v not in choices[path]:
+            k.fail(f"values[{j}]", f"must be one of {list(choices[path])} for {path}, got {v!r}")
+    return Parameter(path, k.str("name", path), "truth", "set", tuple(values), None)
 
 
 def load_study(path: str | Path) -> Study:

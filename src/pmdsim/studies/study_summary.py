@@ -87,10 +87,10 @@ def write_study_outputs(study: Study, out: str | Path) -> list[str]:
                                                  allow_nan=True) + "\n", encoding="utf-8")
     if not cols:
         return written
-    grid = [p for p in study.grid_parameters if len(p.values) > 1
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in p.values)]
-    for p in grid:
-        others = [q for q in grid if q is not p]
+    varied = [p for p in study.grid_parameters if len(p.values) > 1]
+    grid = [p for p in varied if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in p.values)]
+    for p in grid:  # numeric parameters on the x axis; one line per value of the other parameter
+        others = [q for q in varied if q is not p]
         name = f"metrics_vs_{_safe(p.name)}.png"
         metric_vs_parameter_figure(rows, cols, p.name, group_by=others[0].name if len(others) == 1 else None,
                                    title=study.name, path=out / name)
