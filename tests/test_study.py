@@ -430,3 +430,20 @@ def test_case_option_grid_screen_model(tmp_path):
     bad = _write(tmp_path, GOOD + '[[parameters]]\npath = "screen_model"\nvalues = ["planar", "grid3"]\n', "bad.toml")
     with pytest.raises(StudyError, match=r"parameters\[1\]\.values\[1\]"):
         load_study(bad)
+
+
+def test_indexed_path_changes_one_entry(tmp_path):
+    doc = {"format": "pmdsim-study", "action": "simulate", "parameters": [
+        {"path": "cameras.left.angles_deg[2]", "mode": "offset", "values": [0.25]},
+        {"path": "cameras.right.origin_world_mm[0]", "values": [91.5]}]}
+    (case,) = parse_study(doc).cases()
+    import tomllib
+
+    from pmdsim.setup import parse_setup
+
+    t = parse_setup(tomllib.loads(case.truth_toml))
+    assert t.cameras["left"].pose.angles_deg == (45.0, 10.0, 10.25)
+    assert t.cameras["right"].pose.origin_world_mm == (91.5, 295.0, -295.0)
+    doc["parameters"][1]["path"] = "cameras.right.origin_world_mm[3]"
+    with pytest.raises(StudyError, match=r"parameters\[1\].*index 3 is out of range \(cameras\.right\.origin_world_mm has 3"):
+        parse_study(doc)

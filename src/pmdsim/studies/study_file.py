@@ -32,7 +32,8 @@ does. Example (``examples/study_bulge_focal.toml``)::
     samples = 100
     seed = 1
 
-A parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
+A path may end in list indices to vary one entry: ``cameras.left.angles_deg[2]``,
+``screen.heights_mm[1][1]``. A parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
 instead of a setup key (a grid of values, e.g. ``values = ["planar", "grid3", "grid5"]``).
 
 Cases are the Cartesian product of the grid parameters (in file order, the last varying
@@ -51,6 +52,7 @@ import hashlib
 import itertools
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -260,13 +262,22 @@ def apply_parameter(doc: dict, path: str, value, mode: str = "set") -> dict:
         The path does not name a table of the setup, or the mode does not fit the value.
     """
     doc = copy.deepcopy(doc)
+    m = re.fullmatch(r"(.+?)((?:\[\d+\])*)", path)
+    key_path, indices = m.group(1), [int(i) for i in re.findall(r"\[(\d+)\]", m.group(2))]
     try:
-        parent, leaf = _lookup(doc, path)
+        parent, leaf = _lookup(doc, key_path)
     except KeyError as e:
         raise SetupError(f"unknown setup key {path!r}: the setup has no table {e.args[0]!r}") from None
-    if mode != "set" and leaf not in parent:
+    if (mode != "set" or indices) and leaf not in parent:
         raise SetupError(f"{path}: mode {mode!r} needs the key in the base setup, which has none")
-    parent[leaf] = _combine(parent.get(leaf), value, mode, path)
+    for n, i in enumerate(indices):  # an element of a list (``angles_deg[2]``, ``heights_mm[1][1]``)
+        node = parent[leaf]
+        if not isinstance(node, list) or i >= len(node):
+            where = key_path + "".join(f"[{j}]" for j in indices[:n])
+            size = f"has {len(node)} entries" if isinstance(node, list) else "is not a list"
+            raise SetupError(f"{path}: index {i} is out of range ({where} {size})")
+        parent, leaf = node, i
+    parent[leaf] = _combine(parent[leaf] if indices else parent.get(leaf), value, mode, path)
     return doc
 
 
