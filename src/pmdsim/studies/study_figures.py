@@ -31,10 +31,11 @@ def _num(v):
     return float("nan") if v is None else float(v)
 
 
-def metric_vs_parameter_figure(rows: list[dict], metrics: list[str], parameter: str, *, group_by: str | None = None,
-                               title: str = "", path: str | Path | None = None) -> Figure:
+def metric_vs_parameter_figure(rows: list[dict], metrics: list[str], parameter: str, *,
+                               group_by: str | list[str] | None = None, lines: bool = True, title: str = "",
+                               path: str | Path | None = None) -> Figure:
     """Each of ``metrics`` (columns) against ``parameter`` (a numeric column), one line per
-    value of ``group_by`` (another column) or all cases as one line.
+    value (combination of values) of ``group_by`` (other columns) or all cases as one line.
 
     Parameters
     ----------
@@ -42,28 +43,33 @@ def metric_vs_parameter_figure(rows: list[dict], metrics: list[str], parameter: 
         Result rows (one per case); rows whose ``status`` is not ``ok`` are left out.
     metrics : list of str
         Metric columns, e.g. ``left.max_dev_plane_um``; one panel each.
-    parameter, group_by : str
-        Column names of varied parameters.
+    parameter : str
+        Column name of a varied parameter (the x axis).
+    group_by : str or list of str, optional
+        Columns of the other varied parameters: one line per combination of their values.
+    lines : bool
+        Join the points (False: markers only, e.g. for Monte-Carlo draws at each x).
     """
     ok = [r for r in rows if r.get("status") == "ok"]
     nr, nc = _grid(len(metrics))
     fig = Figure(figsize=(4.2 * nc, 3.2 * nr))
-    groups = list(dict.fromkeys(r.get(group_by) for r in ok)) if group_by else [None]  # in case order
+    cols = [group_by] if isinstance(group_by, str) else list(group_by or [])
+    groups = list(dict.fromkeys(tuple(r.get(c) for c in cols) for r in ok))  # in case order
     for i, m in enumerate(metrics):
         ax = fig.add_subplot(nr, nc, i + 1)
         for g in groups:
-            sel = [r for r in ok if group_by is None or r.get(group_by) == g]
+            sel = [r for r in ok if tuple(r.get(c) for c in cols) == g]
             xy = sorted((_num(r.get(parameter)), _num(r.get(m))) for r in sel)
             if not xy:
                 continue
             x, y = np.array(xy).T
-            label = None if group_by is None else f"{group_by} = {g}"
-            ax.plot(x, y, "o-", ms=3, lw=1, label=label)
+            label = ", ".join(f"{c} = {v}" for c, v in zip(cols, g)) or None
+            ax.plot(x, y, "o-" if lines else "o", ms=3, lw=1, label=label)
         ax.set_xlabel(parameter)
         ax.set_ylabel(m)
         ax.grid(alpha=0.3)
-        if group_by is not None and i == 0:
-            ax.legend(fontsize=7)
+        if cols and i == 0:
+            ax.legend(fontsize=6)
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)

@@ -92,8 +92,8 @@ def write_study_outputs(study: Study, out: str | Path) -> list[str]:
     for p in grid:  # numeric parameters on the x axis; one line per value of the other parameter
         others = [q for q in varied if q is not p]
         name = f"metrics_vs_{_safe(p.name)}.png"
-        metric_vs_parameter_figure(rows, cols, p.name, group_by=others[0].name if len(others) == 1 else None,
-                                   title=study.name, path=out / name)
+        metric_vs_parameter_figure(rows, cols, p.name, group_by=[q.name for q in others],
+                                   lines=not study.mc_samples, title=study.name, path=out / name)
         written.append(name)
     if study.mc_samples:
         metric_vs = "hist_metrics.png"
