@@ -447,3 +447,13 @@ def test_indexed_path_changes_one_entry(tmp_path):
     doc["parameters"][1]["path"] = "cameras.right.origin_world_mm[3]"
     with pytest.raises(StudyError, match=r"parameters\[1\].*index 3 is out of range \(cameras\.right\.origin_world_mm has 3"):
         parse_study(doc)
+
+
+def test_identical_cases_run_once(tmp_path):
+    # A repeated grid value gives identical inputs: one key, one computation, two rows.
+    p = _write(tmp_path, GOOD.replace("values = [0.0, 1.0]", "values = [1.0, 1.0]"))
+    run = run_study(load_study(p), tmp_path / "out", serial=True)
+    assert (run.n_cases, run.n_computed, run.n_missing) == (2, 1, 0)
+    a, b = _rows(tmp_path / "out")
+    assert a["case_key"] == b["case_key"] and a["status"] == b["status"] == "ok"
+    assert (a["case_index"], b["case_index"]) == (0, 1)

@@ -244,7 +244,7 @@ def write_results(out: str | Path, study: Study, cases: list[CaseSpec]) -> list[
         if r is None:
             r = {"case_key": c.key, "case_index": c.index, **c.params, "mc_sample": c.mc_sample, "seed": c.seed,
                  "status": "missing", "error": None}
-        r = {k: v for k, v in r.items() if k != "traceback"}
+        r = {k: v for k, v in r.items() if k != "traceback"} | {"case_index": c.index}  # (identical cases share a record)
         for k, v in list(r.items()):
             if isinstance(v, list):  # a list-valued setup key: a string column (parquet needs one type)
                 r[k] = json.dumps(v)
@@ -267,7 +267,8 @@ class StudyRun:
     ----------
     n_cases, n_reused, n_computed, n_failed, n_missing : int
         All cases; cases recorded before this run; computed now; failed (recorded, either run);
-        still without a record (a worker died too often, or the run was interrupted).
+        still without a record (a worker died too often, or the run was interrupted). Identical
+        cases (the same key) count once in all but ``n_cases``.
     run_id : str
         This invocation's id (the ``run_id`` of the records it wrote).
     elapsed_s : float
@@ -328,11 +329,11 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
         "pmdsim_version": __version__, "study": study.source, "name": study.name, "action": study.action,
         "n_cases": len(cases), "parameters": [p.name for p in study.parameters],
         "cases": [{"case_key": c.key, "case_index": c.index, **c.params} for c in cases]})
-    have = read_records(out, cases)
-    todo = list({c.key: c for c in cases if c.key not in have}.values())  # identical cases run once
+    unique = list({c.key: c for c in cases}.values())  # identical cases (same key) run once
+    have = read_records(out, unique)
+    todo = [c for c in unique if c.key not in have]
     run_id = uuid.uuid4().hex[:12]
-    state = {"done": len(have), "failed": sum(r.get("status") == "failed" for r in have.values()),
-             "computed": 0, "times": []}
+    state = {"done": len(have), "failed": sum(r.get("status") == "failed" for r in have.values()), "computed": 0}
 
     def finished(rec: dict) -> None:
         rec["run_id"] = run_id
@@ -341,9 +342,9 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
         state["computed"] += 1
         state["failed"] += rec["status"] == "failed"
         if progress is not None:
-            left = len(cases) - state["done"]
+            left = len(unique) - state["done"]
             rate = state["computed"] / (time.perf_counter() - t_start)
-            progress({"done": state["done"], "failed": state["failed"], "total": len(cases),
+            progress({"done": state["done"], "failed": state["failed"], "total": len(unique),
                       "eta_s": left / rate if rate > 0 else float("nan"), "record": rec})
 
     maps_dir = (out / MAPS_DIR).resolve() if study.save_maps else None
@@ -357,9 +358,9 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
             _run_on_dask(todo, study.metrics, maps, finished, scheduler, n_workers, connect_timeout_s)
     finally:
         write_results(out, study, cases)
-    recs = read_records(out, cases)
+    recs = read_records(out, unique)
     return StudyRun(len(cases), len(have), state["computed"],
-                    sum(r.get("status") == "failed" for r in recs.values()), len(cases) - len(recs), run_id,
+                    sum(r.get("status") == "failed" for r in recs.values()), len(unique) - len(recs), run_id,
                     time.perf_counter() - t0)
 
 
