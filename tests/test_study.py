@@ -445,7 +445,8 @@ def test_indexed_path_changes_one_entry(tmp_path):
     assert t.cameras["left"].pose.angles_deg == (45.0, 10.0, 10.25)
     assert t.cameras["right"].pose.origin_world_mm == (91.5, 295.0, -295.0)
     doc["parameters"][1]["path"] = "cameras.right.origin_world_mm[3]"
-    with pytest.raises(StudyError, match=r"parameters\[1\].*index 3 is out of range \(cameras\.right\.origin_world_mm has 3"):
+    with pytest.raises(StudyError,
+                       match=r"parameters\[1\].*index 3 is out of range \(cameras\.right\.origin_world_mm has 3"):
         parse_study(doc)
 
 

@@ -244,7 +244,8 @@ def write_results(out: str | Path, study: Study, cases: list[CaseSpec]) -> list[
         if r is None:
             r = {"case_key": c.key, "case_index": c.index, **c.params, "mc_sample": c.mc_sample, "seed": c.seed,
                  "status": "missing", "error": None}
-        r = {k: v for k, v in r.items() if k != "traceback"} | {"case_index": c.index}  # (identical cases share a record)
+        # (identical cases share a record; each keeps its own row index)
+        r = {k: v for k, v in r.items() if k != "traceback"} | {"case_index": c.index}
         for k, v in list(r.items()):
             if isinstance(v, list):  # a list-valued setup key: a string column (parquet needs one type)
                 r[k] = json.dumps(v)
