@@ -99,6 +99,7 @@ def _metrics_calibrate(truth, spec: CaseSpec) -> dict:
         m = {"reconstructed_fraction": float(np.asarray(case.valid).mean()), **case.metrics,
              "calibration_rms_px": float(e.result.rms_px), "calibration_converged": bool(e.result.converged),
              "calibration_iterations": int(e.result.iterations), "fx_error_px": float(d["fx_px"]),
+             "fx_std_px": e.result.std(f"{case.camera}.fx_px"),
              "position_error_mm": float(d["position_mm"]), "rotation_error_deg": float(d["rotation_deg"]),
              "table_turn_deg": float(e.deviation["table_turn_deg"])}
         out[case.camera] = m

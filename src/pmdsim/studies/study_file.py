@@ -84,8 +84,8 @@ METRICS = {
     "simulate": ("valid_fraction", "n_valid_px"),
     "simulate+evaluate": ("valid_fraction", "reconstructed_fraction") + _SURFACE_METRICS,
     "calibrate+evaluate": ("reconstructed_fraction",) + _SURFACE_METRICS
-    + ("calibration_rms_px", "calibration_converged", "calibration_iterations", "fx_error_px", "position_error_mm",
-       "rotation_error_deg", "table_turn_deg"),
+    + ("calibration_rms_px", "calibration_converged", "calibration_iterations", "fx_error_px", "fx_std_px",
+       "position_error_mm", "rotation_error_deg", "table_turn_deg"),
 }
 
 _TOP_KEYS = ("format", "name", "setup", "action", "downsample", "seed", "method", "screen_model", "cameras",
