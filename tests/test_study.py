@@ -395,6 +395,7 @@ def test_calibrate_evaluate_case_equals_experiment2_chain(tmp_path):
         for k in ("max_height_diff_um", "max_dev_plane_um", "tilt_urad"):
             assert row[f"{case.camera}.{k}"] == case.metrics[k]
     assert row["right.fx_error_px"] == ref.deviation["right"]["fx_px"]
+    assert row["left.fx_std_px"] == ref.result.std("left.fx_px")
 
 
 def test_save_maps_writes_each_case_reconstruction(tmp_path):
@@ -458,3 +459,15 @@ def test_identical_cases_run_once(tmp_path):
     a, b = _rows(tmp_path / "out")
     assert a["case_key"] == b["case_key"] and a["status"] == b["status"] == "ok"
     assert (a["case_index"], b["case_index"]) == (0, 1)
+
+
+def test_setup_path_relative_to_the_study_file(tmp_path, small_toml):
+    (tmp_path / "setups").mkdir()
+    (tmp_path / "setups" / "small.toml").write_text(small_toml, encoding="utf-8")
+    text = GOOD.replace("downsample = 8", 'downsample = 1\nsetup = "setups/small.toml"')
+    study = load_study(_write(tmp_path, text))
+    assert study.base.cameras["left"].camera.width_px == 96
+    run = run_study(study, tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (2, 0)
+    with pytest.raises(StudyError, match=r"study\.toml: setup: setup file .*nowhere\.toml.* does not exist"):
+        load_study(_write(tmp_path, GOOD.replace("downsample = 8", 'downsample = 8\nsetup = "nowhere.toml"')))

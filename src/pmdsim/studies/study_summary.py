@@ -75,16 +75,17 @@ def write_study_outputs(study: Study, out: str | Path) -> list[str]:
     returns the names written."""
     import pyarrow.parquet as pq
 
-    from .study import RESULTS_PARQUET
+    from .study import RESULTS_PARQUET, _atomic_write_via
     from .study_figures import mc_histogram_figure, metric_vs_parameter_figure
 
     out = Path(out)
     rows = pq.read_table(out / RESULTS_PARQUET).to_pylist()
     cols = metric_columns(study, rows)
     written = ["summary.txt", "summary.json"]
-    (out / "summary.txt").write_text(summary_text(study, rows), encoding="utf-8")
-    (out / "summary.json").write_text(json.dumps({c: metric_quantiles(rows, c) for c in cols}, indent=1,
-                                                 allow_nan=True) + "\n", encoding="utf-8")
+    text = summary_text(study, rows)
+    js = json.dumps({c: metric_quantiles(rows, c) for c in cols}, indent=1, allow_nan=True) + "\n"
+    for name, content in (("summary.txt", text), ("summary.json", js)):
+        _atomic_write_via(out / name, lambda p, content=content: Path(p).write_text(content, encoding="utf-8"))
     if not cols:
         return written
     varied = [p for p in study.grid_parameters if len(p.values) > 1]
