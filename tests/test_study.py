@@ -471,3 +471,9 @@ def test_setup_path_relative_to_the_study_file(tmp_path, small_toml):
     assert (run.n_computed, run.n_failed) == (2, 0)
     with pytest.raises(StudyError, match=r"study\.toml: setup: setup file .*nowhere\.toml.* does not exist"):
         load_study(_write(tmp_path, GOOD.replace("downsample = 8", 'downsample = 8\nsetup = "nowhere.toml"')))
+
+
+def test_workers_with_scheduler_refused(tmp_path):
+    res = CliRunner().invoke(main, ["study", str(EXAMPLE), "--out", str(tmp_path / "out"),
+                                    "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
+    assert res.exit_code == 2 and "--workers" in res.output and not (tmp_path / "out").exists()

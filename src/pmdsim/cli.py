@@ -539,6 +539,9 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
     from .studies.study_file import load_study
     from .studies.study_summary import write_study_outputs
 
+    if scheduler is not None and workers is not None:
+        raise click.UsageError("--workers sets the size of the LocalCluster; with --scheduler the cluster's "
+                               "workers are used (omit --workers)")
     study = load_study(study_file)
     click.echo(f"study {study.name!r}: {study.n_cases} cases, action {study.action} "
                f"({'scheduler ' + scheduler if scheduler else 'LocalCluster'})", err=True)
