@@ -200,7 +200,11 @@ def _start(args, log: Path) -> subprocess.Popen:
 @pytest.fixture
 def dask_cluster(tmp_path):
     """``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1; yields (address, workers)."""
-    dask_cli = Path(sys.executable).with_name("dask")
+    dask_cli = Path(sys.executable).with_name("dask")  # the `dask` command of this interpreter's install
+    if not dask_cli.exists():
+        import shutil
+
+        dask_cli = Path(shutil.which("dask"))
     sched_file = tmp_path / "scheduler.json"
     procs = [_start([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
                      "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
