@@ -5,6 +5,7 @@
     pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
     pmdsim experiment 1|2|3 --out DIR
+    pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
 Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. The work is done by
 :mod:`pmdsim.studies.jobs` (one measurement, disk to disk) and :mod:`pmdsim.studies.runs`
@@ -227,6 +228,52 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
                                    progress=lambda msg: bar.update(1))
     click.echo(out.table)
     click.echo(out.summary(out_dir), err=True)
+
+
+@main.command("study")
+@click.argument("study_file", type=click.Path(dir_okay=False))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Output directory (reused by a rerun: only missing cases are computed).")
+@click.option("--scheduler", default=None, help="Address of an existing Dask scheduler (tcp://host:port); "
+              "default: a LocalCluster on this machine.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="LocalCluster worker processes (default: one per core; numba threads = cores // workers).")
+@click.option("--quiet", is_flag=True, help="No progress lines.")
+def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
+    """Run a parameter sweep / Monte-Carlo study (STUDY.toml) on Dask: OUT/results.parquet, .csv,
+    summary.txt and figures."""
+    from .studies.study import run_study
+    from .studies.study_file import load_study
+    from .studies.study_summary import write_study_outputs
+
+    if scheduler is not None and workers is not None:
+        raise click.UsageError("--workers sets the size of the LocalCluster; with --scheduler the cluster's "
+                               "workers are used (omit --workers)")
+    study = load_study(study_file)
+    click.echo(f"study {study.name!r}: {study.n_cases} cases, action {study.action} "
+               f"({'scheduler ' + scheduler if scheduler else 'LocalCluster'})", err=True)
+
+    def progress(d: dict) -> None:
+        if not quiet:
+            eta = d["eta_s"]
+            left = "?" if eta != eta else f"{eta:.0f} s"
+            rec = d["record"]
+            note = f"  [case {rec['case_index']} failed: {rec['error']}]" if rec["status"] == "failed" else ""
+            click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}{note}", err=True)
+
+    try:
+        run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
+    except KeyboardInterrupt:
+        click.echo(f"pmdsim: interrupted; the finished cases are recorded in {out_dir}: rerun the same command "
+                   "to compute the rest", err=True)
+        sys.exit(130)
+    written = write_study_outputs(study, out_dir)
+    click.echo(f"{run.n_computed} cases computed, {run.n_reused} reused, {run.n_failed} failed, "
+               f"{run.n_missing} missing, in {run.elapsed_s:.1f} s → {out_dir} ({', '.join(written)})", err=True)
+    if run.n_missing:
+        click.echo("pmdsim: error: some cases have no result (workers lost); rerun the same command to compute them",
+                   err=True)
+        sys.exit(1)
 
 
 def _parse_list(text: str, kind, option: str) -> list:

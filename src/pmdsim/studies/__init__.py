@@ -4,6 +4,9 @@
 * :mod:`.calibration_data` — simulated calibration measurements (mirror poses → observations);
 * :mod:`.experiment2` — Table 3 / Fig. 5 (holistic calibration, then reconstruction);
 * :mod:`.experiment3` — free-form screen calibration (beyond the paper, §5);
+* :mod:`.study_file`, :mod:`.study` — the study engine: STUDY.toml sweeps and Monte-Carlo
+  studies of any setup key on ``dask.distributed``, resumable (:mod:`.study_summary`,
+  :mod:`.study_figures`: quantiles and figures of the results);
 * :mod:`.report` — tables as text; :mod:`.figures` — matplotlib figures (returned; saved only
   when a path is given; the backend is never switched).
 
@@ -29,6 +32,8 @@ from .experiment3 import (
     screen_deformation,
     screen_shape_error_um,
 )
+from .study import StudyRun, run_case, run_study, write_results
+from .study_file import Study, StudyError, load_study, parse_study
 
 __all__ = [
     "observe_calibration_poses", "simulate_calibration_observations", "trace_calibration_poses",
@@ -36,4 +41,5 @@ __all__ = [
     "INITIAL_ERRORS", "PAPER_TABLE3", "Experiment2Bulge", "calibrate_and_reconstruct", "run_experiment2_bulge",
     "SCREEN_DEFORMATIONS", "Experiment3Scenario", "experiment3_records", "experiment3_scenarios",
     "run_experiment3", "screen_deformation", "screen_shape_error_um",
+    "StudyRun", "run_case", "run_study", "write_results", "Study", "StudyError", "load_study", "parse_study",
 ]

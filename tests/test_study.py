@@ -1,0 +1,483 @@
+"""The study engine (issue 15): study files, the engine on Dask, resumption, failures, summary.
+
+References: the setup parser's own validation and closed-form parameter changes (offset/scale),
+Experiment 1 run directly (not through the engine), a serial in-process run (the Dask runs must
+equal it bit for bit: every case is deterministic), Python's ``statistics.quantiles`` for the
+summary, and real processes and signals (a Dask scheduler and workers started with the ``dask``
+command, a worker killed with SIGKILL, the CLI interrupted with SIGINT).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from click.testing import CliRunner
+
+from pmdsim.cli import main
+from pmdsim.setup import default_setup
+from pmdsim.studies.experiment1 import run_experiment1_case
+from pmdsim.studies.study import CASES_DIR, run_study
+from pmdsim.studies.study_file import StudyError, load_study, parse_study
+from pmdsim.studies.study_summary import QUANTILES, metric_quantiles
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "study_bulge_focal.toml"
+SRC = ROOT / "src"
+#: Columns that depend on where and when a case ran, not on its inputs.
+RUN_COLUMNS = {"elapsed_s", "worker", "run_id"}
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(SRC) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.update(extra)
+    return env
+
+
+def _rows(out) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in RUN_COLUMNS}
+            for r in pq.read_table(Path(out) / "results.parquet").to_pylist()]
+
+
+def _records(out) -> dict[str, dict]:
+    return {p.stem: json.loads(p.read_text()) for p in (Path(out) / CASES_DIR).glob("*.json")}
+
+
+def _write(tmp_path, text: str, name="study.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+# ---------------------------------------------------------------------------- study files
+GOOD = """
+format = "pmdsim-study"
+action = "simulate+evaluate"
+downsample = 8
+[[parameters]]
+path = "screen.bulge_mm"
+values = [0.0, 1.0]
+"""
+
+
+@pytest.mark.parametrize("text, key", [
+    (GOOD.replace('path = "screen.bulge_mm"', 'path = "screen.bulge_m"'), "screen.bulge_m"),
+    (GOOD.replace('path = "screen.bulge_mm"', 'path = "cameras.middle.focal_length_px"'), "cameras.middle"),
+    (GOOD.replace("values = [0.0, 1.0]", 'values = [0.0, "one"]'), "parameters[0].values[1]"),
+    (GOOD.replace("values = [0.0, 1.0]", "values = []"), "parameters[0].values"),
+    (GOOD.replace("downsample = 8", "downsample = 8\nsamples = 3"), "samples"),
+    (GOOD.replace('action = "simulate+evaluate"', 'action = "evaluate"'), "action"),
+    (GOOD + '[[parameters]]\npath = "patterns.noise_std"\ndistribution = "normal"\nmean = 1.0\nstd = 0.1\n',
+     "parameters[1].distribution"),
+    (GOOD + '[[parameters]]\npath = "cameras.left.focal_length_px"\nmode = "offset"\nvalues = [[1.0, 2.0]]\n',
+     "parameters[1].values[0]"),
+    (GOOD.replace("values = [0.0, 1.0]", "values = [0.0, 1.0]\napplies_to = \"model\"")
+     .replace("simulate+evaluate", "simulate"), "parameters[0].applies_to"),
+])
+def test_bad_study_file_refused_naming_the_key(tmp_path, text, key):
+    p = _write(tmp_path, text)
+    with pytest.raises(StudyError) as e:
+        load_study(p)
+    msg = str(e.value)
+    assert key in msg and str(p) in msg and "\n" not in msg
+    # The CLI refuses it before anything runs: one line, exit code 2, no output directory.
+    res = CliRunner().invoke(main, ["study", str(p), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 2
+    assert res.output.strip().startswith("pmdsim: error:") and key in res.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_setup_parser_errors_pass_through_with_the_key(tmp_path):
+    # A negative focal length is refused by the setup parser; the study error names both keys.
+    p = _write(tmp_path, GOOD.replace('path = "screen.bulge_mm"', 'path = "cameras.left.focal_length_px"')
+               .replace("values = [0.0, 1.0]", "values = [[4400.0, 4400.0], [-1.0, 4400.0]]"))
+    with pytest.raises(StudyError, match=r"parameters\[0\]\.values\[1\].*cameras\.left\.focal_length_px"):
+        load_study(p)
+
+
+def test_parameters_change_exactly_the_key():
+    doc = {"format": "pmdsim-study", "action": "simulate", "parameters": [
+        {"path": "cameras.left.focal_length_px", "mode": "offset", "values": [-7.5]},
+        {"path": "cameras.right.principal_point_px", "mode": "scale", "values": [1.5]},
+        {"path": "patterns.noise_std", "values": [0.25]},
+    ]}
+    (case,) = parse_study(doc).cases()
+    from pmdsim.setup import parse_setup
+    import tomllib
+
+    truth = parse_setup(tomllib.loads(case.truth_toml))
+    base = default_setup()
+    b, t = base.cameras, truth.cameras
+    assert (t["left"].camera.fx_px, t["left"].camera.fy_px) == (4400.0 - 7.5, 4400.0 - 7.5)
+    assert (t["right"].camera.ppx_px, t["right"].camera.ppy_px) == (960.0 * 1.5, 600.0 * 1.5)
+    assert truth.patterns.noise_std == 0.25
+    # Everything else is the base setup.
+    changed = truth.with_camera("left", fx_px=4400.0, fy_px=4400.0).with_camera(
+        "right", ppx_px=960.0, ppy_px=600.0).with_patterns(noise_std=0.0)
+    assert changed.to_dict() == base.to_dict()
+    assert b["left"].camera.fx_px == 4400.0  # the base is not modified
+
+
+def test_monte_carlo_draws_are_seeded_per_sample():
+    doc = {"format": "pmdsim-study", "action": "simulate",
+           "parameters": [{"path": "screen.bulge_mm", "values": [0.0, 1.0]},
+                          {"path": "patterns.noise_std", "distribution": "uniform", "low": 0.5, "high": 2.0},
+                          {"path": "cameras.left.focal_length_px", "mode": "offset", "distribution": "normal",
+                           "mean": 0.0, "std": 3.0}],
+           "monte_carlo": {"samples": 3, "seed": 11}}
+    study = parse_study(doc)
+    cases = study.cases()
+    assert len(cases) == study.n_cases == 6
+    for c in cases:
+        rng = np.random.default_rng([11, c.mc_sample])  # the documented draw, in parameter order
+        assert c.params["patterns.noise_std"] == rng.uniform(0.5, 2.0)
+        assert c.params["cameras.left.focal_length_px"] == rng.normal(0.0, 3.0)
+    # The same sample index draws the same values at every grid point; the keys all differ.
+    assert [c.params["patterns.noise_std"] for c in cases[:3]] == [c.params["patterns.noise_std"] for c in cases[3:]]
+    assert len({c.key for c in cases}) == 6
+    assert [c.key for c in parse_study(doc).cases()] == [c.key for c in cases]
+
+
+# ---------------------------------------------------------------------------- running
+def test_engine_case_equals_experiment1(tmp_path):
+    p = _write(tmp_path, GOOD.replace("values = [0.0, 1.0]", "values = [1.0]"))
+    run = run_study(load_study(p), tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed, run.n_missing) == (1, 0, 0)
+    (row,) = _rows(tmp_path / "out")
+    for cam in ("left", "right"):
+        ref = run_experiment1_case(1.0, cam, downsample=8).metrics
+        for k in ("max_height_diff_um", "max_dev_plane_um", "tilt_urad", "rms_um", "n_pixels"):
+            assert row[f"{cam}.{k}"] == ref[k]
+
+
+@pytest.fixture(scope="module")
+def example_serial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial") / "out"
+    run = run_study(load_study(EXAMPLE), out, serial=True)
+    assert (run.n_cases, run.n_computed, run.n_failed) == (32, 32, 0)
+    return _rows(out)
+
+
+def test_example_serial_physics(example_serial):
+    rows = example_serial
+    # The left camera's focal-length error cannot change the right camera's reconstruction.
+    for bulge in (0.0, 1.0, 2.0, 3.0):
+        right = {tuple(r[k] for k in r if k.startswith("right.")) for r in rows if r["screen.bulge_mm"] == bulge}
+        assert len(right) == 1
+    # No bulge, no focal error: the reconstruction of the true plane is exact to < 0.1 µm.
+    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["model.cameras.left.focal_length_px"] == 0.0]
+    assert r0["left.max_height_diff_um"] < 0.1 and r0["right.max_height_diff_um"] < 0.1
+
+
+@pytest.mark.slow
+def test_example_on_local_cluster_equals_serial(tmp_path, example_serial):
+    res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(EXAMPLE), "--out", str(tmp_path / "out")],
+                         env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "32 cases computed, 0 reused, 0 failed, 0 missing" in res.stderr
+    assert _rows(tmp_path / "out") == example_serial
+    workers = {r["worker"] for r in _records(tmp_path / "out").values()}
+    assert len(workers) == min(2, os.cpu_count())  # the cases ran in the LocalCluster's worker processes
+    for name in ("results.csv", "summary.txt", "metrics_vs_screen.bulge_mm.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+
+
+def _start(args, log: Path) -> subprocess.Popen:
+    return subprocess.Popen(args, env=_env(NUMBA_NUM_THREADS="1"), stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1; yields (address, workers)."""
+    dask_cli = Path(sys.executable).with_name("dask")  # the `dask` command of this interpreter's install
+    if not dask_cli.exists():
+        import shutil
+
+        dask_cli = Path(shutil.which("dask"))
+    sched_file = tmp_path / "scheduler.json"
+    procs = [_start([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
+    try:
+        t0 = time.monotonic()
+        while not sched_file.exists() and time.monotonic() - t0 < 60:
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        workers = [_start([str(dask_cli), "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--no-nanny",
+                           "--no-dashboard"], tmp_path / f"worker{i}.log") for i in range(2)]
+        procs += workers
+        from distributed import Client
+
+        with Client(address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=120)
+        yield address, workers
+    finally:
+        for p in procs[::-1]:  # the processes this fixture started, by their pid (a graceful stop takes ~20 s)
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_example_on_scheduler_and_two_workers_equals_serial(tmp_path, dask_cluster, example_serial):
+    address, workers = dask_cluster
+    res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(EXAMPLE), "--out", str(tmp_path / "out"),
+                          "--scheduler", address], env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert _rows(tmp_path / "out") == example_serial
+    pids = {int(r["worker"].rsplit(":", 1)[1]) for r in _records(tmp_path / "out").values()}
+    assert pids == {w.pid for w in workers}  # both external workers computed cases
+
+
+# A slower study (cameras binned 2 × 2: about a second per case) so that a signal lands mid-study.
+SLOW = """
+format = "pmdsim-study"
+action = "simulate+evaluate"
+downsample = 2
+metrics = ["max_dev_plane_um"]
+[[parameters]]
+path = "screen.bulge_mm"
+values = [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
+"""
+
+
+def _wait_for_records(out: Path, n: int, proc: subprocess.Popen, timeout=240) -> None:
+    t0 = time.monotonic()
+    while len(list((out / CASES_DIR).glob("*.json"))) < n if (out / CASES_DIR).exists() else True:
+        assert proc.poll() is None, "the study ended before the signal"
+        assert time.monotonic() - t0 < timeout
+        time.sleep(0.02)
+
+
+@pytest.mark.slow
+def test_killed_worker_study_completes(tmp_path, dask_cluster):
+    address, workers = dask_cluster
+    study, out = _write(tmp_path, SLOW), tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(out),
+                             "--scheduler", address, "--quiet"], env=_env(), stderr=subprocess.PIPE, text=True)
+    _wait_for_records(out, 1, proc)
+    workers[0].send_signal(signal.SIGKILL)
+    assert workers[0].wait(timeout=30) == -signal.SIGKILL
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    rows = _rows(out)
+    assert len(rows) == 6 and all(r["status"] == "ok" for r in rows)
+    assert "0 missing" in err
+
+
+@pytest.mark.slow
+def test_interrupted_study_rerun_computes_only_missing(tmp_path):
+    study, out = _write(tmp_path, SLOW), tmp_path / "out"
+    cmd = [sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(out), "--workers", "1", "--quiet"]
+    proc = subprocess.Popen(cmd, env=_env(), stderr=subprocess.PIPE, text=True)
+    _wait_for_records(out, 1, proc)
+    proc.send_signal(signal.SIGINT)  # Ctrl-C
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err
+    first = _records(out)
+    n_done = len(first)
+    assert 1 <= n_done < 6
+    rows = _rows(out)  # the partial results were written, missing cases marked
+    assert sum(r["status"] == "missing" for r in rows) == 6 - n_done
+
+    res = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert f"{6 - n_done} cases computed, {n_done} reused" in res.stderr
+    second = _records(out)
+    assert len(second) == 6
+    for key, rec in first.items():
+        assert second[key] == rec  # not recomputed: the same record, same run id
+    new_runs = {r["run_id"] for k, r in second.items() if k not in first}
+    assert len(new_runs) == 1 and not new_runs & {r["run_id"] for r in first.values()}
+    assert all(r["status"] == "ok" for r in _rows(out))
+
+
+def test_failing_case_is_recorded_and_the_study_goes_on(tmp_path):
+    # The sample moved 1 m sideways: a valid setup whose central pixels miss the sample, so the
+    # reconstruction cannot be seeded — a run-time failure of that case only.
+    p = _write(tmp_path, GOOD.replace('path = "screen.bulge_mm"', 'path = "sample.origin_world_mm"')
+               .replace("values = [0.0, 1.0]", "values = [[-200.0, -200.0, 0.0], [800.0, -200.0, 0.0]]"))
+    study = load_study(p)
+    run = run_study(study, tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed, run.n_missing) == (2, 1, 0)
+    ok, failed = _rows(tmp_path / "out")
+    assert ok["status"] == "ok" and ok["left.max_dev_plane_um"] < 0.1
+    assert failed["status"] == "failed" and "does not see the sample" in failed["error"]
+    # A rerun keeps the recorded failure (deterministic) and computes nothing.
+    again = run_study(study, tmp_path / "out", serial=True)
+    assert (again.n_computed, again.n_reused, again.n_failed) == (0, 2, 1)
+    from pmdsim.studies.study_summary import write_study_outputs
+
+    write_study_outputs(study, tmp_path / "out")
+    assert "failed cases:" in (tmp_path / "out" / "summary.txt").read_text()
+
+
+def test_summary_quantiles_match_statistics_module():
+    rng = np.random.default_rng(3)
+    values = rng.normal(5.0, 2.0, 57)
+    rows = [{"status": "ok", "left.x_um": float(v)} for v in values] + [{"status": "failed", "left.x_um": None}]
+    s = metric_quantiles(rows, "left.x_um")
+    cuts = statistics.quantiles(values.tolist(), n=20, method="inclusive")  # 5 %, 10 %, …, 95 %
+    assert s["n"] == 57
+    for q in QUANTILES:
+        assert s[f"q{round(q * 100):02d}"] == pytest.approx(cuts[round(q * 20) - 1], rel=1e-12)
+    assert s["mean"] == pytest.approx(statistics.fmean(values.tolist()), rel=1e-12)
+    assert s["std"] == pytest.approx(statistics.stdev(values.tolist()), rel=1e-12)
+
+
+def test_unreachable_scheduler_is_one_clear_error(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a loopback port that nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    study = load_study(_write(tmp_path, GOOD))
+    with pytest.raises(StudyError, match=rf"cannot connect to the Dask scheduler 'tcp://127\.0\.0\.1:{port}'"):
+        run_study(study, tmp_path / "out", scheduler=f"tcp://127.0.0.1:{port}", connect_timeout_s=2)
+    assert not list((tmp_path / "out" / CASES_DIR).glob("*.json"))
+
+
+MC = """
+format = "pmdsim-study"
+action = "simulate+evaluate"
+downsample = 8
+metrics = ["max_dev_plane_um", "tilt_urad"]
+[[parameters]]
+path = "cameras.left.angles_deg"
+applies_to = "model"
+mode = "offset"
+distribution = "normal"
+mean = 0.0
+std = 0.01
+[monte_carlo]
+samples = 6
+seed = 5
+"""
+
+
+def test_monte_carlo_study_summary_and_histogram(tmp_path):
+    from pmdsim.studies.study_summary import write_study_outputs
+
+    study = load_study(_write(tmp_path, MC))
+    run = run_study(study, tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (6, 0)
+    written = write_study_outputs(study, tmp_path / "out")
+    assert "hist_metrics.png" in written and (tmp_path / "out" / "hist_metrics.png").stat().st_size > 0
+    rows = _rows(tmp_path / "out")
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    v = [r["left.tilt_urad"] for r in rows]
+    assert summary["left.tilt_urad"]["n"] == 6
+    assert summary["left.tilt_urad"]["q50"] == pytest.approx(statistics.median(v), rel=1e-12)
+    # An angle error of the evaluation's left camera leaves the right camera's result unchanged.
+    assert len({r["right.tilt_urad"] for r in rows}) == 1
+
+
+def test_calibrate_evaluate_case_equals_experiment2_chain(tmp_path):
+    from pmdsim.studies.experiment2 import calibrate_and_reconstruct
+
+    p = _write(tmp_path, GOOD.replace('action = "simulate+evaluate"',
+                                      'action = "calibrate+evaluate"\nscreen_model = "grid3"\nseed = 4')
+               .replace("values = [0.0, 1.0]", "values = [2.0]"))
+    run = run_study(load_study(p), tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (1, 0)
+    (row,) = _rows(tmp_path / "out")
+    ref = calibrate_and_reconstruct(default_setup().binned(8).with_bulge(2.0), start_seed=[4, 0], screen_grid=3)
+    assert row["left.calibration_rms_px"] == ref.result.rms_px
+    assert row["left.calibration_iterations"] == ref.result.iterations
+    for case in ref.cases:
+        for k in ("max_height_diff_um", "max_dev_plane_um", "tilt_urad"):
+            assert row[f"{case.camera}.{k}"] == case.metrics[k]
+    assert row["right.fx_error_px"] == ref.deviation["right"]["fx_px"]
+    assert row["left.fx_std_px"] == ref.result.std("left.fx_px")
+
+
+def test_save_maps_writes_each_case_reconstruction(tmp_path):
+    import h5py
+
+    p = _write(tmp_path, GOOD.replace("downsample = 8", "downsample = 8\nsave_maps = true")
+               .replace("values = [0.0, 1.0]", "values = [1.0]"))
+    run_study(load_study(p), tmp_path / "out", serial=True)
+    (row,) = _rows(tmp_path / "out")
+    with h5py.File(tmp_path / "out" / "maps" / f"{row['case_key']}.h5", "r") as f:
+        assert json.loads(f.attrs["params"]) == {"screen.bulge_mm": 1.0}
+        for cam in ("left", "right"):
+            h = f[cam]["height_mm"][()]
+            assert h.shape == (150, 240) and f[cam]["valid"][()].sum() == row[f"{cam}.n_pixels"]
+            # The true sample is the plane z = 0 of the sample frame: the height is the error.
+            assert (np.nanmax(h) - np.nanmin(h)) * 1e3 == pytest.approx(row[f"{cam}.max_height_diff_um"], rel=1e-12)
+    # Without save_maps nothing heavy is written.
+    run_study(load_study(_write(tmp_path, GOOD, "plain.toml")), tmp_path / "out2", serial=True)
+    assert not (tmp_path / "out2" / "maps").exists()
+
+
+def test_case_option_grid_screen_model(tmp_path):
+    # Perfect knowledge of the bulged screen (screen_model = "setup") reconstructs the plane
+    # exactly; the planar screen model leaves Experiment 1's error.
+    p = _write(tmp_path, GOOD.replace("values = [0.0, 1.0]", "values = [2.0]")
+               + '[[parameters]]\npath = "screen_model"\nvalues = ["planar", "setup"]\n')
+    run_study(load_study(p), tmp_path / "out", serial=True)
+    planar, exact = _rows(tmp_path / "out")
+    assert (planar["screen_model"], exact["screen_model"]) == ("planar", "setup")
+    assert planar["left.max_height_diff_um"] == run_experiment1_case(2.0, "left", downsample=8).metrics[
+        "max_height_diff_um"]
+    assert exact["left.max_height_diff_um"] < 0.1 and exact["right.max_height_diff_um"] < 0.1
+    bad = _write(tmp_path, GOOD + '[[parameters]]\npath = "screen_model"\nvalues = ["planar", "grid3"]\n', "bad.toml")
+    with pytest.raises(StudyError, match=r"parameters\[1\]\.values\[1\]"):
+        load_study(bad)
+
+
+def test_indexed_path_changes_one_entry(tmp_path):
+    doc = {"format": "pmdsim-study", "action": "simulate", "parameters": [
+        {"path": "cameras.left.angles_deg[2]", "mode": "offset", "values": [0.25]},
+        {"path": "cameras.right.origin_world_mm[0]", "values": [91.5]}]}
+    (case,) = parse_study(doc).cases()
+    import tomllib
+
+    from pmdsim.setup import parse_setup
+
+    t = parse_setup(tomllib.loads(case.truth_toml))
+    assert t.cameras["left"].pose.angles_deg == (45.0, 10.0, 10.25)
+    assert t.cameras["right"].pose.origin_world_mm == (91.5, 295.0, -295.0)
+    doc["parameters"][1]["path"] = "cameras.right.origin_world_mm[3]"
+    with pytest.raises(StudyError,
+                       match=r"parameters\[1\].*index 3 is out of range \(cameras\.right\.origin_world_mm has 3"):
+        parse_study(doc)
+
+
+def test_identical_cases_run_once(tmp_path):
+    # A repeated grid value gives identical inputs: one key, one computation, two rows.
+    p = _write(tmp_path, GOOD.replace("values = [0.0, 1.0]", "values = [1.0, 1.0]"))
+    run = run_study(load_study(p), tmp_path / "out", serial=True)
+    assert (run.n_cases, run.n_computed, run.n_missing) == (2, 1, 0)
+    a, b = _rows(tmp_path / "out")
+    assert a["case_key"] == b["case_key"] and a["status"] == b["status"] == "ok"
+    assert (a["case_index"], b["case_index"]) == (0, 1)
+
+
+def test_setup_path_relative_to_the_study_file(tmp_path, small_toml):
+    (tmp_path / "setups").mkdir()
+    (tmp_path / "setups" / "small.toml").write_text(small_toml, encoding="utf-8")
+    text = GOOD.replace("downsample = 8", 'downsample = 1\nsetup = "setups/small.toml"')
+    study = load_study(_write(tmp_path, text))
+    assert study.base.cameras["left"].camera.width_px == 96
+    run = run_study(study, tmp_path / "out", serial=True)
+    assert (run.n_computed, run.n_failed) == (2, 0)
+    with pytest.raises(StudyError, match=r"study\.toml: setup: setup file .*nowhere\.toml.* does not exist"):
+        load_study(_write(tmp_path, GOOD.replace("downsample = 8", 'downsample = 8\nsetup = "nowhere.toml"')))
+
+
+def test_workers_with_scheduler_refused(tmp_path):
+    res = CliRunner().invoke(main, ["study", str(EXAMPLE), "--out", str(tmp_path / "out"),
+                                    "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
+    assert res.exit_code == 2 and "--workers" in res.output and not (tmp_path / "out").exists()
