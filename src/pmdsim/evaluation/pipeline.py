@@ -21,6 +21,10 @@ __all__ = ["decode_images", "evaluate_decoded"]
 def decode_images(setup: Setup, images: dict) -> ScreenCoordinates:
     """Decode one camera's in-memory images ``{(direction, period_mm): [image per shift]}``
     with the setup's fringe sequence (N-step phase + hierarchical unwrapping)."""
+    if setup.imaging is not None and setup.imaging.any_on:
+        from .imaging_decode import decode_images_imaging  # sensor-matched noise model (issue 13)
+
+        return decode_images_imaging(setup, images)
     seq = setup.patterns.sequence
     full = float(2**setup.patterns.bit_depth - 1)
     xs = [np.stack(images[("x", p)]) for p in seq.periods_x_mm]
