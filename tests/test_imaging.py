@@ -90,7 +90,7 @@ def test_defocus_footprint_matches_rays_traced_through_the_pupil(base, mapping):
 
     cs = s.cameras[CAM]
     cov = defocus_covariance(cs.T_world_cam, s.sample.T_world_sample, s.screen.T_world_screen,
-                             mapping.p_sample_mm, mapping.q_screen_mm, focal / f_number)
+                             mapping.p_sample_mm, mapping.q_screen_mm, focal / f_number, s.screen.surface)
     # Pupil points: a fine square grid inside the disc of diameter D (uniform weighting).
     D = focal / f_number
     g = (np.arange(61) - 30) / 60 * D
@@ -147,7 +147,7 @@ def test_blur_of_every_harmonic_matches_quadrature_over_the_footprint(base, mapp
     box, bw = box / 2, bw / 2  # Gauss–Legendre on [−½, ½]
     shifts = 2 * np.pi * np.arange(4) / 4
     for v, u in [(20, 30), (75, 120), (130, 200)]:
-        c0 = mapping.screen_xy_mm[v, u, 0]
+        c0 = mapping.screen_xy_mm[v, u, 0] + maps.centroid_xy_mm[v, u, 0]  # (tested against rays below)
         sig = np.sqrt(maps.var_xy_mm2[v, u, 0])
         ju, jv = maps.jacobian[v, u, 0]
         c = c0 + (box[:, None, None] * ju + box[None, :, None] * jv + sig * z[None, None, :])
@@ -169,7 +169,8 @@ def test_gaussian_blur_keeps_the_phase_and_scales_modulation_by_the_closed_form(
         assert ok.sum() > 1000 and sigma2[ok].min() > 0
         # Rounding each sample by ≤ ½ DN moves B by ≤ (2/N)·N·½ = 1 DN and φ by ≤ 1/B rad.
         assert np.abs(res.modulation[ok] - expected[ok]).max() <= 1.0
-        dphi = np.angle(np.exp(1j * (res.phase - 2 * np.pi * mapping.screen_xy_mm[..., 0] / period)))
+        centre = mapping.screen_xy_mm[..., 0] + maps.centroid_xy_mm[..., 0]  # the footprint's centre
+        dphi = np.angle(np.exp(1j * (res.phase - 2 * np.pi * centre / period)))
         assert np.all(np.abs(dphi[ok]) <= 1.0 / expected[ok])
         assert (1 - expected[ok] / (seq.amplitude * 65535)).max() > 0.1  # the blur did act
 
@@ -236,3 +237,59 @@ def test_gamma_ripple_matches_closed_form_and_linearisation_returns_to_the_noise
     rms = np.sqrt(np.mean(e2[ok2] ** 2, axis=0))
     floor = np.sqrt(np.mean(dec2.std_xy_mm[ok2] ** 2, axis=0))
     assert np.all(np.abs(rms / floor - 1) < 0.10), rms / floor
+
+
+# ------------------------------------------------------------------ curved sample
+def _dome(base, sag_mm):
+    from dataclasses import replace
+
+    from pmdsim.setup.model import SampleSetup
+
+    g = tuple(np.linspace(0.0, 400.0, 5))
+    X, Y = np.meshgrid(g, g)
+    Z = -sag_mm * (1 - ((X - 200) ** 2 + (Y - 200) ** 2) / 200**2)  # a dome towards the cameras
+    return replace(base, sample=SampleSetup(base.sample.pose, g, g, tuple(map(tuple, Z))))
+
+
+def test_curved_sample_phase_bias_sign_and_scaling(base):
+    """With a 2 mm dome the blur spot varies over the image; the footprint's centroid (hence
+    the decoded coordinate) is offset from the chief ray's screen point by O(D²): checked
+    against rays traced through the pupil (sign and size), ∝ 1/N² (f/4 vs f/8), and found in
+    the decoded noise-free 16-bit images."""
+    s = _dome(base.with_patterns(bit_depth=16, periods_x_mm=(720.0, 48.0, 8.0), periods_y_mm=(420.0, 28.0, 8.0)), 2.0)
+    m = trace_setup_camera(s, CAM, store_points=True)
+    cs = s.cameras[CAM]
+    pix = [(20, 30), (75, 120), (130, 200)]
+    T_cam_world = cs.T_world_cam.inv()
+    T_screen_sample = s.screen.T_world_screen.inv() @ s.sample.T_world_sample
+    biases = {}
+    for fn in (4.0, 8.0):
+        si = s.with_imaging(f_number=fn)
+        maps = imaging_maps(si, CAM, m)
+        sig = np.sqrt(maps.var_xy_mm2[..., 0][m.valid])
+        assert sig.max() / sig.min() > 1.3  # the blur spot varies over the image
+        D = si.imaging.focal_length_mm / fn
+        g = (np.arange(41) - 20) / 40 * D
+        ax, ay = np.meshgrid(g, g)
+        inside = ax**2 + ay**2 <= (D / 2) ** 2
+        a = np.stack([ax[inside], ay[inside], np.zeros(inside.sum())], axis=-1)
+        for v, u in pix:
+            p_cam = (T_cam_world @ s.sample.T_world_sample).apply(m.p_sample_mm[v, u])
+            hits = np.array([trace_rays((p_cam - ak)[None], np.ones(1, bool),
+                                        s.sample.T_world_sample.inv() @ cs.T_world_cam @ RigidTransform(np.eye(3), ak),
+                                        T_screen_sample, s.sample.surface, s.screen.surface).screen_xy_mm[0]
+                             for ak in a])
+            traced = hits.mean(axis=0) - m.screen_xy_mm[v, u]
+            # Next order O((D/s)²) ≈ 1e-4 relative; the pupil grid's discretisation ≈ 1e-3.
+            np.testing.assert_allclose(maps.centroid_xy_mm[v, u, 0], traced[0], rtol=0.02)
+        biases[fn] = maps.centroid_xy_mm[..., 0]
+        # The decoded coordinate carries the bias (noise-free 16 bit: rounding ≤ p/(2π·B)).
+        dec = decode_images(si, _images(si, m))
+        ok = dec.valid
+        got = dec.screen_xy_mm[..., 0] - m.screen_xy_mm[..., 0]
+        bound = 8.0 / (2 * np.pi * dec.modulation[..., 0])  # finest period 8 mm: |Δφ| ≤ 1/B
+        assert np.all(np.abs(got[ok] - maps.centroid_xy_mm[..., 0][ok]) <= bound[ok])
+        assert np.median(maps.centroid_xy_mm[..., 0][ok]) > 5 * np.median(bound[ok])  # resolved
+    ok = m.valid
+    assert np.all(biases[4.0][ok] > 0)  # sign: along +x of the screen for this geometry
+    np.testing.assert_allclose(biases[4.0][ok], 4.0 * biases[8.0][ok], rtol=1e-9)  # ∝ D² = (f/N)²

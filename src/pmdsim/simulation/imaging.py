@@ -7,7 +7,8 @@ numba kernel that sums the display response's cosine harmonics, each multiplied 
 
     T_n = exp(−½·(2πn/p)²·σ_a²) · sinc(n·J_a,u/p)·sinc(n·J_a,v/p) · sinc(n·P/p)
 
-(defocus, pixel area, screen sample-and-hold; a the fringe axis), scales by the emission factor
+(defocus, pixel area, screen sample-and-hold; a the fringe axis), evaluated at the defocus
+footprint's centroid (offset from the chief ray's screen point by O(D²)), scales by the emission factor
 and passes the result through the sensor (:class:`.sensor.SensorModel`). Every harmonic keeps its
 phase, so the blur changes only the modulation (exactly, for a locally linear mapping).
 
@@ -27,7 +28,7 @@ import numpy as np
 from ..setup import ImagingSetup, Setup
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
-from .optics import defocus_covariance, pixel_jacobian, view_geometry
+from .optics import defocus_moments, pixel_jacobian, screen_normal, view_geometry
 from .sensor import SensorModel
 from .trace import Mapping
 
@@ -56,6 +57,9 @@ class ImagingMaps:
         Screen pixel pitch for the sample-and-hold transfer; 0 when off.
     coefficients : ndarray (K + 1,)
         Cosine-series coefficients of the displayed (response-distorted) fringe.
+    centroid_xy_mm : ndarray (H, W, 2) or None
+        Offset of the defocus footprint's centroid from the chief ray's screen point (mm);
+        None without defocus.
     """
 
     var_xy_mm2: np.ndarray
@@ -63,6 +67,7 @@ class ImagingMaps:
     radiance: np.ndarray
     hold_pitch_mm: float
     coefficients: np.ndarray
+    centroid_xy_mm: np.ndarray | None = None
 
 
 def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=None) -> ImagingMaps:
@@ -78,18 +83,22 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
     T_ws = setup.sample.T_world_sample if T_world_sample is None else T_world_sample
     cs = setup.cameras[camera]
     var = np.zeros(shape + (2,))
+    centroid = None
     radiance = np.ones(shape)
     if needs_points(setup):
         if mapping.p_sample_mm is None or mapping.q_screen_mm is None:
             raise ValueError("defocus and angular emission need a mapping traced with store_points=True")
         if im.f_number is not None:
-            cov = defocus_covariance(cs.T_world_cam, T_ws, setup.screen.T_world_screen, mapping.p_sample_mm,
-                                     mapping.q_screen_mm, im.focal_length_mm / im.f_number)
+            cov, centroid = defocus_moments(cs.T_world_cam, T_ws, setup.screen.T_world_screen, mapping.p_sample_mm,
+                                            mapping.q_screen_mm, im.focal_length_mm / im.f_number,
+                                            setup.screen.surface)
             var = np.stack([cov[..., 0, 0], cov[..., 1, 1]], axis=-1)
+            centroid = np.ascontiguousarray(np.where(np.isfinite(centroid), centroid, 0.0))
         if im.emission_exponent is not None:
             _, r, _, _ = view_geometry(cs.T_world_cam, T_ws, setup.screen.T_world_screen, mapping.p_sample_mm,
                                        mapping.q_screen_mm)
-            radiance = radiance * emission_falloff(r[..., 2], im.emission_exponent)
+            cos_view = np.sum(r * screen_normal(mapping.q_screen_mm, setup.screen.surface), axis=-1)
+            radiance = radiance * emission_falloff(cos_view, im.emission_exponent)
     var = np.where(np.isfinite(var), var, 0.0)
     jac = pixel_jacobian(xy) if im.pixel_area else None
     if im.screen_pixel_pitch_mm is not None:
@@ -99,7 +108,7 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
     coef = harmonic_coefficients(display_response(im.display_gamma, im.display_black_level), seq.mean_level,
                                  seq.amplitude)
     return ImagingMaps(np.ascontiguousarray(var), None if jac is None else np.ascontiguousarray(jac),
-                       np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef)
+                       np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid)
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
@@ -205,7 +214,10 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     n = sequence.n_shifts
     delta = 2.0 * np.pi * np.arange(n) / n
     ok = np.ascontiguousarray(valid, dtype=bool)
-    coord = np.ascontiguousarray(screen_xy_mm[..., axis])
+    coord = screen_xy_mm[..., axis]
+    if maps.centroid_xy_mm is not None:  # the footprint's centroid, not the chief ray, is its centre
+        coord = coord + maps.centroid_xy_mm[..., axis]
+    coord = np.ascontiguousarray(coord)
     if sensor.noisy:
         if rng is None:
             raise ValueError("a noisy sensor needs a seeded rng for reproducible images")

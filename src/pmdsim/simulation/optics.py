@@ -15,7 +15,10 @@ the screen plane (screen frame, normal e_z). The footprint's covariance is there
     Σ = (D²/16) · (s₂/s₁)² · M H (I − d dᵀ) P_xy (I − d dᵀ) Hᵀ Mᵀ
 
 (D²/16: the variance of a uniform disc of diameter D per axis; P_xy projects onto the pupil
-plane). It is computed from the traced sample and screen points, no extra rays. A curved sample
+plane), and to second order the footprint's centroid is offset from the chief ray's screen
+point by the curvature of the central projection onto the oblique screen
+(:func:`defocus_moments`), a phase bias ∝ D². Both are computed from the traced sample and
+screen points, no extra rays. A curved sample
 changes s₂ and r over the image, and with them Σ. The blur is applied to each sinusoidal
 harmonic analytically with the Gaussian of this covariance, whose transfer at period p is
 exp(−2π²σ²/p²) (σ² the variance along the fringe axis): the modulation shrinks and the phase is
@@ -33,7 +36,7 @@ import numpy as np
 
 from ..geometry.transform import RigidTransform
 
-__all__ = ["defocus_covariance", "pixel_jacobian", "view_geometry"]
+__all__ = ["defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "view_geometry"]
 
 
 def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
@@ -64,12 +67,32 @@ def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T
     return dv / s1[..., None], rv / s2[..., None], s1, s2
 
 
-def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
-                       p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float) -> np.ndarray:
-    """Covariance (mm², screen frame x, y) of the defocus footprint on the screen, (H, W, 2, 2).
+def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
+                    p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float, screen_surface=None):
+    """Covariance and centroid offset of the defocus footprint on the screen (screen frame x, y).
 
-    See the module docstring for the model; ``aperture_mm`` is the entrance-pupil diameter
-    D = focal length / f-number. NaN where the pixel was not traced.
+    A pupil point a (uniform on the disc of diameter D in the camera's x–y plane) sends its ray
+    through the sample point P; its (unnormalised) direction P − O − a is linear in a, so after
+    the reflection H the ray is r + ε with ε = −H·a/s₁, and it meets the screen plane (normal
+    m, the local screen normal: e_z for a plane) at δq = s₂·(m·r)·[(r + ε)/(m·r + m·ε) − r/(m·r)].
+    To second order in ε, with C = Cov(ε) = (D²/16)/s₁² · H (e_x e_xᵀ + e_y e_yᵀ) Hᵀ (e_x, e_y the
+    pupil axes):
+
+        Σ = s₂² · M C Mᵀ,                          M = I − r mᵀ / (m·r),
+        E[δq] = s₂ · (r · mᵀCm / (m·r)² − C m / (m·r))
+
+    (x, y components: the pattern coordinates on the local tangent plane), plus the lift of a
+    curved screen over its tangent plane, ½·tr(KΣ) along the ray (K the height's Hessian).
+
+    The centroid offset E[δq] — the central projection's curvature — is O(D²): it scales with
+    1/N², points where the oblique reflected bundle meets the screen farther out, and shifts the
+    fringe phase (the footprint is no longer centred on the chief ray).
+
+    Returns
+    -------
+    cov_mm2 : ndarray (H, W, 2, 2)
+    centroid_mm : ndarray (H, W, 2)
+        NaN where the pixel was not traced.
     """
     d, r, s1, s2 = view_geometry(T_world_cam, T_world_sample, T_world_screen, p_sample_mm, q_screen_mm)
     R_screen_cam = (T_world_screen.inv() @ T_world_cam).rotation
@@ -78,15 +101,63 @@ def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransfo
     n = r - d
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     H = eye - 2.0 * n[..., :, None] * n[..., None, :]
-    Pd = eye - d[..., :, None] * d[..., None, :]
-    M = eye - r[..., :, None] * np.array([0.0, 0.0, 1.0])[None, :] / r[..., 2, None, None]
-    A = np.einsum("...ij,...jk,...kl->...il", M, H, Pd)  # δq / s₂ per unit δd
-    # Columns: the images of the pupil axes; Σ = c · Σ_axes (A e)(A e)ᵀ.
-    ax = A @ ex
-    ay = A @ ey
-    c = (aperture_mm**2 / 16.0) * (s2 / s1) ** 2
-    cov = c[..., None, None] * (ax[..., :2, None] * ax[..., None, :2] + ay[..., :2, None] * ay[..., None, :2])
-    return cov
+    hx = H @ ex
+    hy = H @ ey
+    C = ((aperture_mm**2 / 16.0) / s1**2)[..., None, None] * (hx[..., :, None] * hx[..., None, :]
+                                                             + hy[..., :, None] * hy[..., None, :])
+    mz = screen_normal(q_screen_mm, screen_surface)
+    rz = np.sum(r * mz, axis=-1)
+    M = eye - r[..., :, None] * mz[..., None, :] / rz[..., None, None]
+    cov3 = (s2**2)[..., None, None] * np.einsum("...ij,...jk,...lk->...il", M, C, M)
+    Cm = np.einsum("...ij,...j->...i", C, mz)
+    mCm = np.sum(mz * Cm, axis=-1)
+    centroid = s2[..., None] * (r * (mCm / rz**2)[..., None] - Cm / rz[..., None])
+    cov = cov3[..., :2, :2]
+    if screen_surface is not None:
+        # The screen's curvature K (Hessian of its height) lifts the surface by ½·δqᵀKδq over
+        # the tangent plane: the ray meets it λ = ½·δqᵀKδq / (n·r) further on (n = (−h_x, −h_y, 1)).
+        K = screen_hessian(q_screen_mm, screen_surface)
+        n_un = mz / mz[..., 2:3]
+        lam = 0.5 * np.einsum("...ij,...ij->...", K, cov) / np.sum(n_un * r, axis=-1)
+        centroid = centroid + lam[..., None] * r
+    return cov, centroid[..., :2]
+
+
+def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
+                       p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float,
+                       screen_surface=None) -> np.ndarray:
+    """Covariance (mm², screen frame x, y) of the defocus footprint on the screen, (H, W, 2, 2)
+    (:func:`defocus_moments`); ``aperture_mm`` is D = focal length / f-number."""
+    return defocus_moments(T_world_cam, T_world_sample, T_world_screen, p_sample_mm, q_screen_mm, aperture_mm,
+                           screen_surface)[0]
+
+
+def screen_hessian(q_screen_mm: np.ndarray, screen_surface, step_mm: float = 1.0) -> np.ndarray:
+    """Hessian of the screen height at the traced points, (H, W, 2, 2) 1/mm (central differences
+    of the spline's analytic gradient over ±``step_mm``; 0 where not traced)."""
+    q = np.asarray(q_screen_mm, dtype=float)
+    out = np.zeros(q.shape[:-1] + (2, 2))
+    ok = np.isfinite(q).all(-1)
+    x, y = q[ok][:, 0], q[ok][:, 1]
+    gx = (screen_surface.gradient(x + step_mm, y) - screen_surface.gradient(x - step_mm, y)) / (2 * step_mm)
+    gy = (screen_surface.gradient(x, y + step_mm) - screen_surface.gradient(x, y - step_mm)) / (2 * step_mm)
+    K = np.stack([gx, gy], axis=-1)  # K[i, j] = ∂(∂h/∂x_i)/∂x_j
+    out[ok] = 0.5 * (K + np.swapaxes(K, -1, -2))
+    return out
+
+
+def screen_normal(q_screen_mm: np.ndarray, screen_surface=None) -> np.ndarray:
+    """Unit normal of the screen at the traced points (screen frame), (H, W, 3); e_z for a
+    plane (``screen_surface`` None) and where the point is not traced."""
+    q = np.asarray(q_screen_mm, dtype=float)
+    out = np.zeros(q.shape)
+    out[..., 2] = 1.0
+    if screen_surface is None:
+        return out
+    ok = np.isfinite(q).all(-1)
+    nrm = np.asarray(screen_surface.normal(q[ok][:, 0], q[ok][:, 1]), dtype=float)
+    out[ok] = nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)  # (−h_x, −h_y, 1): z > 0
+    return out
 
 
 def pixel_jacobian(screen_xy_mm: np.ndarray) -> np.ndarray:
