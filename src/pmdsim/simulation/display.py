@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..evaluation.response import IntensityResponse
@@ -74,18 +75,37 @@ def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_x
     and, if given, by the pixel-area transfer (``sinc_args`` (H, W, 2, 2): the Jacobian
     d(screen)/d(pixel), rows x and y).
     """
-    xy = np.asarray(screen_xy_mm, dtype=float)
-    var = np.asarray(var_xy_mm2, dtype=float)
+    xy = np.ascontiguousarray(screen_xy_mm, dtype=float)
+    var = np.ascontiguousarray(var_xy_mm2, dtype=float)
     w = float(np.sqrt(fill_factor))
     out = np.ones(xy.shape[:2])
     if w >= 1.0:
         return out
-    for a in range(2):
-        acc = np.full(xy.shape[:2], w)
-        for m in range(1, n_harmonics + 1):
-            t = np.exp(-2.0 * np.pi**2 * m**2 * var[..., a] / pitch_mm**2)
-            if sinc_args is not None:
-                t = t * np.sinc(m * sinc_args[..., a, 0] / pitch_mm) * np.sinc(m * sinc_args[..., a, 1] / pitch_mm)
-            acc += 2.0 * w * np.sinc(m * w) * t * np.cos(2.0 * np.pi * m * (xy[..., a] - 0.5 * pitch_mm) / pitch_mm)
-        out *= acc / w
-    return np.where(np.isfinite(out), out, 1.0)
+    jac = np.zeros((1, 1, 2, 2)) if sinc_args is None else np.ascontiguousarray(sinc_args, dtype=float)
+    _black_matrix_kernel(xy, var, jac, sinc_args is not None, float(pitch_mm), w, int(n_harmonics), out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, out):
+    h, wd = out.shape
+    for v in numba.prange(h):
+        for u in range(wd):
+            f = 1.0
+            for a in range(2):
+                c = xy[v, u, a]
+                if not np.isfinite(c):
+                    f = 1.0
+                    break
+                acc = w
+                for m in range(1, n_harmonics + 1):
+                    t = np.exp(-2.0 * np.pi**2 * m * m * var[v, u, a] / (pitch * pitch))
+                    if use_jac:
+                        for j in range(2):
+                            x = np.pi * m * jac[v, u, a, j] / pitch
+                            if x != 0.0:
+                                t *= np.sin(x) / x
+                    xw = np.pi * m * w
+                    acc += 2.0 * w * (np.sin(xw) / xw) * t * np.cos(2.0 * np.pi * m * (c - 0.5 * pitch) / pitch)
+                f *= acc / w
+            out[v, u] = f

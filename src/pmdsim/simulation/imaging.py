@@ -28,7 +28,7 @@ import numpy as np
 from ..setup import ImagingSetup, Setup
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
-from .optics import defocus_moments, pixel_jacobian, screen_normal, view_geometry
+from .optics import defocus_moments, pixel_jacobian
 from .sensor import SensorModel
 from .trace import Mapping
 
@@ -88,16 +88,16 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
     if needs_points(setup):
         if mapping.p_sample_mm is None or mapping.q_screen_mm is None:
             raise ValueError("defocus and angular emission need a mapping traced with store_points=True")
+        aperture = 0.0 if im.f_number is None else im.focal_length_mm / im.f_number
+        cov, centroid, cos_view = defocus_moments(cs.T_world_cam, T_ws, setup.screen.T_world_screen,
+                                                  mapping.p_sample_mm, mapping.q_screen_mm, aperture,
+                                                  setup.screen.surface)
         if im.f_number is not None:
-            cov, centroid = defocus_moments(cs.T_world_cam, T_ws, setup.screen.T_world_screen, mapping.p_sample_mm,
-                                            mapping.q_screen_mm, im.focal_length_mm / im.f_number,
-                                            setup.screen.surface)
             var = np.stack([cov[..., 0, 0], cov[..., 1, 1]], axis=-1)
             centroid = np.ascontiguousarray(np.where(np.isfinite(centroid), centroid, 0.0))
+        else:
+            centroid = None
         if im.emission_exponent is not None:
-            _, r, _, _ = view_geometry(cs.T_world_cam, T_ws, setup.screen.T_world_screen, mapping.p_sample_mm,
-                                       mapping.q_screen_mm)
-            cos_view = np.sum(r * screen_normal(mapping.q_screen_mm, setup.screen.surface), axis=-1)
             radiance = radiance * emission_falloff(cos_view, im.emission_exponent)
     var = np.where(np.isfinite(var), var, 0.0)
     jac = pixel_jacobian(xy) if im.pixel_area else None
@@ -139,21 +139,35 @@ def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, us
             c1 = np.cos(phi)
             s1 = np.sin(phi)
             e1 = np.exp(-0.5 * k1 * k1 * var[v, u])
+            e2 = e1 * e1
+            step = e1  # e1^(2m − 1)
+            gauss = 1.0  # e1^(m²) = Π_{j ≤ m} e1^(2j − 1)
+            # sinc(m·x) = sin(m x)/(m x), sin(m x) by the Chebyshev recurrence
+            # sin((m+1)x) = 2 cos x · sin(m x) − sin((m−1)x): one sine and cosine per factor.
+            xa = np.pi * jac[v, u, 0] / period if use_jac else 0.0
+            xb = np.pi * jac[v, u, 1] / period if use_jac else 0.0
+            xh = np.pi * hold / period
+            ca, sa, sa0 = np.cos(xa), np.sin(xa), 0.0
+            cb, sb, sb0 = np.cos(xb), np.sin(xb), 0.0
+            ch, sh, sh0 = np.cos(xh), np.sin(xh), 0.0
             cn[0] = 1.0
             sn[0] = 0.0
             for m in range(1, kmax + 1):
                 cn[m] = cn[m - 1] * c1 - sn[m - 1] * s1
                 sn[m] = sn[m - 1] * c1 + cn[m - 1] * s1
-                tm = e1 ** (m * m)
-                if use_jac:
-                    for j in range(2):
-                        x = np.pi * m * jac[v, u, j] / period
-                        if x != 0.0:
-                            tm *= np.sin(x) / x
-                if hold > 0.0:
-                    x = np.pi * m * hold / period
-                    tm *= np.sin(x) / x
+                gauss *= step
+                step *= e2
+                tm = gauss
+                if xa != 0.0:
+                    tm *= sa / (m * xa)
+                if xb != 0.0:
+                    tm *= sb / (m * xb)
+                if xh != 0.0:
+                    tm *= sh / (m * xh)
                 t[m] = coef[m] * tm
+                sa, sa0 = 2.0 * ca * sa - sa0, sa
+                sb, sb0 = 2.0 * cb * sb - sb0, sb
+                sh, sh0 = 2.0 * ch * sh - sh0, sh
             g = radiance[v, u] * scale
             for k in range(n):
                 s = coef[0]

@@ -32,11 +32,12 @@ sinc(J_a,u/p)·sinc(J_a,v/p), sinc(x) = sin(πx)/(πx).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..geometry.transform import RigidTransform
 
-__all__ = ["defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "view_geometry"]
+__all__ = ["defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "screen_derivatives", "view_geometry"]
 
 
 def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
@@ -92,35 +93,101 @@ def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform,
     -------
     cov_mm2 : ndarray (H, W, 2, 2)
     centroid_mm : ndarray (H, W, 2)
-        NaN where the pixel was not traced.
+    cos_view : ndarray (H, W)
+        Cosine of the angle between the reflected ray and the screen normal (for the angular
+        emission; computed in the same pass). All NaN where the pixel was not traced.
     """
-    d, r, s1, s2 = view_geometry(T_world_cam, T_world_sample, T_world_screen, p_sample_mm, q_screen_mm)
-    R_screen_cam = (T_world_screen.inv() @ T_world_cam).rotation
-    ex, ey = R_screen_cam[:, 0], R_screen_cam[:, 1]  # the pupil plane's axes (screen frame)
-    eye = np.eye(3)
-    n = r - d
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    H = eye - 2.0 * n[..., :, None] * n[..., None, :]
-    hx = H @ ex
-    hy = H @ ey
-    C = ((aperture_mm**2 / 16.0) / s1**2)[..., None, None] * (hx[..., :, None] * hx[..., None, :]
-                                                             + hy[..., :, None] * hy[..., None, :])
-    mz = screen_normal(q_screen_mm, screen_surface)
-    rz = np.sum(r * mz, axis=-1)
-    M = eye - r[..., :, None] * mz[..., None, :] / rz[..., None, None]
-    cov3 = (s2**2)[..., None, None] * np.einsum("...ij,...jk,...lk->...il", M, C, M)
-    Cm = np.einsum("...ij,...j->...i", C, mz)
-    mCm = np.sum(mz * Cm, axis=-1)
-    centroid = s2[..., None] * (r * (mCm / rz**2)[..., None] - Cm / rz[..., None])
-    cov = cov3[..., :2, :2]
-    if screen_surface is not None:
-        # The screen's curvature K (Hessian of its height) lifts the surface by ½·δqᵀKδq over
-        # the tangent plane: the ray meets it λ = ½·δqᵀKδq / (n·r) further on (n = (−h_x, −h_y, 1)).
-        K = screen_hessian(q_screen_mm, screen_surface)
-        n_un = mz / mz[..., 2:3]
-        lam = 0.5 * np.einsum("...ij,...ij->...", K, cov) / np.sum(n_un * r, axis=-1)
-        centroid = centroid + lam[..., None] * r
-    return cov, centroid[..., :2]
+    T_screen_world = T_world_screen.inv()
+    p = np.ascontiguousarray((T_screen_world @ T_world_sample).apply(p_sample_mm), dtype=float)
+    q = np.ascontiguousarray(q_screen_mm, dtype=float)
+    o = np.ascontiguousarray(T_screen_world.apply(T_world_cam.translation), dtype=float)
+    R_screen_cam = (T_screen_world @ T_world_cam).rotation
+    ex = np.ascontiguousarray(R_screen_cam[:, 0])  # the pupil plane's axes (screen frame)
+    ey = np.ascontiguousarray(R_screen_cam[:, 1])
+    shape = q.shape[:-1]
+    grad, hess = screen_derivatives(q, screen_surface)
+    cov = np.empty(shape + (2, 2))
+    centroid = np.empty(shape + (2,))
+    cos_view = np.empty(shape)
+    _moments_kernel(p.reshape(-1, 3), q.reshape(-1, 3), o, ex, ey, grad.reshape(-1, 2), hess.reshape(-1, 3),
+                    float(aperture_mm), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2), cos_view.reshape(-1))
+    return cov, centroid, cos_view
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_view):
+    """Per pixel: the footprint covariance and centroid of :func:`defocus_moments` (flat arrays)."""
+    c0 = aperture * aperture / 16.0
+    for i in numba.prange(p.shape[0]):
+        dx = p[i, 0] - o[0]
+        dy = p[i, 1] - o[1]
+        dz = p[i, 2] - o[2]
+        s1 = np.sqrt(dx * dx + dy * dy + dz * dz)
+        rx = q[i, 0] - p[i, 0]
+        ry = q[i, 1] - p[i, 1]
+        rz = q[i, 2] - p[i, 2]
+        s2 = np.sqrt(rx * rx + ry * ry + rz * rz)
+        if not (np.isfinite(s1) and np.isfinite(s2)) or s1 == 0.0 or s2 == 0.0:
+            cos_view[i] = np.nan
+            for a in range(2):
+                centroid[i, a] = np.nan
+                for b in range(2):
+                    cov[i, a, b] = np.nan
+            continue
+        dx /= s1
+        dy /= s1
+        dz /= s1
+        rx /= s2
+        ry /= s2
+        rz /= s2
+        # Sample normal ∥ r − d; reflection H = I − 2nnᵀ applied to the pupil axes.
+        nx = rx - dx
+        ny = ry - dy
+        nz = rz - dz
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        nx /= nn
+        ny /= nn
+        nz /= nn
+        hxv = np.empty(3)
+        hyv = np.empty(3)
+        ax = ex[0] * nx + ex[1] * ny + ex[2] * nz
+        ay = ey[0] * nx + ey[1] * ny + ey[2] * nz
+        hxv[0] = ex[0] - 2.0 * ax * nx
+        hxv[1] = ex[1] - 2.0 * ax * ny
+        hxv[2] = ex[2] - 2.0 * ax * nz
+        hyv[0] = ey[0] - 2.0 * ay * nx
+        hyv[1] = ey[1] - 2.0 * ay * ny
+        hyv[2] = ey[2] - 2.0 * ay * nz
+        c = c0 / (s1 * s1)  # C = c·(hx hxᵀ + hy hyᵀ)
+        # Screen normal m ∝ (−h_x, −h_y, 1).
+        mx = -grad[i, 0]
+        my = -grad[i, 1]
+        mz = 1.0
+        mr = mx * rx + my * ry + mz * rz
+        cos_view[i] = mr / np.sqrt(mx * mx + my * my + 1.0)
+        mhx = mx * hxv[0] + my * hxv[1] + mz * hxv[2]
+        mhy = mx * hyv[0] + my * hyv[1] + mz * hyv[2]
+        # M v = v − r (m·v)/(m·r); Σ = s₂² c Σ_axes (M h)(M h)ᵀ.
+        ux = hxv[0] - rx * mhx / mr
+        uy = hxv[1] - ry * mhx / mr
+        vx = hyv[0] - rx * mhy / mr
+        vy = hyv[1] - ry * mhy / mr
+        k = s2 * s2 * c
+        sxx = k * (ux * ux + vx * vx)
+        sxy = k * (ux * uy + vx * vy)
+        syy = k * (uy * uy + vy * vy)
+        cov[i, 0, 0] = sxx
+        cov[i, 0, 1] = sxy
+        cov[i, 1, 0] = sxy
+        cov[i, 1, 1] = syy
+        # E[δq] = s₂ (r·mᵀCm/(m·r)² − Cm/(m·r)), Cm = c (hx (hx·m) + hy (hy·m)).
+        mcm = c * (mhx * mhx + mhy * mhy)
+        # Curved screen: + ½ tr(KΣ)/(m·r) · r (m unnormalised with m_z = 1).
+        lam = 0.5 * (hess[i, 0] * sxx + 2.0 * hess[i, 1] * sxy + hess[i, 2] * syy) / mr
+        cmx = c * (hxv[0] * mhx + hyv[0] * mhy)
+        cmy = c * (hxv[1] * mhx + hyv[1] * mhy)
+        centroid[i, 0] = s2 * (rx * mcm / (mr * mr) - cmx / mr) + lam * rx
+        centroid[i, 1] = s2 * (ry * mcm / (mr * mr) - cmy / mr) + lam * ry
 
 
 def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
@@ -129,35 +196,37 @@ def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransfo
     """Covariance (mm², screen frame x, y) of the defocus footprint on the screen, (H, W, 2, 2)
     (:func:`defocus_moments`); ``aperture_mm`` is D = focal length / f-number."""
     return defocus_moments(T_world_cam, T_world_sample, T_world_screen, p_sample_mm, q_screen_mm, aperture_mm,
-                           screen_surface)[0]
+                           screen_surface)[0]  # noqa: E501
 
 
-def screen_hessian(q_screen_mm: np.ndarray, screen_surface, step_mm: float = 1.0) -> np.ndarray:
-    """Hessian of the screen height at the traced points, (H, W, 2, 2) 1/mm (central differences
-    of the spline's analytic gradient over ±``step_mm``; 0 where not traced)."""
+def screen_derivatives(q_screen_mm: np.ndarray, screen_surface=None, step_mm: float = 0.5):
+    """Gradient (h_x, h_y) and Hessian (h_xx, h_xy, h_yy) of the screen height at the traced
+    points, (H, W, 2) and (H, W, 3) (1/mm); the Hessian by forward differences of the spline's
+    analytic gradient over ``step_mm``. 0 for a plane (``screen_surface`` None) and where the
+    point is not traced."""
     q = np.asarray(q_screen_mm, dtype=float)
-    out = np.zeros(q.shape[:-1] + (2, 2))
+    grad = np.zeros(q.shape[:-1] + (2,))
+    hess = np.zeros(q.shape[:-1] + (3,))
+    if screen_surface is None:
+        return grad, hess
     ok = np.isfinite(q).all(-1)
     x, y = q[ok][:, 0], q[ok][:, 1]
-    gx = (screen_surface.gradient(x + step_mm, y) - screen_surface.gradient(x - step_mm, y)) / (2 * step_mm)
-    gy = (screen_surface.gradient(x, y + step_mm) - screen_surface.gradient(x, y - step_mm)) / (2 * step_mm)
-    K = np.stack([gx, gy], axis=-1)  # K[i, j] = ∂(∂h/∂x_i)/∂x_j
-    out[ok] = 0.5 * (K + np.swapaxes(K, -1, -2))
-    return out
+    g0 = screen_surface.gradient(x, y)
+    gx = screen_surface.gradient(x + step_mm, y)
+    gy = screen_surface.gradient(x, y + step_mm)
+    grad[ok] = g0
+    hess[ok] = np.stack([(gx[:, 0] - g0[:, 0]) / step_mm, 0.5 * ((gx[:, 1] - g0[:, 1]) + (gy[:, 0] - g0[:, 0])) / step_mm,
+                         (gy[:, 1] - g0[:, 1]) / step_mm], axis=-1)
+    return grad, hess
 
 
-def screen_normal(q_screen_mm: np.ndarray, screen_surface=None) -> np.ndarray:
+def screen_normal(q_screen_mm: np.ndarray, screen_surface=None, grad=None) -> np.ndarray:
     """Unit normal of the screen at the traced points (screen frame), (H, W, 3); e_z for a
-    plane (``screen_surface`` None) and where the point is not traced."""
-    q = np.asarray(q_screen_mm, dtype=float)
-    out = np.zeros(q.shape)
-    out[..., 2] = 1.0
-    if screen_surface is None:
-        return out
-    ok = np.isfinite(q).all(-1)
-    nrm = np.asarray(screen_surface.normal(q[ok][:, 0], q[ok][:, 1]), dtype=float)
-    out[ok] = nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)  # (−h_x, −h_y, 1): z > 0
-    return out
+    plane (``screen_surface`` None) and where the point is not traced. ``grad`` may pass the
+    gradient of :func:`screen_derivatives`."""
+    g = screen_derivatives(q_screen_mm, screen_surface)[0] if grad is None else grad
+    n = np.concatenate([-g, np.ones(g.shape[:-1] + (1,))], axis=-1)  # (−h_x, −h_y, 1): z > 0
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 def pixel_jacobian(screen_xy_mm: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from ..evaluation.pipeline import decode_images
 from ..setup import Setup
+from ..simulation.imaging import needs_points
 from ..simulation.render import render_images
 from .experiment1 import Progress
 
@@ -38,10 +39,10 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
             if progress is not None:
                 progress(f"pose {k} ({label}), camera {cam}")
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface)
+                             truth.screen.surface, store_points=needs_points(truth))
             images: dict = {}
             # One independent noise stream per pose (stream 0 is left to the sample's images).
-            for spec, img in render_images(truth, cam, m, stream=k + 1):
+            for spec, img in render_images(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror):
                 images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
                 if image_sink is not None:
                     image_sink(k, spec, img)

@@ -11,6 +11,7 @@ from ..calibration.setup_bridge import calibrated_setup, calibration_deviation, 
 from ..evaluation.metrics import surface_error_metrics
 from ..evaluation.pipeline import decode_images, evaluate_decoded
 from ..setup import Setup, default_setup
+from ..simulation.imaging import needs_points
 from ..simulation.render import render_images, trace_setup_camera
 from .calibration_data import simulate_calibration_observations
 from .experiment1 import CaseResult, Progress
@@ -103,7 +104,7 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
     for cam in truth.cameras:
         if progress is not None:
             progress(f"Δh = {bulge_mm:g} mm: reconstructing, camera {cam}")
-        m = trace_setup_camera(truth, cam, store_points=False)
+        m = trace_setup_camera(truth, cam, store_points=needs_points(truth))
         images: dict = {}
         for spec, img in render_images(truth, cam, m):
             images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
@@ -111,6 +112,8 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         del images
         c = model.cameras[cam].camera
         seed_px = (c.height_px // 2, c.width_px // 2)
+        if not decoded.valid[seed_px]:  # e.g. washed-out fringes (issue 13): the decoded pixel nearest the centre
+            seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
         p = rec.points

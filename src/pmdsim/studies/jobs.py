@@ -43,6 +43,7 @@ from ..io import (
 )
 from ..io.imageset import decode_camera, load_manifest
 from ..setup import Setup
+from ..simulation.imaging import needs_points
 from ..simulation.render import image_specs, render_images, trace_setup_camera
 from .figures import height_map_figure
 from .report import json_ready
@@ -111,7 +112,7 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
         entries = []
         with ThreadPoolExecutor(max_workers=2) as pool:
             for cam in setup.cameras:
-                m = trace_setup_camera(setup, cam)
+                m = trace_setup_camera(setup, cam, store_points=needs_points(setup))
                 mappings[cam] = m
                 _tick(progress, f"traced {cam}")
                 futures = []
