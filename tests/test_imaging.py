@@ -340,3 +340,26 @@ def test_monte_carlo_slope_scatter_matches_the_decoder_sigma_propagated_to_the_n
     for a in range(2):  # the normal's x and y components: the slopes
         ratio = np.sqrt(np.mean(mc[ok, a]) / np.mean(cov[ok, a, a]))
         assert abs(ratio - 1) < 0.10, ratio
+
+
+def test_saturation_is_flagged_where_the_full_well_is_reached(base, mapping):
+    """Exposure 1.06 (white at 106 % of the full well), shot noise negligible (full well 1e12 e⁻):
+    a pixel saturates iff 1.06·(A + B·cos(φ − δ_k)) ≥ 1 for one of its samples (closed form
+    from the traced phase), and the decoder flags exactly those pixels SATURATED."""
+    from pmdsim.evaluation.phase import PhaseFlag
+
+    s = base.with_imaging(bit_depth=12, full_well_e=1e12, exposure=1.06)
+    dec = decode_images(s, _images(s, mapping))
+    seq = s.patterns.sequence
+    shifts = 2 * np.pi * np.arange(seq.n_shifts) / seq.n_shifts
+    level = np.zeros(mapping.valid.shape)
+    for d, a in (("x", 0), ("y", 1)):
+        for p in seq.periods(d):
+            phi = 2 * np.pi * mapping.screen_xy_mm[..., a] / p
+            level = np.maximum(level, (1.06 * (seq.mean_level + seq.amplitude * np.cos(phi[..., None] - shifts))).max(-1))
+    sat = (dec.flags & PhaseFlag.SATURATED) != 0
+    margin = 1.0 / 4095  # rounding: levels within a grey level of full scale may go either way
+    ok = mapping.valid & (np.abs(level - 1.0) > margin)
+    assert sat[ok].sum() > 1000 and (~sat[ok]).sum() > 1000
+    np.testing.assert_array_equal(sat[ok], level[ok] >= 1.0)
+    assert not dec.valid[sat].any()
