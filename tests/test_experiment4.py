@@ -70,12 +70,12 @@ def test_unknown_effect_is_a_usage_error(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def test_slope_metrics_of_a_tilted_plane_error():
-    """A height error e = a·x + b·y has |∇e| = √(a² + b²) everywhere (closed form)."""
-    v, u = np.mgrid[0:20, 0:30].astype(float)
-    x, y = 1.3 * u + 0.2 * v, -0.1 * u + 0.9 * v  # a sheared grid of points
-    pts = np.stack([x, y, np.zeros_like(x)], -1)
-    a, b = 2e-6, -3e-6
-    m = slope_error_metrics(pts, a * x + b * y)
-    assert m["slope_rms_urad"] == pytest.approx(np.hypot(a, b) * 1e6, rel=1e-9)
-    assert m["slope_max_urad"] == pytest.approx(np.hypot(a, b) * 1e6, rel=1e-9)
+def test_slope_metrics_of_tilted_normals():
+    """Normals tilted by known angles (closed form): the RMS and maximum of those angles."""
+    ang = np.array([[1e-6, 2e-6], [3e-6, np.nan]])
+    az = np.array([[0.3, 1.1], [-2.0, 0.0]])
+    n = np.stack([np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), -np.cos(ang)], -1)  # either orientation
+    m = slope_error_metrics(n)
+    a = ang[np.isfinite(ang)] * 1e6
+    assert m["slope_rms_urad"] == pytest.approx(np.sqrt(np.mean(a**2)), rel=1e-6)
+    assert m["slope_max_urad"] == pytest.approx(3.0, rel=1e-6)

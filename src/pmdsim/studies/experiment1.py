@@ -67,12 +67,13 @@ class CaseResult:
     height_error_mm: np.ndarray
     points_mm: np.ndarray
     valid: np.ndarray
+    normals: np.ndarray | None = None  # (H, W, 3) float32 reconstructed unit normals (issue 13's slope error)
 
     @classmethod
     def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":
         return cls(float(bulge_mm), camera, metrics, rec.method, tuple(int(v) for v in rec.seed_pixel),
                    bool(rec.converged), int(rec.iterations), rec.height_mm, height_error_mm,
-                   rec.points.astype(np.float32), rec.reconstructed)
+                   rec.points.astype(np.float32), rec.reconstructed, rec.normals.astype(np.float32))
 
     def as_record(self) -> dict:
         """The results.json object: the contract keys first, then the rest of the metrics."""

@@ -86,32 +86,35 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 )}
 
 
-def slope_error_metrics(points_mm: np.ndarray, height_error_mm: np.ndarray) -> dict[str, float]:
-    """Slope error of a height-error map: |∇e| per pixel from finite differences over the
-    reconstructed points (the 2 × 2 system ∂(x, y)/∂(u, v)·∇e = ∂e/∂(u, v)), in µrad.
+def slope_error_metrics(normals: np.ndarray, true_normal=(0.0, 0.0, 1.0)) -> dict[str, float]:
+    """Slope error of reconstructed normals against the true one (the sample plane's), in µrad.
+
+    The slope error of a pixel is the angle between its reconstructed normal and the true
+    normal (orientation ignored): what deflectometry measures, before any integration (the
+    integrated heights average neighbouring slopes and hide pixel-to-pixel slope noise).
 
     Parameters
     ----------
-    points_mm : ndarray (H, W, 3)
-    height_error_mm : ndarray (H, W), NaN outside the reconstruction
+    normals : ndarray (H, W, 3)
+        Reconstructed normals (NaN outside the reconstruction).
+    true_normal : array_like (3,)
+        The true normal in the same frame (default: the frame's z axis).
 
     Returns
     -------
     dict
-        ``slope_rms_urad`` (RMS of |∇e|) and ``slope_max_urad`` (its maximum).
+        ``slope_rms_urad`` (RMS of the angle) and ``slope_max_urad`` (its maximum).
     """
-    x, y, e = points_mm[..., 0], points_mm[..., 1], height_error_mm
-    gx = [np.gradient(a, axis=1) for a in (x, y, e)]
-    gy = [np.gradient(a, axis=0) for a in (x, y, e)]
-    J = np.stack([np.stack([gx[0], gx[1]], -1), np.stack([gy[0], gy[1]], -1)], -2)  # rows u, v
-    rhs = np.stack([gx[2], gy[2]], -1)
-    ok = np.isfinite(J).all((-1, -2)) & np.isfinite(rhs).all(-1)
-    ok &= np.abs(np.linalg.det(np.where(ok[..., None, None], J, np.eye(2)))) > 0
-    if ok.sum() < 3:
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    t = np.asarray(true_normal, dtype=float)
+    t = t / np.linalg.norm(t)
+    ok = np.isfinite(n).all(-1)
+    if ok.sum() < 1:
         return {"slope_rms_urad": float("nan"), "slope_max_urad": float("nan")}
-    g = np.linalg.solve(J[ok], rhs[ok][..., None])[..., 0]
-    mag = np.hypot(g[:, 0], g[:, 1]) * 1e6
-    return {"slope_rms_urad": float(np.sqrt(np.mean(mag**2))), "slope_max_urad": float(mag.max())}
+    n = n[ok] / np.linalg.norm(n[ok], axis=-1, keepdims=True)
+    # atan2(|n × t|, |n · t|): accurate for the µrad angles involved.
+    ang = np.arctan2(np.linalg.norm(np.cross(n, t), axis=-1), np.abs(n @ t)) * 1e6
+    return {"slope_rms_urad": float(np.sqrt(np.mean(ang**2))), "slope_max_urad": float(ang.max())}
 
 
 def experiment4_steps(base: Setup, effects: Sequence[str]) -> int:
@@ -150,7 +153,7 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
                                 "error": f"{type(exc).__name__}: {exc}", "imaging": eff.imaging})
             continue
         for c in e2.cases:
-            rec = {**c.as_record(), "effect": name, **slope_error_metrics(c.points_mm.astype(float), c.height_error_mm),
+            rec = {**c.as_record(), "effect": name, **slope_error_metrics(c.normals),
                    "calibration_rms_px": float(e2.result.rms_px), "calibration_converged": bool(e2.result.converged),
                    "imaging": eff.imaging}
             records.append(rec)
