@@ -251,7 +251,8 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
 def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """A simulated grey-level calibration series: uniform screens at ``imaging.grey_levels``
     equally spaced display levels, recorded through the setup's display and sensor model (a
-    ``patch_px`` × ``patch_px`` patch viewed normally, ``n_frames`` frames) and averaged.
+    ``patch_px`` × ``patch_px`` patch viewed normally, ``n_frames`` frames, its own noise stream)
+    and averaged.
 
     Returns
     -------
@@ -260,12 +261,19 @@ def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) ->
     camera_dn : ndarray (M,)
         Mean recorded grey levels.
     """
-    im = setup.imaging if setup.imaging is not None else ImagingSetup()
-    sensor = SensorModel.from_setup(setup)
+    p = setup.patterns
+    d, c = _grey_level_series(setup.imaging, p.bit_depth, p.noise_std, p.seed, patch_px, n_frames)
+    return d.copy(), c.copy()
+
+
+@lru_cache(maxsize=32)
+def _grey_level_series(im, bit_depth, noise_std, seed, patch_px, n_frames):
+    im = im if im is not None else ImagingSetup()
+    sensor = SensorModel.from_values(im, bit_depth, noise_std)
     resp = display_response(im.display_gamma, im.display_black_level)
     d = np.linspace(0.0, 1.0, im.grey_levels)
     r = d if resp is None else resp.forward(d)
-    rng = np.random.default_rng([setup.patterns.seed, 2**31 - 1])  # a stream of its own
+    rng = np.random.default_rng([seed, 2**31 - 1])  # a stream of its own
     shape = (patch_px, patch_px)
     coord = np.zeros(shape + (2,))
     ok = np.ones(shape, dtype=bool)
@@ -278,34 +286,11 @@ def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) ->
     return d, np.array(means)
 
 
-@lru_cache(maxsize=16)
-def _grey_level_response_cached(setup_key):
-    setup = setup_key[1]
+def grey_level_response(setup: Setup):
+    """The :class:`~pmdsim.evaluation.response.IntensityResponse` measured from
+    :func:`grey_level_series` (what the evaluation linearises with)."""
     from ..evaluation.response import IntensityResponse
 
     d, c = grey_level_series(setup)
     full = SensorModel.from_setup(setup).full_scale
     return IntensityResponse.from_samples(d, c, display_full_scale=1.0, camera_full_scale=full)
-
-
-class _Key:
-    """Hashes a setup by its TOML text (setups hold dicts and are not hashable)."""
-
-    def __init__(self, setup: Setup):
-        self.text = setup.to_toml()
-        self.setup = setup
-
-    def __hash__(self):
-        return hash(self.text)
-
-    def __eq__(self, other):
-        return self.text == other.text
-
-    def __getitem__(self, i):
-        return (self.text, self.setup)[i]
-
-
-def grey_level_response(setup: Setup):
-    """The :class:`~pmdsim.evaluation.response.IntensityResponse` measured from
-    :func:`grey_level_series` (what the evaluation linearises with); cached per setup."""
-    return _grey_level_response_cached(_Key(setup))

@@ -69,10 +69,15 @@ class SensorModel:
 
     @classmethod
     def from_setup(cls, setup: Setup) -> "SensorModel":
-        im = setup.imaging
-        bits = setup.patterns.bit_depth if im is None or im.bit_depth is None else im.bit_depth
+        """The sensor of ``setup.imaging`` with ``setup.patterns``' bit depth and noise."""
+        return cls.from_values(setup.imaging, setup.patterns.bit_depth, setup.patterns.noise_std)
+
+    @classmethod
+    def from_values(cls, im, pattern_bit_depth: int, noise_std: float) -> "SensorModel":
+        """From an :class:`~pmdsim.setup.ImagingSetup` (or None) and the pattern values."""
+        bits = pattern_bit_depth if im is None or im.bit_depth is None else im.bit_depth
         full = float(2**bits - 1)
-        extra = setup.patterns.noise_std ** 2
+        extra = float(noise_std) ** 2
         if im is None or im.full_well_e is None:
             return cls(bits, full, 0.0, math.inf, 0.0, extra)
         g = full / im.full_well_e if im.gain_dn_per_e is None else im.gain_dn_per_e
