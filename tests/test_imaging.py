@@ -363,3 +363,14 @@ def test_saturation_is_flagged_where_the_full_well_is_reached(base, mapping):
     assert sat[ok].sum() > 1000 and (~sat[ok]).sum() > 1000
     np.testing.assert_array_equal(sat[ok], level[ok] >= 1.0)
     assert not dec.valid[sat].any()
+
+
+def test_effects_are_reproducible_and_streams_independent(base, mapping):
+    s = base.with_imaging(bit_depth=12, full_well_e=10500.0, read_noise_e=6.0, display_gamma=2.2, f_number=8.0,
+                          pixel_area=True)
+    a = [img for _, img in render_images(s, CAM, mapping)]
+    b = [img for _, img in render_images(s, CAM, mapping)]
+    c = [img for _, img in render_images(s, CAM, mapping, stream=1)]
+    assert all(x.dtype == np.uint16 and x.max() <= 4095 for x in a)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not any(np.array_equal(x, y) for x, y in zip(a, c))  # another stream, other noise
