@@ -17,7 +17,6 @@ import os
 import time
 
 import numba
-import numpy as np
 
 from _common import best_of, dump_json, peak_rss_mb
 from pmdsim.evaluation.pipeline import decode_images

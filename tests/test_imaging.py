@@ -84,6 +84,27 @@ def test_everything_off_is_the_ideal_renderer_bit_for_bit(base, mapping, imaging
 
 
 # ------------------------------------------------------------------ optics
+def _pupil_quadrature(D, n_r=8, n_phi=16):
+    """Quadrature of the uniform disc of diameter D: Gauss–Legendre in u = r² (uniform on the
+    disc), equally spaced angles; exact for the low-order moments the tests take."""
+    x, w = np.polynomial.legendre.leggauss(n_r)
+    u = (x + 1) / 2 * (D / 2) ** 2
+    phi = 2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
+    r = np.sqrt(u)[:, None]
+    pts = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros((n_r, n_phi))], -1).reshape(-1, 3)
+    wts = np.repeat(w / 2 / n_phi, n_phi)
+    return pts, wts
+
+
+def _trace_pupil(s, m, v, u, pts):
+    cs = s.cameras[CAM]
+    p_cam = (cs.T_world_cam.inv() @ s.sample.T_world_sample).apply(m.p_sample_mm[v, u])
+    T_screen_sample = s.screen.T_world_screen.inv() @ s.sample.T_world_sample
+    return np.array([trace_rays((p_cam - ak)[None], np.ones(1, bool),
+                                s.sample.T_world_sample.inv() @ cs.T_world_cam @ RigidTransform(np.eye(3), ak),
+                                T_screen_sample, s.sample.surface, s.screen.surface).screen_xy_mm[0] for ak in pts])
+
+
 def test_defocus_footprint_matches_rays_traced_through_the_pupil(base, mapping):
     f_number, focal = 8.0, 25.0
     s = base.with_imaging(f_number=f_number, focal_length_mm=focal)
@@ -92,28 +113,15 @@ def test_defocus_footprint_matches_rays_traced_through_the_pupil(base, mapping):
     cs = s.cameras[CAM]
     cov = defocus_covariance(cs.T_world_cam, s.sample.T_world_sample, s.screen.T_world_screen,
                              mapping.p_sample_mm, mapping.q_screen_mm, focal / f_number, s.screen.surface)
-    # Pupil points: a fine square grid inside the disc of diameter D (uniform weighting).
-    D = focal / f_number
-    g = (np.arange(61) - 30) / 60 * D
-    ax, ay = np.meshgrid(g, g)
-    inside = ax**2 + ay**2 <= (D / 2) ** 2
-    a = np.stack([ax[inside], ay[inside], np.zeros(inside.sum())], axis=-1)
-    T_cam_world = cs.T_world_cam.inv()
-    T_screen_sample = s.screen.T_world_screen.inv() @ s.sample.T_world_sample
+    pts, wts = _pupil_quadrature(focal / f_number)
     for v, u in [(20, 30), (75, 120), (130, 200)]:
         assert mapping.valid[v, u]
-        p_cam = (T_cam_world @ s.sample.T_world_sample).apply(mapping.p_sample_mm[v, u])
-        hits = []
-        for ak in a:
-            T_sample_pupil = s.sample.T_world_sample.inv() @ cs.T_world_cam @ RigidTransform(np.eye(3), ak)
-            m = trace_rays((p_cam - ak)[None], np.ones(1, bool), T_sample_pupil, T_screen_sample,
-                           s.sample.surface, s.screen.surface)
-            hits.append(m.screen_xy_mm[0])
-        hits = np.array(hits)
-        ref = np.cov(hits.T, bias=True)
-        # First-order model: relative error O((D/s)²) ≈ 1e-4; the grid's discretisation ≈ 1e-3.
-        np.testing.assert_allclose(cov[v, u], ref, rtol=0.01, atol=0.01 * np.abs(ref).max())
-        np.testing.assert_allclose(hits.mean(axis=0), mapping.screen_xy_mm[v, u], atol=0.01 * np.sqrt(ref.max()))
+        hits = _trace_pupil(s, mapping, v, u, pts)
+        mean = wts @ hits
+        ref = np.einsum("k,ki,kj->ij", wts, hits - mean, hits - mean)
+        # First-order model: relative error O((D/s)²) ≈ 1e-4; the quadrature is exact to ≈ 1e-6.
+        np.testing.assert_allclose(cov[v, u], ref, rtol=1e-3, atol=1e-3 * np.abs(ref).max())
+        np.testing.assert_allclose(mean, mapping.screen_xy_mm[v, u], atol=0.01 * np.sqrt(ref.max()))
 
 
 def test_pixel_jacobian_is_numpy_gradient_in_the_interior(mapping):
@@ -259,30 +267,18 @@ def test_curved_sample_phase_bias_sign_and_scaling(base):
     the decoded noise-free 16-bit images."""
     s = _dome(base.with_patterns(bit_depth=16, periods_x_mm=(720.0, 48.0, 8.0), periods_y_mm=(420.0, 28.0, 8.0)), 2.0)
     m = trace_setup_camera(s, CAM, store_points=True)
-    cs = s.cameras[CAM]
     pix = [(20, 30), (75, 120), (130, 200)]
-    T_cam_world = cs.T_world_cam.inv()
-    T_screen_sample = s.screen.T_world_screen.inv() @ s.sample.T_world_sample
     biases = {}
     for fn in (4.0, 8.0):
         si = s.with_imaging(f_number=fn)
         maps = imaging_maps(si, CAM, m)
         sig = np.sqrt(maps.var_xy_mm2[..., 0][m.valid])
         assert sig.max() / sig.min() > 1.3  # the blur spot varies over the image
-        D = si.imaging.focal_length_mm / fn
-        g = (np.arange(41) - 20) / 40 * D
-        ax, ay = np.meshgrid(g, g)
-        inside = ax**2 + ay**2 <= (D / 2) ** 2
-        a = np.stack([ax[inside], ay[inside], np.zeros(inside.sum())], axis=-1)
+        pts, wts = _pupil_quadrature(si.imaging.focal_length_mm / fn)
         for v, u in pix:
-            p_cam = (T_cam_world @ s.sample.T_world_sample).apply(m.p_sample_mm[v, u])
-            hits = np.array([trace_rays((p_cam - ak)[None], np.ones(1, bool),
-                                        s.sample.T_world_sample.inv() @ cs.T_world_cam @ RigidTransform(np.eye(3), ak),
-                                        T_screen_sample, s.sample.surface, s.screen.surface).screen_xy_mm[0]
-                             for ak in a])
-            traced = hits.mean(axis=0) - m.screen_xy_mm[v, u]
-            # Next order O((D/s)²) ≈ 1e-4 relative; the pupil grid's discretisation ≈ 1e-3.
-            np.testing.assert_allclose(maps.centroid_xy_mm[v, u, 0], traced[0], rtol=0.02)
+            traced = wts @ _trace_pupil(s, m, v, u, pts) - m.screen_xy_mm[v, u]
+            # Next order O((D/s)²) ≈ 1e-4 relative; the quadrature is exact to ≈ 1e-6.
+            np.testing.assert_allclose(maps.centroid_xy_mm[v, u, 0], traced[0], rtol=0.01)
         biases[fn] = maps.centroid_xy_mm[..., 0]
         # The decoded coordinate carries the bias (noise-free 16 bit: rounding ≤ p/(2π·B)).
         dec = decode_images(si, _images(si, m))
