@@ -34,6 +34,7 @@ from .evaluation.pipeline import decode_images, evaluate_decoded
 from .evaluation.reconstruction import Reconstruction, reconstruct
 from .evaluation.registration import Registration
 from .setup import Setup
+from .simulation.imaging import decoder_response
 from .simulation.render import render_images, trace_setup_camera
 from .simulation.trace import Mapping
 
@@ -88,7 +89,7 @@ def decode(images: dict, setup: Setup) -> ScreenCoordinates:
     """
     if isinstance(images, Measurement):
         images = images.images
-    return decode_images(setup, images)
+    return decode_images(setup, images, response=decoder_response(setup))
 
 
 @dataclass(frozen=True, eq=False)

@@ -167,7 +167,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1", "2", "3"]))
+@click.argument("number", type=click.Choice(["1", "2", "3", "4"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
@@ -186,21 +186,27 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
               help="Experiment 3: sags of a non-planar calibration mirror in µm (empty for none).")
 @click.option("--sag-bulge-mm", type=float, default=3.0, show_default=True,
               help="Experiment 3: the screen bulge Δh of the mirror-sag scenarios.")
+@click.option("--effects", default=None,
+              help="Experiment 4: comma-separated effects (default: all; see docs/experiments.md).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, seed, write_images, grids,
-                   deformations, mirror_sags_um, sag_bulge_mm, force, quiet) -> None:
+                   deformations, mirror_sags_um, sag_bulge_mm, effects, force, quiet) -> None:
     """Run one of the paper's experiments.
 
     1 = perfect setup knowledge, planar screen model (Table 2, Fig. 4);
     2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5);
     3 = beyond the paper (§5): calibrate free-form screen models of increasing flexibility, with
-    the paper's bulges, mismatching deformations and a non-planar calibration mirror.
+    the paper's bulges, mismatching deformations and a non-planar calibration mirror;
+    4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen).
     """
     from .studies.experiment3 import SCREEN_DEFORMATIONS
     from .studies.runs import experiment_steps, write_experiment, write_experiment3
 
     base = _load(setup_path, None)
+    if number == "4":
+        _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
+        return
     if number == "3":
         bulges = _parse_list(bulges_mm, float, "--bulges-mm") if bulges_mm.strip() else []
         sizes = _parse_list(grids, int, "--grids") if grids.strip() else []
@@ -274,6 +280,21 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
         click.echo("pmdsim: error: some cases have no result (workers lost); rerun the same command to compute them",
                    err=True)
         sys.exit(1)
+
+
+def _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet) -> None:
+    from .studies.experiment4 import EFFECTS, experiment4_steps, write_experiment4
+
+    names = list(EFFECTS) if effects is None else [e.strip() for e in effects.split(",") if e.strip()]
+    bad = [e for e in names if e not in EFFECTS]
+    if bad or not names:
+        raise click.BadParameter(f"--effects: unknown {bad}; expected some of {list(EFFECTS)}" if bad
+                                 else "--effects lists no effect")
+    with _bar(experiment4_steps(base, names), "experiment 4", quiet) as bar:
+        out = write_experiment4(out_dir, base, effects=names, downsample=downsample, method=method, seed=seed,
+                                force=force, command=_command(), progress=lambda msg: bar.update(1))
+    click.echo(out.table)
+    click.echo(out.summary(out_dir), err=True)
 
 
 def _parse_list(text: str, kind, option: str) -> list:

@@ -49,6 +49,7 @@ __all__ = [
     "unwrap_hierarchical",
     "decode_direction",
     "decode_screen_coordinates",
+    "sensor_noise_std",
 ]
 
 _TWO_PI = 2.0 * math.pi
@@ -1017,3 +1018,35 @@ def decode_screen_coordinates(
                     xy, flags, std, modulation, offset)
     return ScreenCoordinates(screen_xy_mm=xy, valid=flags == 0, flags=flags, std_xy_mm=std,
                              modulation=modulation, offset=offset)
+
+
+def sensor_noise_std(offset, gain_dn_per_e: float = 0.0, const_var_dn2: float = 0.0, dark_dn: float = 0.0,
+                     quantisation: bool = True) -> np.ndarray:
+    """Intensity noise σ_I (grey levels) of a shot- and read-noise-limited sensor, per pixel.
+
+    For use as ``noise_std`` of :func:`decode_direction` / :func:`decode_screen_coordinates`
+    (issue 13; EMVA 1288's linear sensor model): a sample of mean I has variance
+    g·(I − dark) + σ_c² (+ 1/12 for rounding), g the conversion gain (DN/e⁻, the shot-noise
+    variance per DN of signal) and σ_c² the signal-independent variance (read noise (g·σ_read)²
+    and any additive noise, DN²). The shot variance changes with the shift, g·B·cos(φ − δ_k),
+    but its contribution to Var(φ) ∝ Σ_k cos(φ − δ_k)·sin²(φ − δ_k) = Σ_k [cos(x_k) − cos(3x_k)]/4
+    vanishes for equally spaced N ≥ 4, so σ_φ = √(2/N)·σ_I/B holds exactly with σ_I taken at
+    the offset A (for N = 3 it is an approximation).
+
+    Parameters
+    ----------
+    offset : array_like (H, W)
+        Offset A per pixel (grey levels), e.g. the mean of the finest period's images.
+    gain_dn_per_e, const_var_dn2, dark_dn : float
+        Sensor values (0: no shot noise, no read noise, no dark offset).
+    quantisation : bool
+        Add the rounding variance 1/12.
+
+    Returns
+    -------
+    ndarray (H, W), float64
+        σ_I; finite and ≥ 0 (non-finite offsets count as dark).
+    """
+    a = np.asarray(offset, dtype=np.float64)
+    signal = np.clip(np.nan_to_num(a - dark_dn, nan=0.0), 0.0, None)
+    return np.sqrt(gain_dn_per_e * signal + const_var_dn2 + (1.0 / 12.0 if quantisation else 0.0))

@@ -18,9 +18,19 @@ from .registration import Registration, register
 __all__ = ["decode_images", "evaluate_decoded"]
 
 
-def decode_images(setup: Setup, images: dict) -> ScreenCoordinates:
+def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordinates:
     """Decode one camera's in-memory images ``{(direction, period_mm): [image per shift]}``
-    with the setup's fringe sequence (N-step phase + hierarchical unwrapping)."""
+    with the setup's fringe sequence (N-step phase + hierarchical unwrapping).
+
+    With ``setup.imaging`` effects on, the sensor-matched noise model is used and, if
+    ``imaging.linearise`` is set, the images are linearised with ``response`` (an
+    :class:`~pmdsim.setup.response.IntensityResponse`: a real instrument's measured grey-level
+    series, or :func:`pmdsim.simulation.imaging.decoder_response` for a simulated one).
+    """
+    if setup.imaging is not None and setup.imaging.any_on:
+        from .imaging_decode import decode_images_imaging  # sensor-matched noise model (issue 13)
+
+        return decode_images_imaging(setup, images, response=response)
     seq = setup.patterns.sequence
     full = float(2**setup.patterns.bit_depth - 1)
     xs = [np.stack(images[("x", p)]) for p in seq.periods_x_mm]

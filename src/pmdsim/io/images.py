@@ -20,7 +20,7 @@ def write_png(path: str | Path, image: np.ndarray, *, compress_level: int = 1) -
     if img.dtype == np.uint8:
         pil = Image.fromarray(img, mode="L")
     else:
-        pil = Image.fromarray(img.astype("<u2"), mode="I;16")
+        pil = Image.fromarray(img.astype("<u2"))  # mode I;16 (the mode argument fails on Pillow ≥ 13)
     pil.save(path, format="PNG", compress_level=compress_level)
 
 

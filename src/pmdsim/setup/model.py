@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +30,7 @@ __all__ = [
     "PatternSetup",
     "Setup",
     "CalibrationSetup",
+    "ImagingSetup",
     "default_setup",
     "SETUP_FORMAT",
 ]
@@ -139,6 +139,119 @@ class PatternSetup:
 
 
 @dataclass(frozen=True)
+class ImagingSetup:
+    """Image-formation effects beyond the paper's ideal camera (issue 13); ``None``/``False`` = off.
+
+    Units and conventions: docs/conventions.md, "Image formation". All effects off reproduce the
+    ideal renderer bit for bit. Noise is seeded by ``patterns.seed``.
+
+    Attributes
+    ----------
+    bit_depth : {8, 10, 12, 16} or None
+        Camera bit depth (None: ``patterns.bit_depth``); above 8 bit the images are uint16.
+    full_well_e : float or None
+        Full-well capacity in electrons; switches the sensor model (shot and read noise, dark
+        offset, gain, saturation) on.
+    exposure : float
+        Signal of a full-white, normally viewed screen as a fraction of the full well (> 0).
+    read_noise_e : float
+        Read noise σ in electrons (≥ 0).
+    dark_offset_dn : float
+        Dark offset in grey levels (DN) added to every sample (≥ 0).
+    gain_dn_per_e : float or None
+        Conversion gain DN per electron; None: (2^bits − 1)/full_well_e (the full well fills
+        the range).
+    display_gamma : float or None
+        Display response radiance ∝ black + (1 − black)·d^γ for commanded level d ∈ [0, 1].
+    display_black_level : float
+        Black level as a fraction of white (1 / contrast), in [0, 1).
+    linearise : bool
+        The evaluation linearises the images with the response measured from a simulated
+        grey-level series (``grey_levels`` uniform screens through the same sensor model).
+    grey_levels : int
+        Number of levels of that series (≥ 3).
+    emission_exponent : float or None
+        Screen radiance falls off with the viewing angle θ (from the screen normal) as cos^m θ.
+    screen_pixel_pitch_mm : float or None
+        Screen pixel pitch; switches the pixel structure (sample-and-hold, black matrix) on.
+    screen_fill_factor : float
+        Emitting fraction of a screen pixel's area, in (0, 1].
+    f_number : float or None
+        Lens f-number; switches defocus on (the camera is focused on the sample).
+    focal_length_mm : float
+        Lens focal length (the aperture diameter is focal_length_mm / f_number).
+    pixel_area : bool
+        Integrate the pattern over each camera pixel's footprint (box of one pixel).
+    """
+
+    bit_depth: int | None = None
+    full_well_e: float | None = None
+    exposure: float = 0.8
+    read_noise_e: float = 0.0
+    dark_offset_dn: float = 0.0
+    gain_dn_per_e: float | None = None
+    display_gamma: float | None = None
+    display_black_level: float = 0.0
+    linearise: bool = False
+    grey_levels: int = 17
+    emission_exponent: float | None = None
+    screen_pixel_pitch_mm: float | None = None
+    screen_fill_factor: float = 1.0
+    f_number: float | None = None
+    focal_length_mm: float = 25.0
+    pixel_area: bool = False
+
+    def __post_init__(self) -> None:
+        def num(name, lo=None, lo_open=False, hi=None, hi_open=False, optional=False):
+            v = getattr(self, name)
+            if v is None and optional:
+                return
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise SetupError(f"imaging.{name} must be a finite number, got {v!r}")
+            if lo is not None and (v <= lo if lo_open else v < lo):
+                raise SetupError(f"imaging.{name} must be {'>' if lo_open else '≥'} {lo}, got {v!r}")
+            if hi is not None and (v >= hi if hi_open else v > hi):
+                raise SetupError(f"imaging.{name} must be {'<' if hi_open else '≤'} {hi}, got {v!r}")
+
+        if self.bit_depth is not None and (isinstance(self.bit_depth, bool) or self.bit_depth not in (8, 10, 12, 16)):
+            raise SetupError(f"imaging.bit_depth must be one of [8, 10, 12, 16], got {self.bit_depth!r}")
+        num("full_well_e", 0, True, optional=True)
+        num("exposure", 0, True)
+        num("read_noise_e", 0)
+        num("dark_offset_dn", 0)
+        num("gain_dn_per_e", 0, True, optional=True)
+        num("display_gamma", 0, True, optional=True)
+        num("display_black_level", 0, False, 1, True)
+        num("emission_exponent", 0, optional=True)
+        num("screen_pixel_pitch_mm", 0, True, optional=True)
+        num("screen_fill_factor", 0, True, 1)
+        num("f_number", 0, True, optional=True)
+        num("focal_length_mm", 0, True)
+        for name in ("linearise", "pixel_area"):
+            if not isinstance(getattr(self, name), bool):
+                raise SetupError(f"imaging.{name} must be true or false, got {getattr(self, name)!r}")
+        if isinstance(self.grey_levels, bool) or not isinstance(self.grey_levels, int) or self.grey_levels < 3:
+            raise SetupError(f"imaging.grey_levels must be an integer ≥ 3, got {self.grey_levels!r}")
+
+    @property
+    def any_on(self) -> bool:
+        """True if any effect changes the images (False: the ideal renderer's images)."""
+        return any((self.bit_depth is not None, self.full_well_e is not None, self.display_gamma is not None,
+                    self.emission_exponent is not None, self.screen_pixel_pitch_mm is not None,
+                    self.f_number is not None, self.pixel_area))
+
+    def with_(self, **changes: Any) -> "ImagingSetup":
+        """The same effects with some values changed (validated)."""
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The ``[imaging]`` table: only values that differ from the defaults."""
+        default = ImagingSetup()
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if getattr(self, f.name) != getattr(default, f.name)}
+
+
+@dataclass(frozen=True)
 class CalibrationSetup:
     """The calibration mirror poses (paper §4): a planar front-surface mirror lying on the base
     table (the sample's pose), lifted parallel to it, and tilted about its x and y axes.
@@ -233,6 +346,7 @@ class Setup:
     sample: SampleSetup
     patterns: PatternSetup
     calibration: CalibrationSetup = field(default_factory=CalibrationSetup)
+    imaging: ImagingSetup | None = None
 
     def with_camera(self, name: str, **changes: Any) -> "Setup":
         """The same setup with one camera's intrinsics or pose changed.
@@ -356,6 +470,19 @@ class Setup:
         gx, gy, z = self.calibration.mirror_grid()
         return replace(self, sample=SampleSetup(Pose.from_transform(poses[index][1]), gx, gy, z))
 
+    def with_imaging(self, imaging: "ImagingSetup | None" = None, **changes: Any) -> "Setup":
+        """The same setup with image-formation effects (:class:`ImagingSetup`; None = none);
+        keywords change single values of the current (or default) effects."""
+        base = imaging if imaging is not None else (self.imaging if changes and self.imaging is not None
+                                                     else ImagingSetup())
+        if imaging is None and not changes:
+            return replace(self, imaging=None)
+        try:
+            new = replace(base, **changes)
+        except TypeError as e:
+            raise SetupError(f"imaging: {e}") from None
+        return replace(self, imaging=new)
+
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (the TOML document's content)."""
         cams = {}
@@ -413,6 +540,7 @@ class Setup:
                 "observation_stride_px": cal.observation_stride_px,
                 "mirror_sag_um": cal.mirror_sag_um,
             },
+            **({"imaging": self.imaging.as_dict()} if self.imaging is not None else {}),
         }
 
     def to_toml(self) -> str:

@@ -22,6 +22,7 @@ from .model import (
     SETUP_FORMAT_VERSION,
     CalibrationSetup,
     CameraSetup,
+    ImagingSetup,
     PatternSetup,
     Pose,
     SampleSetup,
@@ -36,7 +37,8 @@ __all__ = ["parse_setup", "load_setup", "dump_toml"]
 # ============================================================================ parsing
 #: The keys each table of a setup file may hold (for typo hints in error messages).
 _KNOWN_KEYS = {
-    "": ("format", "format_version", "cameras", "screen", "sample", "patterns", "calibration", "calibration_report"),
+    "": ("format", "format_version", "cameras", "screen", "sample", "patterns", "calibration", "calibration_report",
+         "imaging"),
     "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg"),
     "distortion": ("k1", "k2", "p1", "p2", "k3"),
     "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
@@ -44,6 +46,9 @@ _KNOWN_KEYS = {
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
                  "seed"),
     "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
+    "imaging": ("bit_depth", "full_well_e", "exposure", "read_noise_e", "dark_offset_dn", "gain_dn_per_e",
+                "display_gamma", "display_black_level", "linearise", "grey_levels", "emission_exponent",
+                "screen_pixel_pitch_mm", "screen_fill_factor", "f_number", "focal_length_mm", "pixel_area"),
 }
 
 
@@ -286,8 +291,10 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
         r.used.add("calibration")
         calibration = dc
     r.used.add("calibration_report")  # informational table written by `pmdsim calibrate`
+    imaging = _imaging(r.table_("imaging")) if r.has("imaging") else None
+    r.used.add("imaging")
     r.finish()
-    setup = Setup(cameras, screen, sample, patterns, calibration)
+    setup = Setup(cameras, screen, sample, patterns, calibration, imaging)
     try:  # build the surfaces now so that any remaining problem shows here, with its key
         setup.screen.surface
     except ValueError as e:
@@ -297,6 +304,30 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
     except ValueError as e:
         raise SetupError(f"sample: {e}") from None
     return setup
+
+
+def _imaging(r: _Reader) -> ImagingSetup:
+    """The optional ``[imaging]`` table (docs/conventions.md, "Image formation")."""
+    kw: dict[str, Any] = {}
+    if r.has("bit_depth"):
+        kw["bit_depth"] = r.integer("bit_depth", choices=(8, 10, 12, 16))
+    if r.has("grey_levels"):
+        kw["grey_levels"] = r.integer("grey_levels", minimum=3)
+    for k in ("linearise", "pixel_area"):
+        if r.has(k):
+            v = r.raw(k)
+            if not isinstance(v, bool):
+                raise SetupError(f"{r.key(k)} must be true or false, got {v!r}")
+            kw[k] = v
+    for k, rule in (("full_well_e", "positive"), ("exposure", "positive"), ("read_noise_e", "nonneg"),
+                    ("dark_offset_dn", "nonneg"), ("gain_dn_per_e", "positive"), ("display_gamma", "positive"),
+                    ("display_black_level", "nonneg"), ("emission_exponent", "nonneg"),
+                    ("screen_pixel_pitch_mm", "positive"), ("screen_fill_factor", "positive"),
+                    ("f_number", "positive"), ("focal_length_mm", "positive")):
+        if r.has(k):
+            kw[k] = r.number(k, **{rule: True})
+    r.finish()
+    return ImagingSetup(**kw)  # cross-field bounds (e.g. fill factor ≤ 1) name the key there
 
 
 def load_setup(path: str | Path) -> Setup:
@@ -332,6 +363,10 @@ _COMMENTS = {
     "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.\n"
     "mirror_sag_um: the mirror's flatness error, a paraboloid −s·(1 − r²/ρ²) (ρ = half the smaller side;\n"
     "+ = centre towards the cameras); 0 = a perfect plane, as the paper assumes.",
+    "imaging": "Image-formation effects (docs/conventions.md, \"Image formation\"); absent keys are off:\n"
+    "sensor (bit_depth 8/10/12/16, full_well_e, exposure, read_noise_e, dark_offset_dn, gain_dn_per_e),\n"
+    "display (display_gamma, display_black_level, linearise, grey_levels, emission_exponent,\n"
+    "screen_pixel_pitch_mm, screen_fill_factor), optics (f_number, focal_length_mm, pixel_area).",
     "patterns": "Fringes I_k = A + B·cos(2π·c/p − 2πk/N); mean_level A and amplitude B are fractions of full scale;\n"
     "periods coarsest first (the coarsest must cover the screen); noise_std in grey levels.",
 }

@@ -5,7 +5,9 @@
 * :mod:`.patterns` — rendering of phase-shifted fringes at 8/16 bit (numba kernels);
 * :mod:`.render` — a setup's camera traced and its fringe images rendered (the measurement).
 
-Image-formation effects (sensor noise, display response, blur) join here.
+* :mod:`.sensor`, :mod:`.display`, :mod:`.optics`, :mod:`.imaging` — realistic image formation
+  (issue 13: sensor noise and bit depth, display response and emission, screen pixels, defocus
+  and pixel-area blur applied analytically per harmonic), switched on by ``[imaging]``.
 May import: :mod:`pmdsim.errors`, :mod:`pmdsim.geometry`, :mod:`pmdsim.setup`.
 """
 

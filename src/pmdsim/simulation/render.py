@@ -68,16 +68,24 @@ def image_specs(setup: Setup, camera: str, *, extension: str = "png") -> list[Im
 
 
 def render_images(setup: Setup, camera: str, mapping: Mapping, *,
-                  stream: int | None = None) -> Iterator[tuple[ImageSpec, np.ndarray]]:
+                  stream: int | None = None, T_world_sample=None) -> Iterator[tuple[ImageSpec, np.ndarray]]:
     """Yield ``(spec, image)`` for every image of ``camera``; noise (if any) is seeded from
     the setup's seed and the camera's index, so the same setup gives the same images.
 
     ``stream`` (≥ 0) selects an independent noise stream for the same camera, e.g. one per
     calibration mirror pose, so that the noise of different image sets is uncorrelated.
+
+    With image-formation effects (``setup.imaging``, :mod:`.imaging`) the images are rendered
+    by :func:`~.imaging.render_period_imaging`; ``T_world_sample`` is then the pose of the
+    surface ``mapping`` was traced with (default: the setup's sample), and defocus or angular
+    emission need ``mapping`` traced with ``store_points=True``.
     """
     p = setup.patterns
     cam_index = list(setup.cameras).index(camera)
     key = [p.seed, cam_index] if stream is None else [p.seed, cam_index, int(stream)]
+    if setup.imaging is not None and setup.imaging.any_on:
+        yield from _render_images_imaging(setup, camera, mapping, key, T_world_sample)
+        return
     rng = np.random.default_rng(key) if p.noise_std > 0 else None
     stack = None
     for spec in image_specs(setup, camera):
@@ -85,4 +93,20 @@ def render_images(setup: Setup, camera: str, mapping: Mapping, *,
         if f.shift_index == 0:  # frames come in display order: all shifts of a period together
             stack = render_period(mapping.screen_xy_mm, mapping.valid, f.direction, f.period_mm, p.sequence,
                                   bit_depth=p.bit_depth, noise_std=p.noise_std, rng=rng)
+        yield spec, stack[f.shift_index]
+
+
+def _render_images_imaging(setup, camera, mapping, key, T_world_sample):
+    from .imaging import imaging_maps, render_period_imaging
+    from ..setup.sensor import SensorModel
+
+    sensor = SensorModel.from_setup(setup)
+    maps = imaging_maps(setup, camera, mapping, T_world_sample=T_world_sample)
+    rng = np.random.default_rng(key) if sensor.noisy else None
+    stack = None
+    for spec in image_specs(setup, camera):
+        f = spec.frame
+        if f.shift_index == 0:
+            stack = render_period_imaging(maps, mapping.screen_xy_mm, mapping.valid, f.direction, f.period_mm,
+                                          setup.patterns.sequence, sensor, rng)
         yield spec, stack[f.shift_index]

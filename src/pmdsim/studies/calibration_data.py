@@ -6,8 +6,10 @@ from a real instrument's decoded images.
 
 from __future__ import annotations
 
+from ..simulation.imaging import decoder_response
 from ..evaluation.pipeline import decode_images
 from ..setup import Setup
+from ..simulation.imaging import needs_points
 from ..simulation.render import render_images
 from .experiment1 import Progress
 
@@ -38,14 +40,14 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
             if progress is not None:
                 progress(f"pose {k} ({label}), camera {cam}")
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface)
+                             truth.screen.surface, store_points=needs_points(truth))
             images: dict = {}
             # One independent noise stream per pose (stream 0 is left to the sample's images).
-            for spec, img in render_images(truth, cam, m, stream=k + 1):
+            for spec, img in render_images(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror):
                 images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
                 if image_sink is not None:
                     image_sink(k, spec, img)
-            dec = decode_images(truth, images)
+            dec = decode_images(truth, images, response=decoder_response(truth))
             # The decoder's σ per pixel: the covariance's noise model (calibration, "Uncertainties").
             obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
                                                  screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm))
@@ -91,7 +93,7 @@ def observe_calibration_poses(truth: Setup, traced: list, stride: int = 1) -> li
         images: dict = {}
         for spec, img in render_images(truth, cam, m, stream=k + 1):
             images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        dec = decode_images(truth, images)
+        dec = decode_images(truth, images, response=decoder_response(truth))
         o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1, screen_std_xy_mm=dec.std_xy_mm)
         obs.append(Observations(cam, k, o.uv_px * stride, o.q_screen_mm, o.q_std_mm))
     return obs

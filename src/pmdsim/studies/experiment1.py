@@ -12,6 +12,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from ..simulation.imaging import decoder_response
 from ..evaluation.metrics import surface_error_metrics
 from ..evaluation.pipeline import decode_images, evaluate_decoded
 from ..evaluation.reconstruction import Reconstruction
@@ -67,12 +68,13 @@ class CaseResult:
     height_error_mm: np.ndarray
     p_sample_mm: np.ndarray
     reconstructed: np.ndarray
+    n_sample: np.ndarray | None = None  # (H, W, 3) float32 reconstructed unit normals (sample frame)
 
     @classmethod
     def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":
         return cls(float(bulge_mm), camera, metrics, rec.method, tuple(int(v) for v in rec.seed_pixel),
                    bool(rec.converged), int(rec.iterations), rec.height_mm, height_error_mm,
-                   rec.p_sample_mm.astype(np.float32), rec.reconstructed)
+                   rec.p_sample_mm.astype(np.float32), rec.reconstructed, rec.n_sample.astype(np.float32))
 
     def as_record(self) -> dict:
         """The results.json object: the contract keys first, then the rest of the metrics."""
@@ -107,7 +109,7 @@ def run_experiment1_case(bulge_mm: float, camera: str, *, base: Setup | None = N
         images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
         if image_sink is not None:
             image_sink(spec, img)
-    decoded = decode_images(truth, images)
+    decoded = decode_images(truth, images, response=decoder_response(truth))
     del images
     model = truth.with_bulge(0.0)  # perfect knowledge, except for the screen: a plane
     cam = truth.cameras[camera].camera

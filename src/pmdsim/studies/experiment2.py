@@ -7,10 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..simulation.imaging import decoder_response
 from ..calibration.setup_bridge import calibrated_setup, calibration_deviation, free_screen_model, nominal_setup
 from ..evaluation.metrics import surface_error_metrics
 from ..evaluation.pipeline import decode_images, evaluate_decoded
 from ..setup import Setup, default_setup
+from ..simulation.imaging import needs_points
 from ..simulation.render import render_images, trace_setup_camera
 from .calibration_data import simulate_calibration_observations
 from .experiment1 import CaseResult, Progress
@@ -103,14 +105,16 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
     for cam in truth.cameras:
         if progress is not None:
             progress(f"Δh = {bulge_mm:g} mm: reconstructing, camera {cam}")
-        m = trace_setup_camera(truth, cam, store_points=False)
+        m = trace_setup_camera(truth, cam, store_points=needs_points(truth))
         images: dict = {}
         for spec, img in render_images(truth, cam, m):
             images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        decoded = decode_images(truth, images)
+        decoded = decode_images(truth, images, response=decoder_response(truth))
         del images
         c = model.cameras[cam].camera
         seed_px = (c.height_px // 2, c.width_px // 2)
+        if not decoded.valid[seed_px]:  # e.g. washed-out fringes (issue 13): the decoded pixel nearest the centre
+            seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
         p = rec.p_sample_mm

@@ -43,6 +43,8 @@ from ..io import (
 )
 from ..io.imageset import decode_camera, load_manifest
 from ..setup import Setup
+from ..simulation.imaging import needs_points
+from ..setup.sensor import SensorModel
 from ..simulation.render import image_specs, render_images, trace_setup_camera
 from .figures import height_map_figure
 from .report import json_ready
@@ -111,7 +113,7 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
         entries = []
         with ThreadPoolExecutor(max_workers=2) as pool:
             for cam in setup.cameras:
-                m = trace_setup_camera(setup, cam)
+                m = trace_setup_camera(setup, cam, store_points=needs_points(setup))
                 mappings[cam] = m
                 _tick(progress, f"traced {cam}")
                 futures = []
@@ -128,7 +130,7 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
             "format": IMAGESET_FORMAT,
             "format_version": 1,
             **prov,
-            "bit_depth": setup.patterns.bit_depth,
+            "bit_depth": 8 if SensorModel.from_setup(setup).bit_depth == 8 else 16,  # the files' depth
             "screen_size_mm": [sx, sy],
             "cameras": {c: {"image_size_px": [cs.camera.width_px, cs.camera.height_px],
                             "status_counts": mappings[c].status_counts()} for c, cs in setup.cameras.items()},

@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..simulation.imaging import decoder_response
 from .. import __version__
 from .experiment1 import CaseResult
 from .study_file import CaseSpec, Study, StudyError
@@ -64,7 +65,7 @@ def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str) 
     images: dict = {}
     for spec, img in render_images(truth, cam, mapping):
         images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-    decoded = decode_images(truth, images)
+    decoded = decode_images(truth, images, response=decoder_response(truth))
     del images
     c = model.cameras[cam].camera
     seed = (c.height_px // 2, c.width_px // 2)

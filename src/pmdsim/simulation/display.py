@@ -1,0 +1,111 @@
+"""The pattern screen as a light source: response curve, angular emission, pixel structure.
+
+* Response (docs/conventions.md, "Image formation" and "Intensity response"): the commanded
+  display level d = A + B·cos(φ − δ_k) becomes the relative radiance
+  r(d) = b + (1 − b)·d^γ (:class:`~pmdsim.evaluation.response.IntensityResponse.forward`;
+  b the black level = 1/contrast). r(A + B·cos θ) is even and 2π-periodic in θ, so it is the
+  cosine series Σ_n c_n·cos(nθ) (:func:`harmonic_coefficients`); each harmonic is then blurred
+  analytically with its own transfer (simulation.optics).
+* Angular emission: radiance ∝ cos^m θ_v, θ_v the angle between the viewing ray and the screen
+  normal (m = 0: a Lambertian emitter).
+* Pixel structure: the screen shows the pattern constant over each pixel of pitch P
+  (sample-and-hold: transfer sinc(n·P/p) for the n-th harmonic of period p, phase kept because the
+  hold is centred on the pixel) and emits through an aperture of area fraction f (the black
+  matrix: a rectangular wave of pitch P and duty √f per axis, whose harmonics survive the blur
+  only where the camera resolves the pitch). The mean radiance is normalised to that of a fully
+  emitting screen (the exposure refers to the screen's average white).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..setup.response import IntensityResponse
+
+__all__ = ["display_response", "harmonic_coefficients", "emission_falloff", "black_matrix_factor",
+           "HARMONIC_TOLERANCE"]
+
+#: Harmonics of the response with |c_n| below this (relative radiance) are dropped: 1e-5 of full
+#: scale is 0.04 DN at 12 bit.
+HARMONIC_TOLERANCE = 1e-5
+
+
+def display_response(gamma: float | None, black_level: float = 0.0) -> IntensityResponse | None:
+    """The display's response r(d) = b + (1 − b)·d^γ, or None (linear, b = 0) when ``gamma`` is None
+    and ``black_level`` 0."""
+    if gamma is None and black_level == 0.0:
+        return None
+    return IntensityResponse.from_gamma(1.0 if gamma is None else gamma, black_level=black_level, n_levels=1025)
+
+
+def harmonic_coefficients(response: IntensityResponse | None, mean_level: float, amplitude: float, *,
+                          n_samples: int = 256, max_harmonics: int = 16) -> np.ndarray:
+    """Cosine-series coefficients c_n of r(A + B·cos θ) = Σ_n c_n cos(nθ), shape (K + 1,).
+
+    Without a response: (A, B) exactly. Trailing harmonics below :data:`HARMONIC_TOLERANCE` are
+    dropped (the series of a smooth response converges fast).
+    """
+    if response is None:
+        return np.array([float(mean_level), float(amplitude)])
+    theta = 2.0 * np.pi * np.arange(n_samples) / n_samples
+    f = response.forward(mean_level + amplitude * np.cos(theta))
+    spec = np.fft.rfft(f).real / n_samples  # f even in θ: real cosine coefficients
+    c = np.concatenate([[spec[0]], 2.0 * spec[1:max_harmonics + 1]])
+    keep = np.nonzero(np.abs(c) >= HARMONIC_TOLERANCE)[0]
+    k = max(1, int(keep.max()) if keep.size else 1)
+    return c[:k + 1].copy()
+
+
+def emission_falloff(cos_view, exponent: float | None) -> np.ndarray:
+    """Relative radiance cos^m θ_v (shape of ``cos_view``); 1 where ``exponent`` is None."""
+    c = np.abs(np.asarray(cos_view, dtype=float))
+    if exponent is None:
+        return np.ones_like(c)
+    return c ** float(exponent)
+
+
+def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_xy_mm2, sinc_args=None,
+                        n_harmonics: int = 4) -> np.ndarray:
+    """Relative radiance seen through the screen's black matrix, normalised to mean 1, shape (H, W).
+
+    Per axis a rectangular wave of pitch P and duty w = √f centred on the pixel centres
+    (i + ½)·P: w + Σ_m 2w·sinc(m·w)·cos(2πm(x − P/2)/P), each harmonic attenuated by the
+    footprint's Gaussian transfer exp(−2π²m²σ²/P²) (``var_xy_mm2`` (H, W, 2): σ² along x and y)
+    and, if given, by the pixel-area transfer (``sinc_args`` (H, W, 2, 2): the Jacobian
+    d(screen)/d(pixel), rows x and y).
+    """
+    xy = np.ascontiguousarray(screen_xy_mm, dtype=float)
+    var = np.ascontiguousarray(var_xy_mm2, dtype=float)
+    w = float(np.sqrt(fill_factor))
+    out = np.ones(xy.shape[:2])
+    if w >= 1.0:
+        return out
+    jac = np.zeros((1, 1, 2, 2)) if sinc_args is None else np.ascontiguousarray(sinc_args, dtype=float)
+    _black_matrix_kernel(xy, var, jac, sinc_args is not None, float(pitch_mm), w, int(n_harmonics), out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, out):
+    h, wd = out.shape
+    for v in numba.prange(h):
+        for u in range(wd):
+            f = 1.0
+            for a in range(2):
+                c = xy[v, u, a]
+                if not np.isfinite(c):
+                    f = 1.0
+                    break
+                acc = w
+                for m in range(1, n_harmonics + 1):
+                    t = np.exp(-2.0 * np.pi**2 * m * m * var[v, u, a] / (pitch * pitch))
+                    if use_jac:
+                        for j in range(2):
+                            x = np.pi * m * jac[v, u, a, j] / pitch
+                            if x != 0.0:
+                                t *= np.sin(x) / x
+                    xw = np.pi * m * w
+                    acc += 2.0 * w * (np.sin(xw) / xw) * t * np.cos(2.0 * np.pi * m * (c - 0.5 * pitch) / pitch)
+                f *= acc / w
+            out[v, u] = f

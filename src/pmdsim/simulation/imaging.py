@@ -1,0 +1,306 @@
+"""Realistic image formation (issue 13): display, optics and sensor composed per camera.
+
+For one camera the slowly varying per-pixel factors are computed once from the traced mapping
+(:func:`imaging_maps`: the defocus covariance and pixel Jacobian of :mod:`.optics`, the angular
+emission and black-matrix factor of :mod:`.display`); every fringe image is then rendered by one
+numba kernel that sums the display response's cosine harmonics, each multiplied by its transfer
+
+    T_n = exp(−½·(2πn/p)²·σ_a²) · sinc(n·J_a,u/p)·sinc(n·J_a,v/p) · sinc(n·P/p)
+
+(defocus, pixel area, screen sample-and-hold; a the fringe axis), evaluated at the defocus
+footprint's centroid (offset from the chief ray's screen point by O(D²)), scales by the emission factor
+and passes the result through the sensor (:class:`.sensor.SensorModel`). Every harmonic keeps its
+phase, so the blur changes only the modulation (exactly, for a locally linear mapping).
+
+The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
+index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
+same images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numba
+import numpy as np
+
+from ..setup import ImagingSetup, Setup
+from ..setup.fringes import DIRECTIONS, FringeSequence
+from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
+from .optics import defocus_moments, pixel_jacobian
+from ..setup.sensor import SensorModel
+from .trace import Mapping
+
+__all__ = ["ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
+           "decoder_response"]
+
+
+def needs_points(setup: Setup) -> bool:
+    """True if the setup's effects need the traced sample and screen points (defocus, emission)."""
+    im = setup.imaging
+    return im is not None and (im.f_number is not None or im.emission_exponent is not None)
+
+
+@dataclass(frozen=True, eq=False)
+class ImagingMaps:
+    """Per-pixel factors of one camera's image formation.
+
+    Attributes
+    ----------
+    var_xy_mm2 : ndarray (H, W, 2)
+        Defocus footprint variance along screen x and y (mm²); 0 without defocus.
+    jacobian : ndarray (H, W, 2, 2) or None
+        ∂(x_q, y_q)/∂(u, v) (mm/px) for pixel-area integration; None when off.
+    radiance : ndarray (H, W)
+        Relative radiance factor (angular emission × black matrix); 1 when off.
+    hold_pitch_mm : float
+        Screen pixel pitch for the sample-and-hold transfer; 0 when off.
+    coefficients : ndarray (K + 1,)
+        Cosine-series coefficients of the displayed (response-distorted) fringe.
+    centroid_xy_mm : ndarray (H, W, 2) or None
+        Offset of the defocus footprint's centroid from the chief ray's screen point (mm);
+        None without defocus.
+    """
+
+    var_xy_mm2: np.ndarray
+    jacobian: np.ndarray | None
+    radiance: np.ndarray
+    hold_pitch_mm: float
+    coefficients: np.ndarray
+    centroid_xy_mm: np.ndarray | None = None
+
+
+def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=None) -> ImagingMaps:
+    """The per-pixel factors of ``camera`` for the traced ``mapping`` (see :class:`ImagingMaps`).
+
+    ``T_world_sample`` is the pose of the surface the mapping was traced with (default: the
+    setup's sample; a calibration mirror pose otherwise). Defocus and angular emission need the
+    mapping's points (``store_points=True``).
+    """
+    im = setup.imaging if setup.imaging is not None else ImagingSetup()
+    xy = mapping.screen_xy_mm
+    shape = xy.shape[:2]
+    T_ws = setup.sample.T_world_sample if T_world_sample is None else T_world_sample
+    cs = setup.cameras[camera]
+    var = np.zeros(shape + (2,))
+    centroid = None
+    radiance = np.ones(shape)
+    if needs_points(setup):
+        if mapping.p_sample_mm is None or mapping.q_screen_mm is None:
+            raise ValueError("defocus and angular emission need a mapping traced with store_points=True")
+        aperture = 0.0 if im.f_number is None else im.focal_length_mm / im.f_number
+        cov, centroid, cos_view = defocus_moments(cs.T_world_cam, T_ws, setup.screen.T_world_screen,
+                                                  mapping.p_sample_mm, mapping.q_screen_mm, aperture,
+                                                  setup.screen.surface)
+        if im.f_number is not None:
+            var = np.stack([cov[..., 0, 0], cov[..., 1, 1]], axis=-1)
+            centroid = np.ascontiguousarray(np.where(np.isfinite(centroid), centroid, 0.0))
+        else:
+            centroid = None
+        if im.emission_exponent is not None:
+            radiance = radiance * emission_falloff(cos_view, im.emission_exponent)
+    var = np.where(np.isfinite(var), var, 0.0)
+    jac = pixel_jacobian(xy) if im.pixel_area else None
+    if im.screen_pixel_pitch_mm is not None:
+        radiance = radiance * black_matrix_factor(xy, im.screen_pixel_pitch_mm, im.screen_fill_factor, var, jac)
+    radiance = np.where(np.isfinite(radiance), radiance, 0.0)
+    seq = setup.patterns.sequence
+    coef = harmonic_coefficients(display_response(im.display_gamma, im.display_black_level), seq.mean_level,
+                                 seq.amplitude)
+    return ImagingMaps(np.ascontiguousarray(var), None if jac is None else np.ascontiguousarray(jac),
+                       np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid)
+
+
+@numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
+                  scale, dark, clip, shot, const_var, full, noise, use_noise, out):
+    w = valid.shape[1]
+    n = cos_d.shape[0]
+    kmax = coef.shape[0] - 1
+    k1 = 2.0 * np.pi / period
+    t = np.empty(kmax + 1)
+    cn = np.empty(kmax + 1)
+    sn = np.empty(kmax + 1)
+    ck = np.empty((n, kmax + 1))
+    sk = np.empty((n, kmax + 1))
+    for k in range(n):  # cos(nδ_k), sin(nδ_k) by the angle-addition recurrence
+        ck[k, 0] = 1.0
+        sk[k, 0] = 0.0
+        for m in range(1, kmax + 1):
+            ck[k, m] = ck[k, m - 1] * cos_d[k] - sk[k, m - 1] * sin_d[k]
+            sk[k, m] = sk[k, m - 1] * cos_d[k] + ck[k, m - 1] * sin_d[k]
+    for v in range(v0, v1):
+        for u in range(w):
+            if not valid[v, u]:
+                for k in range(n):
+                    out[k, v, u] = 0
+                continue
+            phi = k1 * coord[v, u]
+            c1 = np.cos(phi)
+            s1 = np.sin(phi)
+            e1 = np.exp(-0.5 * k1 * k1 * var[v, u])
+            e2 = e1 * e1
+            step = e1  # e1^(2m − 1)
+            gauss = 1.0  # e1^(m²) = Π_{j ≤ m} e1^(2j − 1)
+            # sinc(m·x) = sin(m x)/(m x), sin(m x) by the Chebyshev recurrence
+            # sin((m+1)x) = 2 cos x · sin(m x) − sin((m−1)x): one sine and cosine per factor.
+            xa = np.pi * jac[v, u, 0] / period if use_jac else 0.0
+            xb = np.pi * jac[v, u, 1] / period if use_jac else 0.0
+            xh = np.pi * hold / period
+            ca, sa, sa0 = np.cos(xa), np.sin(xa), 0.0
+            cb, sb, sb0 = np.cos(xb), np.sin(xb), 0.0
+            ch, sh, sh0 = np.cos(xh), np.sin(xh), 0.0
+            cn[0] = 1.0
+            sn[0] = 0.0
+            for m in range(1, kmax + 1):
+                cn[m] = cn[m - 1] * c1 - sn[m - 1] * s1
+                sn[m] = sn[m - 1] * c1 + cn[m - 1] * s1
+                gauss *= step
+                step *= e2
+                tm = gauss
+                if xa != 0.0:
+                    tm *= sa / (m * xa)
+                if xb != 0.0:
+                    tm *= sb / (m * xb)
+                if xh != 0.0:
+                    tm *= sh / (m * xh)
+                t[m] = coef[m] * tm
+                sa, sa0 = 2.0 * ca * sa - sa0, sa
+                sb, sb0 = 2.0 * cb * sb - sb0, sb
+                sh, sh0 = 2.0 * ch * sh - sh0, sh
+            g = radiance[v, u] * scale
+            for k in range(n):
+                s = coef[0]
+                for m in range(1, kmax + 1):
+                    # cos(m(φ − δ_k)) = cos mφ cos mδ_k + sin mφ sin mδ_k
+                    s += t[m] * (cn[m] * ck[k, m] + sn[m] * sk[k, m])
+                mean = g * s
+                if mean > clip:
+                    mean = clip
+                elif mean < 0.0:
+                    mean = 0.0
+                val = dark + mean
+                if use_noise:
+                    val += np.sqrt(shot * mean + const_var) * noise[k, v, u]
+                q = np.floor(val + 0.5)
+                if q < 0.0:
+                    q = 0.0
+                elif q > full:
+                    q = full
+                out[k, v, u] = q
+
+
+@numba.njit(cache=True, parallel=True)
+def _imaging_kernel(coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
+                    scale, dark, clip, shot, const_var, full, noise, use_noise, out):
+    h = valid.shape[0]
+    rows = 16
+    for b in numba.prange((h + rows - 1) // rows):
+        _imaging_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac,
+                      hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, out)
+
+
+def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
+                          period_mm: float, sequence: FringeSequence, sensor: SensorModel,
+                          rng: np.random.Generator | None) -> np.ndarray:
+    """All N phase-shifted images of one direction and period with the image-formation effects.
+
+    Parameters
+    ----------
+    maps : ImagingMaps
+        The camera's per-pixel factors (:func:`imaging_maps`).
+    screen_xy_mm : ndarray (H, W, 2); valid : ndarray of bool (H, W)
+        The traced mapping.
+    direction, period_mm, sequence
+        The fringe (``sequence`` gives N).
+    sensor : SensorModel
+    rng : numpy.random.Generator or None
+        Source of the N standard-normal noise fields (float32, drawn in shift order); required
+        when the sensor is noisy.
+
+    Returns
+    -------
+    ndarray (N, H, W), uint8 (8 bit) or uint16 (10, 12, 16 bit)
+    """
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
+    axis = DIRECTIONS.index(direction)
+    n = sequence.n_shifts
+    delta = 2.0 * np.pi * np.arange(n) / n
+    ok = np.ascontiguousarray(valid, dtype=bool)
+    coord = screen_xy_mm[..., axis]
+    if maps.centroid_xy_mm is not None:  # the footprint's centroid, not the chief ray, is its centre
+        coord = coord + maps.centroid_xy_mm[..., axis]
+    coord = np.ascontiguousarray(coord)
+    if sensor.noisy:
+        if rng is None:
+            raise ValueError("a noisy sensor needs a seeded rng for reproducible images")
+        noise = rng.standard_normal(size=(n,) + ok.shape, dtype=np.float32)
+    else:
+        noise = np.empty((0, 0, 0), dtype=np.float32)
+    jac = maps.jacobian[..., axis, :] if maps.jacobian is not None else np.zeros((1, 1, 2))
+    out = np.empty((n,) + ok.shape, dtype=sensor.dtype)
+    _imaging_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), maps.coefficients,
+                    np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
+                    maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
+                    sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
+                    noise, sensor.noisy, out)
+    return out
+
+
+def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A simulated grey-level calibration series: uniform screens at ``imaging.grey_levels``
+    equally spaced display levels, recorded through the setup's display and sensor model (a
+    ``patch_px`` × ``patch_px`` patch viewed normally, ``n_frames`` frames, its own noise stream)
+    and averaged.
+
+    Returns
+    -------
+    display_levels : ndarray (M,)
+        Commanded levels d ∈ [0, 1].
+    camera_dn : ndarray (M,)
+        Mean recorded grey levels.
+    """
+    p = setup.patterns
+    d, c = _grey_level_series(setup.imaging, p.bit_depth, p.noise_std, p.seed, patch_px, n_frames)
+    return d.copy(), c.copy()
+
+
+@lru_cache(maxsize=32)
+def _grey_level_series(im, bit_depth, noise_std, seed, patch_px, n_frames):
+    im = im if im is not None else ImagingSetup()
+    sensor = SensorModel.from_values(im, bit_depth, noise_std)
+    resp = display_response(im.display_gamma, im.display_black_level)
+    d = np.linspace(0.0, 1.0, im.grey_levels)
+    r = d if resp is None else resp.forward(d)
+    rng = np.random.default_rng([seed, 2**31 - 1])  # a stream of its own
+    shape = (patch_px, patch_px)
+    coord = np.zeros(shape + (2,))
+    ok = np.ones(shape, dtype=bool)
+    seq = FringeSequence((1.0,), (1.0,), n_shifts=n_frames, mean_level=0.5, amplitude=0.1)
+    means = []
+    for level in r:
+        maps = ImagingMaps(np.zeros(shape + (2,)), None, np.ones(shape), 0.0, np.array([float(level), 0.0]))
+        stack = render_period_imaging(maps, coord, ok, "x", 1.0, seq, sensor, rng)
+        means.append(stack.astype(float).mean())
+    return d, np.array(means)
+
+
+def decoder_response(setup: Setup):
+    """The response the evaluation of ``setup``'s images linearises with: the one measured from
+    the simulated grey-level series (:func:`grey_level_response`) when ``imaging.linearise`` is
+    set, else None."""
+    if setup.imaging is None or not setup.imaging.linearise:
+        return None
+    return grey_level_response(setup)
+
+
+def grey_level_response(setup: Setup):
+    """The :class:`~pmdsim.evaluation.response.IntensityResponse` measured from
+    :func:`grey_level_series` (what the evaluation linearises with)."""
+    from ..setup.response import IntensityResponse
+
+    d, c = grey_level_series(setup)
+    full = SensorModel.from_setup(setup).full_scale
+    return IntensityResponse.from_samples(d, c, display_full_scale=1.0, camera_full_scale=full)

@@ -1,0 +1,253 @@
+"""Optics of the camera: defocus of the screen seen via the sample, and pixel-area integration.
+
+Defocus (docs/conventions.md, "Image formation"). The camera is focused on the sample: all rays
+from the entrance pupil (diameter D = f/N, in the camera's x–y plane at the pinhole) to a
+pixel's sample point P reflect at P with the same normal, so the reflected bundle is the
+mirrored incident cone continued a distance s₂ to the screen. To first order in the pupil
+offset a (camera frame, |a| ≤ D/2, uniform), the screen point moves by
+
+    δq = s₂ · M · H · δd,   δd = −(I − d dᵀ)·a / s₁,
+
+with d, r the unit incident and reflected directions, s₁ = |P − O|, s₂ = |q − P|,
+H = I − 2nnᵀ the reflection at P (n ∥ r − d) and M = I − r e_zᵀ / r_z the projection along r onto
+the screen plane (screen frame, normal e_z). The footprint's covariance is therefore
+
+    Σ = (D²/16) · (s₂/s₁)² · M H (I − d dᵀ) P_xy (I − d dᵀ) Hᵀ Mᵀ
+
+(D²/16: the variance of a uniform disc of diameter D per axis; P_xy projects onto the pupil
+plane), and to second order the footprint's centroid is offset from the chief ray's screen
+point by the curvature of the central projection onto the oblique screen
+(:func:`defocus_moments`), a phase bias ∝ D². Both are computed from the traced sample and
+screen points, no extra rays. A curved sample
+changes s₂ and r over the image, and with them Σ. The blur is applied to each sinusoidal
+harmonic analytically with the Gaussian of this covariance, whose transfer at period p is
+exp(−2π²σ²/p²) (σ² the variance along the fringe axis): the modulation shrinks and the phase is
+kept.
+
+Pixel-area integration: a pixel integrates the pattern over its 1 × 1 px footprint; with the
+local Jacobian J = ∂(x_q, y_q)/∂(u, v) (central differences of the traced mapping) a sinusoid of
+period p along axis a is multiplied exactly (for a locally linear mapping) by
+sinc(J_a,u/p)·sinc(J_a,v/p), sinc(x) = sin(πx)/(πx).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..geometry.transform import RigidTransform
+
+__all__ = ["defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "screen_derivatives", "view_geometry"]
+
+
+def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
+                  p_sample_mm: np.ndarray, q_screen_mm: np.ndarray):
+    """Incident and reflected unit directions and distances per pixel, in the screen frame.
+
+    Parameters
+    ----------
+    p_sample_mm : ndarray (H, W, 3)
+        Sample points in the sample frame (``Mapping.p_sample_mm``).
+    q_screen_mm : ndarray (H, W, 3)
+        Screen points in the screen frame (``Mapping.q_screen_mm``).
+
+    Returns
+    -------
+    d, r : ndarray (H, W, 3)
+        Unit directions camera → sample and sample → screen (screen frame).
+    s1_mm, s2_mm : ndarray (H, W)
+        Distances camera → sample and sample → screen (NaN where not traced).
+    """
+    T_screen_world = T_world_screen.inv()
+    p = (T_screen_world @ T_world_sample).apply(p_sample_mm)
+    o = T_screen_world.apply(T_world_cam.translation)
+    dv = p - o
+    s1 = np.linalg.norm(dv, axis=-1)
+    rv = np.asarray(q_screen_mm) - p
+    s2 = np.linalg.norm(rv, axis=-1)
+    return dv / s1[..., None], rv / s2[..., None], s1, s2
+
+
+def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
+                    p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float, screen_surface=None):
+    """Covariance and centroid offset of the defocus footprint on the screen (screen frame x, y).
+
+    A pupil point a (uniform on the disc of diameter D in the camera's x–y plane) sends its ray
+    through the sample point P; its (unnormalised) direction P − O − a is linear in a, so after
+    the reflection H the ray is r + ε with ε = −H·a/s₁, and it meets the screen plane (normal
+    m, the local screen normal: e_z for a plane) at δq = s₂·(m·r)·[(r + ε)/(m·r + m·ε) − r/(m·r)].
+    To second order in ε, with C = Cov(ε) = (D²/16)/s₁² · H (e_x e_xᵀ + e_y e_yᵀ) Hᵀ (e_x, e_y the
+    pupil axes):
+
+        Σ = s₂² · M C Mᵀ,                          M = I − r mᵀ / (m·r),
+        E[δq] = s₂ · (r · mᵀCm / (m·r)² − C m / (m·r))
+
+    (x, y components: the pattern coordinates on the local tangent plane), plus the lift of a
+    curved screen over its tangent plane, ½·tr(KΣ) along the ray (K the height's Hessian).
+
+    The centroid offset E[δq] — the central projection's curvature — is O(D²): it scales with
+    1/N², points where the oblique reflected bundle meets the screen farther out, and shifts the
+    fringe phase (the footprint is no longer centred on the chief ray).
+
+    Returns
+    -------
+    cov_mm2 : ndarray (H, W, 2, 2)
+    centroid_mm : ndarray (H, W, 2)
+    cos_view : ndarray (H, W)
+        Cosine of the angle between the reflected ray and the screen normal (for the angular
+        emission; computed in the same pass). All NaN where the pixel was not traced.
+    """
+    T_screen_world = T_world_screen.inv()
+    p = np.ascontiguousarray((T_screen_world @ T_world_sample).apply(p_sample_mm), dtype=float)
+    q = np.ascontiguousarray(q_screen_mm, dtype=float)
+    o = np.ascontiguousarray(T_screen_world.apply(T_world_cam.translation), dtype=float)
+    R_screen_cam = (T_screen_world @ T_world_cam).rotation
+    ex = np.ascontiguousarray(R_screen_cam[:, 0])  # the pupil plane's axes (screen frame)
+    ey = np.ascontiguousarray(R_screen_cam[:, 1])
+    shape = q.shape[:-1]
+    grad, hess = screen_derivatives(q, screen_surface)
+    cov = np.empty(shape + (2, 2))
+    centroid = np.empty(shape + (2,))
+    cos_view = np.empty(shape)
+    _moments_kernel(p.reshape(-1, 3), q.reshape(-1, 3), o, ex, ey, grad.reshape(-1, 2), hess.reshape(-1, 3),
+                    float(aperture_mm), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2), cos_view.reshape(-1))
+    return cov, centroid, cos_view
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_view):
+    """Per pixel: the footprint covariance and centroid of :func:`defocus_moments` (flat arrays)."""
+    c0 = aperture * aperture / 16.0
+    for i in numba.prange(p.shape[0]):
+        dx = p[i, 0] - o[0]
+        dy = p[i, 1] - o[1]
+        dz = p[i, 2] - o[2]
+        s1 = np.sqrt(dx * dx + dy * dy + dz * dz)
+        rx = q[i, 0] - p[i, 0]
+        ry = q[i, 1] - p[i, 1]
+        rz = q[i, 2] - p[i, 2]
+        s2 = np.sqrt(rx * rx + ry * ry + rz * rz)
+        if not (np.isfinite(s1) and np.isfinite(s2)) or s1 == 0.0 or s2 == 0.0:
+            cos_view[i] = np.nan
+            for a in range(2):
+                centroid[i, a] = np.nan
+                for b in range(2):
+                    cov[i, a, b] = np.nan
+            continue
+        dx /= s1
+        dy /= s1
+        dz /= s1
+        rx /= s2
+        ry /= s2
+        rz /= s2
+        # Sample normal ∥ r − d; reflection H = I − 2nnᵀ applied to the pupil axes.
+        nx = rx - dx
+        ny = ry - dy
+        nz = rz - dz
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        nx /= nn
+        ny /= nn
+        nz /= nn
+        hxv = np.empty(3)
+        hyv = np.empty(3)
+        ax = ex[0] * nx + ex[1] * ny + ex[2] * nz
+        ay = ey[0] * nx + ey[1] * ny + ey[2] * nz
+        hxv[0] = ex[0] - 2.0 * ax * nx
+        hxv[1] = ex[1] - 2.0 * ax * ny
+        hxv[2] = ex[2] - 2.0 * ax * nz
+        hyv[0] = ey[0] - 2.0 * ay * nx
+        hyv[1] = ey[1] - 2.0 * ay * ny
+        hyv[2] = ey[2] - 2.0 * ay * nz
+        c = c0 / (s1 * s1)  # C = c·(hx hxᵀ + hy hyᵀ)
+        # Screen normal m ∝ (−h_x, −h_y, 1).
+        mx = -grad[i, 0]
+        my = -grad[i, 1]
+        mz = 1.0
+        mr = mx * rx + my * ry + mz * rz
+        cos_view[i] = mr / np.sqrt(mx * mx + my * my + 1.0)
+        mhx = mx * hxv[0] + my * hxv[1] + mz * hxv[2]
+        mhy = mx * hyv[0] + my * hyv[1] + mz * hyv[2]
+        # M v = v − r (m·v)/(m·r); Σ = s₂² c Σ_axes (M h)(M h)ᵀ.
+        ux = hxv[0] - rx * mhx / mr
+        uy = hxv[1] - ry * mhx / mr
+        vx = hyv[0] - rx * mhy / mr
+        vy = hyv[1] - ry * mhy / mr
+        k = s2 * s2 * c
+        sxx = k * (ux * ux + vx * vx)
+        sxy = k * (ux * uy + vx * vy)
+        syy = k * (uy * uy + vy * vy)
+        cov[i, 0, 0] = sxx
+        cov[i, 0, 1] = sxy
+        cov[i, 1, 0] = sxy
+        cov[i, 1, 1] = syy
+        # E[δq] = s₂ (r·mᵀCm/(m·r)² − Cm/(m·r)), Cm = c (hx (hx·m) + hy (hy·m)).
+        mcm = c * (mhx * mhx + mhy * mhy)
+        # Curved screen: + ½ tr(KΣ)/(m·r) · r (m unnormalised with m_z = 1).
+        lam = 0.5 * (hess[i, 0] * sxx + 2.0 * hess[i, 1] * sxy + hess[i, 2] * syy) / mr
+        cmx = c * (hxv[0] * mhx + hyv[0] * mhy)
+        cmy = c * (hxv[1] * mhx + hyv[1] * mhy)
+        centroid[i, 0] = s2 * (rx * mcm / (mr * mr) - cmx / mr) + lam * rx
+        centroid[i, 1] = s2 * (ry * mcm / (mr * mr) - cmy / mr) + lam * ry
+
+
+def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
+                       p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float,
+                       screen_surface=None) -> np.ndarray:
+    """Covariance (mm², screen frame x, y) of the defocus footprint on the screen, (H, W, 2, 2)
+    (:func:`defocus_moments`); ``aperture_mm`` is D = focal length / f-number."""
+    return defocus_moments(T_world_cam, T_world_sample, T_world_screen, p_sample_mm, q_screen_mm, aperture_mm,
+                           screen_surface)[0]  # noqa: E501
+
+
+def screen_derivatives(q_screen_mm: np.ndarray, screen_surface=None, step_mm: float = 0.5):
+    """Gradient (h_x, h_y) and Hessian (h_xx, h_xy, h_yy) of the screen height at the traced
+    points, (H, W, 2) and (H, W, 3) (1/mm); the Hessian by forward differences of the spline's
+    analytic gradient over ``step_mm``. 0 for a plane (``screen_surface`` None) and where the
+    point is not traced."""
+    q = np.asarray(q_screen_mm, dtype=float)
+    grad = np.zeros(q.shape[:-1] + (2,))
+    hess = np.zeros(q.shape[:-1] + (3,))
+    if screen_surface is None:
+        return grad, hess
+    ok = np.isfinite(q).all(-1)
+    x, y = q[ok][:, 0], q[ok][:, 1]
+    g0 = screen_surface.gradient(x, y)
+    gx = screen_surface.gradient(x + step_mm, y)
+    gy = screen_surface.gradient(x, y + step_mm)
+    grad[ok] = g0
+    hess[ok] = np.stack([(gx[:, 0] - g0[:, 0]) / step_mm, 0.5 * ((gx[:, 1] - g0[:, 1]) + (gy[:, 0] - g0[:, 0])) / step_mm,
+                         (gy[:, 1] - g0[:, 1]) / step_mm], axis=-1)
+    return grad, hess
+
+
+def screen_normal(q_screen_mm: np.ndarray, screen_surface=None, grad=None) -> np.ndarray:
+    """Unit normal of the screen at the traced points (screen frame), (H, W, 3); e_z for a
+    plane (``screen_surface`` None) and where the point is not traced. ``grad`` may pass the
+    gradient of :func:`screen_derivatives`."""
+    g = screen_derivatives(q_screen_mm, screen_surface)[0] if grad is None else grad
+    n = np.concatenate([-g, np.ones(g.shape[:-1] + (1,))], axis=-1)  # (−h_x, −h_y, 1): z > 0
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def pixel_jacobian(screen_xy_mm: np.ndarray) -> np.ndarray:
+    """∂(x_q, y_q)/∂(u, v) per pixel, (H, W, 2, 2) (rows: x_q, y_q; columns: u, v), mm/px.
+
+    Central differences where both neighbours are traced, one-sided where only one is, 0 where
+    none is (no pixel-area attenuation there).
+    """
+    xy = np.asarray(screen_xy_mm, dtype=float)
+    J = np.zeros(xy.shape[:2] + (2, 2))
+    for col, axis in ((0, 1), (1, 0)):  # u along columns (axis 1), v along rows (axis 0)
+        fwd = np.full(xy.shape, np.nan)
+        bwd = np.full(xy.shape, np.nan)
+        sl_hi = [slice(None)] * 2
+        sl_lo = [slice(None)] * 2
+        sl_hi[axis] = slice(1, None)
+        sl_lo[axis] = slice(None, -1)
+        diff = xy[tuple(sl_hi)] - xy[tuple(sl_lo)]
+        fwd[tuple(sl_lo)] = diff
+        bwd[tuple(sl_hi)] = diff
+        cen = 0.5 * (fwd + bwd)
+        g = np.where(np.isfinite(cen), cen, np.where(np.isfinite(fwd), fwd, np.where(np.isfinite(bwd), bwd, 0.0)))
+        J[..., :, col] = g
+    return J
