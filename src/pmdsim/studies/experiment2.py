@@ -11,6 +11,7 @@ from ..simulation.imaging import decoder_response
 from ..calibration.setup_bridge import calibrated_setup, calibration_deviation, free_screen_model, nominal_setup
 from ..evaluation.metrics import surface_error_metrics
 from ..evaluation.pipeline import decode_images, evaluate_decoded
+from ..evaluation.reconstruction import ReconstructionError
 from ..setup import Setup, default_setup
 from ..simulation.imaging import needs_points
 from ..simulation.render import render_images, trace_setup_camera
@@ -117,6 +118,13 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
             seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
+        n_rec = int(rec.reconstructed.sum())
+        if n_rec < 3:  # nothing to assess: say why instead of failing in the metrics
+            n_dec = int(decoded.valid.sum())
+            raise ReconstructionError(
+                f"camera {cam!r}: the reconstruction reached only {n_rec} pixel(s); {n_dec} of {decoded.valid.size} "
+                f"pixels were decoded ({n_dec / decoded.valid.size:.1%}) and they do not form a connected region "
+                f"around the seed (fringes washed out: blur, pixel area or noise against the finest period?)")
         p = rec.p_sample_mm
         # The sample is the plane of the base mirror pose: relative to the calibrated table
         # plane its true height is 0, so the reconstructed height is the error.
