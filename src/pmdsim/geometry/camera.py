@@ -1,8 +1,11 @@
-"""Pinhole camera with Brown lens distortion (paper §2.2, eqs. 2–4).
+"""Pinhole camera with lens distortion (paper §2.2, eqs. 2–4), OpenCV's distortion model.
 
 Conventions (docs/conventions.md): camera frame x right, y down, z forward; pixel (0, 0) is the
-centre of the top-left pixel; per-pixel arrays are indexed ``[v, u]``. The distortion model is
-OpenCV's 5-coefficient model (k1, k2, p1, p2, k3); the paper's eq. (3) is the case k3 = 0.
+centre of the top-left pixel (as in OpenCV); per-pixel arrays are indexed ``[v, u]``. The
+distortion model is OpenCV's (``cv::projectPoints``, docs of ``calib3d``): radial rational
+(k1, k2, k3 over k4, k5, k6), tangential (p1, p2) and thin prism (s1–s4); the paper's Brown
+eq. (3) is the case k3 = k4 = k5 = k6 = s1 = … = s4 = 0. OpenCV's tilted-sensor terms
+(τx, τy) are not modelled (refused when non-zero).
 """
 
 from __future__ import annotations
@@ -13,74 +16,106 @@ from dataclasses import dataclass, fields, replace
 import numba
 import numpy as np
 
-__all__ = ["Camera", "UNDISTORT_TOL"]
+from ..errors import SetupError
+from .camera_checks import check_camera_matrix, check_image_size, warn_if_folds_over
+
+__all__ = ["Camera", "UNDISTORT_TOL", "DISTORTION_NAMES", "OPENCV_LENGTHS"]
 
 #: Convergence tolerance of the distortion inversion, in normalised image coordinates.
 UNDISTORT_TOL = 1e-12
 _UNDISTORT_MAX_ITER = 100
 
 
+#: OpenCV's distortion coefficients in its order, as held by :class:`Camera` (the tilted-sensor
+#: terms τx, τy of OpenCV's 14-coefficient vector are not supported).
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
+#: Lengths of OpenCV distortion vectors that :meth:`Camera.from_opencv` accepts.
+OPENCV_LENGTHS = (4, 5, 8, 12, 14)
+
+
 @numba.njit(cache=True)
-def _distort(x, y, k1, k2, k3, p1, p2):
+def _distort(x, y, c):
+    """OpenCV's distortion of normalised (x, y); c = (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4).
+
+    With k4…s4 = 0 every operation reduces exactly to Brown's eq. (3) (division by 1.0, adding 0.0).
+    """
+    k1, k2, p1, p2, k3 = c[0], c[1], c[2], c[3], c[4]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7])))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + r2 * (c[8] + r2 * c[9])
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + r2 * (c[10] + r2 * c[11])
     return xd, yd
 
 
 @numba.njit(cache=True)
-def _distort_jac(x, y, k1, k2, k3, p1, p2):
-    """Jacobian of eq. (3) with respect to (x, y): (dxd/dx, dxd/dy, dyd/dx, dyd/dy)."""
+def _distort_jac(x, y, c):
+    """Jacobian of the distortion with respect to (x, y): (dxd/dx, dxd/dy, dyd/dx, dyd/dy),
+    and the rational model's numerator and denominator (num, den)."""
+    k1, k2, p1, p2, k3 = c[0], c[1], c[2], c[3], c[4]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    c = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    return a, b, c, d
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+    radial = num / den
+    dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d num / d r2
+    dden = c[5] + r2 * (2.0 * c[6] + 3.0 * c[7] * r2)  # d den / d r2
+    dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+    sx = 2.0 * (c[8] + 2.0 * c[9] * r2)  # d(r2 (s1 + s2 r2)) / d r2, times 2 (dr2/dx = 2x)
+    sy = 2.0 * (c[10] + 2.0 * c[11] * r2)
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x + x * sx
+    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y + y * sx
+    cc = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y + x * sy
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x + y * sy
+    return a, b, cc, d, num, den
 
 
 @numba.njit(cache=True)
-def _undistort_one(xd, yd, k1, k2, k3, p1, p2, tol, max_iter):
-    """Invert eq. (3) by Newton's method. Returns (x, y, converged)."""
+def _undistort_one(xd, yd, c, tol, max_iter):
+    """Invert the distortion by Newton's method. Returns (x, y, converged)."""
     x = xd
     y = yd
     for _ in range(max_iter):
-        fx, fy = _distort(x, y, k1, k2, k3, p1, p2)
+        fx, fy = _distort(x, y, c)
         rx = fx - xd
         ry = fy - yd
-        a, b, c, d = _distort_jac(x, y, k1, k2, k3, p1, p2)
-        det = a * d - b * c
+        a, b, cc, d, num, den = _distort_jac(x, y, c)
+        det = a * d - b * cc
         if det == 0.0 or not np.isfinite(det):
             return x, y, False
         dx = (d * rx - b * ry) / det
-        dy = (-c * rx + a * ry) / det
+        dy = (-cc * rx + a * ry) / det
         x -= dx
         y -= dy
         if abs(dx) <= tol and abs(dy) <= tol:
-            fx, fy = _distort(x, y, k1, k2, k3, p1, p2)
+            fx, fy = _distort(x, y, c)
             ok = abs(fx - xd) <= tol and abs(fy - yd) <= tol
             # A physical inverse lies on the branch of the identity: the distortion must be
-            # orientation-preserving there (det J > 0) and the radial factor positive. Beyond a
-            # fold-over of strong distortion Newton may find a solution on the far side.
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            a, b, c, d = _distort_jac(x, y, k1, k2, k3, p1, p2)
-            ok = ok and radial > 0.0 and (a * d - b * c) > 0.0
+            # orientation-preserving there (det J > 0) and the radial factor positive, with the
+            # rational model's denominator positive (no pole crossed). Beyond a fold-over of
+            # strong distortion Newton may find a solution on the far side.
+            a, b, cc, d, num, den = _distort_jac(x, y, c)
+            ok = ok and num / den > 0.0 and den > 0.0 and (a * d - b * cc) > 0.0
             return x, y, ok
     return x, y, False
 
 
 @numba.njit(cache=True, parallel=True)
-def _undistort_kernel(xyd, k1, k2, k3, p1, p2, tol, max_iter, out, ok):
+def _undistort_kernel(xyd, c, tol, max_iter, out, ok):
     n = xyd.shape[0]
     for i in numba.prange(n):
-        x, y, c = _undistort_one(xyd[i, 0], xyd[i, 1], k1, k2, k3, p1, p2, tol, max_iter)
+        x, y, conv = _undistort_one(xyd[i, 0], xyd[i, 1], c, tol, max_iter)
         out[i, 0] = x
         out[i, 1] = y
-        ok[i] = c
+        ok[i] = conv
+
+
+@numba.njit(cache=True)
+def _jacobian_kernel(xy, c, out):
+    for i in range(xy.shape[0]):
+        a, b, cc, d, _, _ = _distort_jac(xy[i, 0], xy[i, 1], c)
+        out[i, 0, 0] = a
+        out[i, 0, 1] = b
+        out[i, 1, 0] = cc
+        out[i, 1, 1] = d
 
 
 @functools.lru_cache(maxsize=4)
@@ -93,7 +128,7 @@ def _sensor_rays_cached(camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class Camera:
-    """Intrinsic model of one camera: pinhole + Brown distortion (paper §2.2).
+    """Intrinsic model of one camera: pinhole + OpenCV lens distortion (paper §2.2).
 
     The camera's pose is not part of this object; a setup stores it as ``T_world_cam``.
 
@@ -106,7 +141,12 @@ class Camera:
     ppx_px, ppy_px : float
         Principal point in pixels, eq. (4); pixel (0, 0) is the centre of the top-left pixel.
     k1, k2, p1, p2, k3 : float
-        Distortion coefficients of eq. (3) (k3 beyond the paper, OpenCV's fifth coefficient).
+        Brown distortion coefficients of eq. (3) (k3 beyond the paper, OpenCV's fifth coefficient).
+    k4, k5, k6 : float
+        Denominator of OpenCV's rational radial model,
+        (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶).
+    s1, s2, s3, s4 : float
+        OpenCV's thin-prism coefficients: x' += s1 r² + s2 r⁴, y' += s3 r² + s4 r⁴.
     """
 
     width_px: int
@@ -120,6 +160,13 @@ class Camera:
     p1: float = 0.0
     p2: float = 0.0
     k3: float = 0.0
+    k4: float = 0.0
+    k5: float = 0.0
+    k6: float = 0.0
+    s1: float = 0.0
+    s2: float = 0.0
+    s3: float = 0.0
+    s4: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -137,23 +184,66 @@ class Camera:
 
     # ------------------------------------------------------------------ builders / readers
     @classmethod
-    def from_opencv(cls, camera_matrix, dist_coeffs, image_size_px) -> "Camera":
-        """From OpenCV's 3×3 camera matrix, distortion vector (k1, k2, p1, p2[, k3]) and (W, H)."""
-        k = np.asarray(camera_matrix, dtype=float)
-        d = np.zeros(5)
-        dc = np.asarray(dist_coeffs, dtype=float).ravel()
-        if dc.size not in (4, 5):
-            raise ValueError(f"dist_coeffs must have 4 or 5 entries (k1, k2, p1, p2[, k3]), got {dc.size}")
-        if abs(k[0, 1]) > 0:
-            raise ValueError("camera_matrix with skew is not supported (K[0, 1] must be 0)")
-        d[: dc.size] = dc
-        w, h = image_size_px
-        return cls(w, h, k[0, 0], k[1, 1], k[0, 2], k[1, 2], d[0], d[1], d[2], d[3], d[4])
+    def from_opencv(cls, camera_matrix, dist_coeffs, image_size_px, *, source: str = "camera") -> "Camera":
+        """From OpenCV's camera matrix K (3, 3), distortion vector and image size (W, H).
 
-    def as_opencv(self) -> tuple[np.ndarray, np.ndarray]:
-        """(camera_matrix (3, 3), dist_coeffs (5,)) in OpenCV's layout."""
+        Parameters
+        ----------
+        camera_matrix : array_like, shape (3, 3)
+            [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels; checked by
+            :func:`pmdsim.geometry.camera_checks.check_camera_matrix` (normalised, no skew,
+            positive focal lengths).
+        dist_coeffs : array_like, 4, 5, 8, 12 or 14 entries (or empty)
+            OpenCV's order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]]);
+            the tilted-sensor terms τx, τy must be 0.
+        image_size_px : (int, int)
+            (width, height); checked by :func:`~pmdsim.geometry.camera_checks.check_image_size`.
+        source : str
+            What the values are called in error messages (a file name or key).
+
+        Pixel coordinates need no conversion: OpenCV's pixel (0, 0) is the centre of the
+        top-left pixel, as pmdsim's. A distortion that folds over inside the image warns
+        (:class:`~pmdsim.geometry.camera_checks.CameraModelWarning`).
+        """
+        k = check_camera_matrix(camera_matrix, source=source)
+        dc = np.asarray(dist_coeffs, dtype=float).ravel()
+        if dc.size not in (0,) + OPENCV_LENGTHS:
+            raise SetupError(f"{source}: distortion coefficients must have 4, 5, 8, 12 or 14 entries "
+                             f"(OpenCV's (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]])), "
+                             f"got {dc.size}")
+        if not np.isfinite(dc).all():
+            raise SetupError(f"{source}: distortion coefficients must be finite, got {dc.tolist()}")
+        if dc.size == 14 and (dc[12] != 0.0 or dc[13] != 0.0):
+            raise SetupError(f"{source}: the tilted-sensor distortion terms (τx, τy) = ({dc[12]!r}, {dc[13]!r}) "
+                             f"are not supported by pmdsim's camera model; only τx = τy = 0 (coefficients 13 "
+                             f"and 14 of 14) can be imported")
+        d = np.zeros(len(DISTORTION_NAMES))
+        n = min(dc.size, len(DISTORTION_NAMES))
+        d[:n] = dc[:n]
+        w, h = check_image_size(image_size_px, (k[0, 2], k[1, 2]), source=source)
+        cam = cls(w, h, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]),
+                  **{name: float(v) for name, v in zip(DISTORTION_NAMES, d)})
+        warn_if_folds_over(cam, source=source)
+        return cam
+
+    def as_opencv(self, n_coefficients: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(camera_matrix (3, 3), dist_coeffs) in OpenCV's layout.
+
+        ``dist_coeffs`` has ``n_coefficients`` entries (4, 5, 8, 12 or 14), by default the
+        shortest of 5, 8, 12 that holds every non-zero coefficient (see :attr:`distortion`).
+        Asking for fewer than that raises ValueError.
+        """
         k = np.array([[self.fx_px, 0.0, self.ppx_px], [0.0, self.fy_px, self.ppy_px], [0.0, 0.0, 1.0]])
-        return k, self.distortion
+        if n_coefficients is None:
+            return k, self.distortion
+        n = int(n_coefficients)
+        if n not in OPENCV_LENGTHS:
+            raise ValueError(f"n_coefficients must be one of {OPENCV_LENGTHS}, got {n_coefficients!r}")
+        full = self._coefficients()
+        if n < len(DISTORTION_NAMES) and np.any(full[n:] != 0.0):
+            names = [DISTORTION_NAMES[i] for i in np.flatnonzero(full[n:] != 0.0) + n]
+            raise ValueError(f"a {n}-coefficient OpenCV vector cannot hold the non-zero {', '.join(names)}")
+        return k, np.concatenate([full, np.zeros(2)])[:n]
 
     def binned(self, factor: int) -> "Camera":
         """The same camera with ``factor`` × ``factor`` pixels binned into one.
@@ -179,10 +269,24 @@ class Camera:
             ppy_px=(self.ppy_px - c) / k,
         )
 
+    def _coefficients(self) -> np.ndarray:
+        """All 12 coefficients in OpenCV's order (:data:`DISTORTION_NAMES`), the kernels' input."""
+        return np.array([getattr(self, name) for name in DISTORTION_NAMES], dtype=float)
+
     @property
     def distortion(self) -> np.ndarray:
-        """(k1, k2, p1, p2, k3), OpenCV's order."""
-        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
+        """OpenCV's distortion vector: (k1, k2, p1, p2, k3), extended to 8 entries (k4, k5, k6)
+        or 12 (s1…s4) when those are non-zero."""
+        full = self._coefficients()
+        nz = np.flatnonzero(full != 0.0)
+        n = 5 if nz.size == 0 or nz[-1] < 5 else (8 if nz[-1] < 8 else 12)
+        return full[:n]
+
+    @property
+    def is_brown(self) -> bool:
+        """True if only the Brown coefficients (k1, k2, p1, p2, k3) may be non-zero (the model
+        the calibration estimates)."""
+        return self.distortion.size == 5
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -191,17 +295,33 @@ class Camera:
 
     # ------------------------------------------------------------------ model
     def distort(self, xy_n) -> np.ndarray:
-        """Eq. (3): undistorted → distorted normalised coordinates, shape (..., 2) → (..., 2)."""
+        """Eq. (3) with OpenCV's rational and thin-prism terms: undistorted → distorted
+        normalised coordinates, shape (..., 2) → (..., 2).
+
+            x' = x·R(r²) + 2 p1 x y + p2 (r² + 2x²) + s1 r² + s2 r⁴
+            y' = y·R(r²) + p1 (r² + 2y²) + 2 p2 x y + s3 r² + s4 r⁴
+            R(r²) = (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶)
+        """
         xy = np.asarray(xy_n, dtype=float)
         x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        radial = (1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))) / (
+            1.0 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6)))
+        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x) + r2 * (self.s1 + r2 * self.s2)
+        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y + r2 * (self.s3 + r2 * self.s4)
         return np.stack([xd, yd], axis=-1)
 
+    def distortion_jacobian(self, xy_n) -> np.ndarray:
+        """∂(x', y')/∂(x, y) of :meth:`distort` at undistorted normalised points (..., 2):
+        (..., 2, 2), rows (x', y'), columns (x, y) (the Jacobian Newton's inversion uses)."""
+        xy = np.asarray(xy_n, dtype=float)
+        flat = np.ascontiguousarray(xy.reshape(-1, 2))
+        out = np.empty((flat.shape[0], 2, 2))
+        _jacobian_kernel(flat, self._coefficients(), out)
+        return out.reshape(xy.shape[:-1] + (2, 2))
+
     def undistort(self, xyd_n, tol: float = UNDISTORT_TOL) -> tuple[np.ndarray, np.ndarray]:
-        """Invert eq. (3) numerically (Newton iteration to convergence).
+        """Invert the distortion numerically (Newton iteration to convergence).
 
         Parameters
         ----------
@@ -216,14 +336,15 @@ class Camera:
             Undistorted normalised coordinates.
         converged : ndarray of bool, shape (...)
             False where the iteration did not converge or converged to a non-physical solution
-            (beyond a fold-over of the distortion, where det J ≤ 0 or the radial factor ≤ 0).
+            (beyond a fold-over of the distortion, where det J ≤ 0, the radial factor ≤ 0 or the
+            rational model's denominator ≤ 0).
         """
         xyd = np.asarray(xyd_n, dtype=float)
         shape = xyd.shape[:-1]
         flat = np.ascontiguousarray(xyd.reshape(-1, 2))
         out = np.empty_like(flat)
         ok = np.empty(flat.shape[0], dtype=np.bool_)
-        _undistort_kernel(flat, self.k1, self.k2, self.k3, self.p1, self.p2, tol, _UNDISTORT_MAX_ITER, out, ok)
+        _undistort_kernel(flat, self._coefficients(), tol, _UNDISTORT_MAX_ITER, out, ok)
         return out.reshape(shape + (2,)), ok.reshape(shape)
 
     def project(self, p_cam) -> np.ndarray:
@@ -247,7 +368,7 @@ class Camera:
         xyd = np.stack(
             [(uv[..., 0] - self.ppx_px) / self.fx_px, (uv[..., 1] - self.ppy_px) / self.fy_px], axis=-1
         )
-        if self.k1 == 0.0 and self.k2 == 0.0 and self.k3 == 0.0 and self.p1 == 0.0 and self.p2 == 0.0:
+        if not np.any(self._coefficients()):
             return xyd, np.ones(xyd.shape[:-1], dtype=bool)
         return self.undistort(xyd)
 
