@@ -11,6 +11,7 @@ eq. (3) is the case k3 = k4 = k5 = k6 = s1 = … = s4 = 0. OpenCV's tilted-senso
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, fields, replace
 
 import numba
@@ -69,32 +70,117 @@ def _distort_jac(x, y, c):
 
 
 @numba.njit(cache=True)
-def _undistort_one(xd, yd, c, tol, max_iter):
-    """Invert the distortion by Newton's method. Returns (x, y, converged)."""
-    x = xd
-    y = yd
+def _physical(x, y, c):
+    """True if (x, y) lies where the distortion is a valid, orientation-preserving map: the
+    rational model's denominator and the radial factor positive, det J > 0."""
+    a, b, cc, d, num, den = _distort_jac(x, y, c)
+    return den > 0.0 and num / den > 0.0 and (a * d - b * cc) > 0.0
+
+
+@numba.njit(cache=True)
+def _newton(xd, yd, x, y, c, tol, max_iter, damped):
+    """Newton's method for distort(x, y) = (xd, yd) from (x, y). With ``damped`` a step that
+    does not reduce the residual is halved (up to 40 times). Returns (x, y, converged)."""
+    fx, fy = _distort(x, y, c)
+    rx = fx - xd
+    ry = fy - yd
     for _ in range(max_iter):
-        fx, fy = _distort(x, y, c)
-        rx = fx - xd
-        ry = fy - yd
         a, b, cc, d, num, den = _distort_jac(x, y, c)
         det = a * d - b * cc
         if det == 0.0 or not np.isfinite(det):
             return x, y, False
         dx = (d * rx - b * ry) / det
         dy = (-cc * rx + a * ry) / det
+        if damped:
+            res0 = rx * rx + ry * ry
+            t = 1.0
+            for _h in range(40):
+                fx, fy = _distort(x - t * dx, y - t * dy, c)
+                if (fx - xd) ** 2 + (fy - yd) ** 2 < res0 or res0 == 0.0:
+                    break
+                t *= 0.5
+            dx *= t
+            dy *= t
         x -= dx
         y -= dy
         if abs(dx) <= tol and abs(dy) <= tol:
             fx, fy = _distort(x, y, c)
             ok = abs(fx - xd) <= tol and abs(fy - yd) <= tol
-            # A physical inverse lies on the branch of the identity: the distortion must be
-            # orientation-preserving there (det J > 0) and the radial factor positive, with the
-            # rational model's denominator positive (no pole crossed). Beyond a fold-over of
-            # strong distortion Newton may find a solution on the far side.
-            a, b, cc, d, num, den = _distort_jac(x, y, c)
-            ok = ok and num / den > 0.0 and den > 0.0 and (a * d - b * cc) > 0.0
             return x, y, ok
+        fx, fy = _distort(x, y, c)
+        rx = fx - xd
+        ry = fy - yd
+    return x, y, False
+
+
+@numba.njit(cache=True)
+def _radial_start(xd, yd, c):
+    """Initial guess on the identity's branch for strong distortion: the radius r with
+    r·R(r²) = |(xd, yd)| of the radial part alone, bracketed by marching out from r = 0 while
+    r·R(r²) increases (steps halved near a fold or a pole, so none is crossed), then bisected.
+    Returns (x, y, found)."""
+    rho = math.sqrt(xd * xd + yd * yd)
+    if rho == 0.0:
+        return 0.0, 0.0, True
+    k1, k2, k3 = c[0], c[1], c[4]
+    step = rho / 32.0
+    lo = 0.0
+    g_lo = 0.0
+    hi = -1.0
+    while lo < 64.0 * rho:
+        r = lo + step
+        r2 = r * r
+        den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+        g = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / den
+        if not den > 0.0 or not g > g_lo:
+            # A fold or a pole within this step: refine the step; a fold before rho remains one.
+            step *= 0.5
+            if step <= 1e-12 * rho:
+                return xd, yd, False
+            continue
+        if g >= rho:
+            hi = r
+            break
+        lo = r
+        g_lo = g
+    if hi < 0.0:
+        return xd, yd, False
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid <= lo or mid >= hi:
+            break
+        r2 = mid * mid
+        g = mid * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7])))
+        if g < rho:
+            lo = mid
+        else:
+            hi = mid
+    r = 0.5 * (lo + hi)
+    return xd * r / rho, yd * r / rho, True
+
+
+@numba.njit(cache=True)
+def _undistort_one(xd, yd, c, tol, max_iter):
+    """Invert the distortion. Returns (x, y, converged).
+
+    Newton's method from (x, y) = (xd, yd) first (the paper's inversion of eq. 3; for mild
+    distortion it converges in a few steps). Where that fails or ends on a non-physical branch
+    (strong rational or wide-angle distortion, where Newton from (xd, yd) can jump past a fold
+    or a pole), a damped Newton from the radial-only inverse (:func:`_radial_start`) follows.
+    A physical inverse lies on the branch of the identity: the distortion must be
+    orientation-preserving there (det J > 0), the radial factor and the rational model's
+    denominator positive; beyond a fold-over there is no such inverse and the pixel is reported
+    as not converged.
+    """
+    x, y, ok = _newton(xd, yd, xd, yd, c, tol, max_iter, False)
+    if ok and _physical(x, y, c):
+        return x, y, True
+    x0, y0, found = _radial_start(xd, yd, c)
+    if not found:
+        return x, y, False
+    x1, y1, ok1 = _newton(xd, yd, x0, y0, c, tol, max_iter, True)
+    if ok1 and _physical(x1, y1, c):
+        return x1, y1, True
     return x, y, False
 
 
