@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry.camera import Camera
+from ..geometry.camera import DISTORTION_NAMES, Camera
 from ..errors import SetupError
 from .fringes import FringeSequence
 from ..geometry.surface import SplineSurface
@@ -373,10 +373,10 @@ class Setup:
                     raise SetupError(f"cameras.{name}.{key} must have 2 entries, got {value!r}")
                 cam_changes.update(zip(pairs[key], v))
             elif key == "distortion":
-                bad = set(value) - {"k1", "k2", "p1", "p2", "k3"}
+                bad = set(value) - set(DISTORTION_NAMES)
                 if bad:
                     raise SetupError(f"cameras.{name}.distortion: unknown coefficient(s) {sorted(bad)}; "
-                                     f"expected k1, k2, p1, p2, k3")
+                                     f"expected {', '.join(DISTORTION_NAMES)}")
                 cam_changes.update({k: float(v) for k, v in value.items()})
             elif key in ("origin_world_mm", "angles_deg"):
                 v = tuple(float(x) for x in value)
@@ -492,7 +492,8 @@ class Setup:
                 "image_size_px": [c.width_px, c.height_px],
                 "focal_length_px": [c.fx_px, c.fy_px],
                 "principal_point_px": [c.ppx_px, c.ppy_px],
-                "distortion": {"k1": c.k1, "k2": c.k2, "p1": c.p1, "p2": c.p2, "k3": c.k3},
+                "distortion": {"k1": c.k1, "k2": c.k2, "p1": c.p1, "p2": c.p2, "k3": c.k3,
+                               **{k: getattr(c, k) for k in DISTORTION_NAMES[5:] if getattr(c, k) != 0.0}},
                 "origin_world_mm": list(cs.pose.origin_world_mm),
                 "angles_deg": list(cs.pose.angles_deg),
             }

@@ -14,8 +14,12 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import SetupError
-from ..geometry.camera import Camera
+from ..geometry.camera import DISTORTION_NAMES, Camera
+from ..geometry.camera_checks import warn_if_folds_over
+from ..geometry.transform import RigidTransform, rotvec_to_matrix
 from .fringes import FringeSequence
 from .model import (
     SETUP_FORMAT,
@@ -39,8 +43,9 @@ __all__ = ["parse_setup", "load_setup", "dump_toml"]
 _KNOWN_KEYS = {
     "": ("format", "format_version", "cameras", "screen", "sample", "patterns", "calibration", "calibration_report",
          "imaging"),
-    "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg"),
-    "distortion": ("k1", "k2", "p1", "p2", "k3"),
+    "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg",
+               "rotvec_deg", "rvec", "tvec"),
+    "distortion": DISTORTION_NAMES,
     "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
     "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm"),
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
@@ -188,7 +193,7 @@ def _camera(r: _Reader) -> CameraSetup:
     if f[0] <= 0 or f[1] <= 0:
         raise SetupError(f"{r.key('focal_length_px')} must be > 0, got {list(f)}")
     pp = r.vector("principal_point_px", 2)
-    dist = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0}
+    dist = {name: 0.0 for name in DISTORTION_NAMES}
     if r.has("distortion"):
         d = r.table_("distortion", "distortion")
         for k in dist:
@@ -197,9 +202,45 @@ def _camera(r: _Reader) -> CameraSetup:
     else:
         r.used.add("distortion")
     cam = Camera(size[0], size[1], f[0], f[1], pp[0], pp[1], **dist)
-    pose = _pose(r)
+    pose = _camera_pose(r)
     r.finish()
+    warn_if_folds_over(cam, source=r.path)
     return CameraSetup(cam, pose)
+
+
+def _camera_pose(r: _Reader) -> Pose:
+    """A camera's pose: ``origin_world_mm`` with ``angles_deg`` (Givens angles) or ``rotvec_deg``
+    (rotation vector of R_world_cam, degrees: the camera's axes in world coordinates are the
+    columns of R), or OpenCV's ``rvec`` (rad) and ``tvec`` (mm), which map world to camera:
+    p_cam = R(rvec)·p_world + tvec (docs/conventions.md, "OpenCV cameras")."""
+    given = [k for k in ("angles_deg", "rotvec_deg", "rvec") if r.has(k)]
+    if len(given) != 1:
+        found = f"found {' and '.join(r.key(k) for k in given)}" if given else "found none"
+        raise SetupError(f"{r.path}: give the camera's orientation once: angles_deg (Givens angles), rotvec_deg "
+                         f"(rotation vector, camera → world) or rvec + tvec (OpenCV, world → camera); {found}")
+    if r.has("tvec") and given != ["rvec"]:
+        raise SetupError(f"{r.key('tvec')} belongs with {r.key('rvec')} (OpenCV's world → camera pose); "
+                         f"with {given[0]} give origin_world_mm instead")
+    if given == ["rvec"]:
+        if r.has("origin_world_mm"):
+            raise SetupError(f"{r.path}: rvec + tvec already place the camera; remove {r.key('origin_world_mm')}")
+        rvec = r.vector("rvec", 3)
+        tvec = r.vector("tvec", 3)
+        T_world_cam = RigidTransform(rotvec_to_matrix(np.array(rvec)), np.array(tvec)).inv()
+    elif given == ["rotvec_deg"]:
+        origin = r.vector("origin_world_mm", 3)
+        rotvec = r.vector("rotvec_deg", 3)
+        T_world_cam = RigidTransform(rotvec_to_matrix(np.radians(rotvec)), np.array(origin))
+    else:
+        return _pose(r)
+    pose = Pose.from_transform(T_world_cam)
+    # Givens angles are singular at β = ±90°: make sure the stored angles give the same rotation.
+    err = float(np.max(np.abs(pose.T_world_x.rotation - T_world_cam.rotation)))
+    if err > 1e-9:
+        raise SetupError(f"{r.path}: this orientation (camera turned 90° about an axis at the Givens "
+                         f"singularity β = ±90°) cannot be stored as angles_deg (error {err:.1e}); turn it "
+                         f"slightly or give angles_deg")
+    return pose
 
 
 def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
