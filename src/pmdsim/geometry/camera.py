@@ -300,7 +300,8 @@ class Camera:
         if not np.isfinite(dc).all():
             raise SetupError(f"{source}: distortion coefficients must be finite, got {dc.tolist()}")
         if dc.size == 14 and (dc[12] != 0.0 or dc[13] != 0.0):
-            raise SetupError(f"{source}: the tilted-sensor distortion terms (τx, τy) = ({dc[12]!r}, {dc[13]!r}) "
+            raise SetupError(f"{source}: the tilted-sensor distortion terms (τx, τy) = ({float(dc[12])!r}, "
+                             f"{float(dc[13])!r}) "
                              f"are not supported by pmdsim's camera model; only τx = τy = 0 (coefficients 13 "
                              f"and 14 of 14) can be imported")
         d = np.zeros(len(DISTORTION_NAMES))

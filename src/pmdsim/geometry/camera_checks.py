@@ -6,8 +6,8 @@ datasheet), and what pmdsim says instead of computing silently with it:
 * :func:`check_camera_matrix` — an intrinsic matrix K that is not normalised (K[2,2] ≠ 1),
   transposed, skewed or with a negative focal length: :class:`~pmdsim.errors.SetupError`;
 * :func:`check_image_size` — an image size that cannot belong to the camera (not positive, absurdly
-  large, or not containing the principal point: width and height swapped, another resolution):
-  :class:`~pmdsim.errors.SetupError`;
+  large, not containing the principal point: another resolution; width and height swapped):
+  :class:`~pmdsim.errors.SetupError`; a principal point far off the image centre: a warning;
 * :func:`fold_over` / :func:`warn_if_folds_over` — a distortion model that folds over inside the
   image (the distorted radius r_d(r) stops increasing, det ∂(x', y')/∂(x, y) ≤ 0, before the view
   ray leaves the image): no pixel beyond the fold has a unique view ray. This typically happens
@@ -37,6 +37,9 @@ __all__ = ["CameraModelWarning", "FoldOver", "check_camera_matrix", "check_image
 
 #: Largest plausible image side (px). The largest area sensors have about 15 000 px per side.
 MAX_IMAGE_SIDE_PX = 65536
+#: Largest plausible offset of the principal point from the image centre, as a fraction of the
+#: image side (calibrated lenses: typically < 5 %); beyond it a warning.
+MAX_PRINCIPAL_OFFSET = 0.15
 
 
 class CameraModelWarning(UserWarning):
@@ -68,21 +71,22 @@ def check_camera_matrix(camera_matrix, *, source: str = "camera_matrix") -> np.n
         raise SetupError(f"{source}: the camera matrix must be 3 × 3, got shape {k.shape}")
     if not np.isfinite(k).all():
         raise SetupError(f"{source}: the camera matrix must be finite, got {k.tolist()}")
-    if k[2, 0] != 0.0 or k[2, 1] != 0.0:
+    e = k.tolist()  # plain floats for the messages
+    if e[2][0] != 0.0 or e[2][1] != 0.0:
         hint = (" — it looks transposed (the principal point belongs in K[0, 2], K[1, 2])"
-                if k[0, 2] == 0.0 and k[1, 2] == 0.0 else "")
-        raise SetupError(f"{source}: the camera matrix's last row must be (0, 0, 1), got {k[2].tolist()}{hint}")
-    if k[2, 2] != 1.0:
-        raise SetupError(f"{source}: the camera matrix is not normalised: K[2, 2] = {k[2, 2]!r}, expected 1 "
+                if e[0][2] == 0.0 and e[1][2] == 0.0 else "")
+        raise SetupError(f"{source}: the camera matrix's last row must be (0, 0, 1), got {e[2]}{hint}")
+    if e[2][2] != 1.0:
+        raise SetupError(f"{source}: the camera matrix is not normalised: K[2, 2] = {e[2][2]!r}, expected 1 "
                          f"(a projective scale of K; divide K by K[2, 2] if that is what it is)")
-    if k[1, 0] != 0.0:
-        raise SetupError(f"{source}: K[1, 0] must be 0 in a camera matrix, got {k[1, 0]!r}")
-    if k[0, 0] <= 0.0 or k[1, 1] <= 0.0:
-        raise SetupError(f"{source}: focal lengths must be > 0, got fx = K[0, 0] = {k[0, 0]!r}, "
-                         f"fy = K[1, 1] = {k[1, 1]!r} (a flipped image axis? pmdsim and OpenCV both have "
+    if e[1][0] != 0.0:
+        raise SetupError(f"{source}: K[1, 0] must be 0 in a camera matrix, got {e[1][0]!r}")
+    if e[0][0] <= 0.0 or e[1][1] <= 0.0:
+        raise SetupError(f"{source}: focal lengths must be > 0, got fx = K[0, 0] = {e[0][0]!r}, "
+                         f"fy = K[1, 1] = {e[1][1]!r} (a flipped image axis? pmdsim and OpenCV both have "
                          f"x right and y down: flip the images, not the focal length)")
-    if abs(k[0, 1]) > 1e-9 * k[0, 0]:
-        raise SetupError(f"{source}: skew K[0, 1] = {k[0, 1]!r} is not supported (pmdsim's pixel axes are "
+    if abs(e[0][1]) > 1e-9 * e[0][0]:
+        raise SetupError(f"{source}: skew K[0, 1] = {e[0][1]!r} is not supported (pmdsim's pixel axes are "
                          f"perpendicular); calibrate with zero skew (OpenCV's default)")
     return k
 
@@ -107,9 +111,16 @@ def check_image_size(image_size_px, principal_point_px=None, *, source: str = "c
     Raises
     ------
     SetupError
-        Not two positive whole numbers, larger than :data:`MAX_IMAGE_SIDE_PX` per side, or not
-        containing the principal point (the message says if width and height look swapped or
-        the calibration looks made at another resolution).
+        Not two positive whole numbers; larger than :data:`MAX_IMAGE_SIDE_PX` per side; not
+        containing the principal point (calibrated at another resolution?); or the principal
+        point far from this image's centre but at the centre of the swapped size (width and
+        height swapped).
+
+    Warns
+    -----
+    CameraModelWarning
+        The principal point is farther than :data:`MAX_PRINCIPAL_OFFSET` of the image side
+        from the image centre.
     """
     try:
         w_raw, h_raw = (float(v) for v in image_size_px)
@@ -125,15 +136,22 @@ def check_image_size(image_size_px, principal_point_px=None, *, source: str = "c
                          f"per side); expected the calibrated image's width and height in pixels")
     if principal_point_px is not None:
         cx, cy = (float(v) for v in principal_point_px)
+        # Offsets of the principal point from the image centre, as fractions of the image's sides.
+        ox, oy = abs(cx - (w - 1) / 2.0) / w, abs(cy - (h - 1) / 2.0) / h
+        sx, sy = abs(cx - (h - 1) / 2.0) / h, abs(cy - (w - 1) / 2.0) / w  # … of the swapped size
+        if max(ox, oy) > MAX_PRINCIPAL_OFFSET and max(sx, sy) <= 0.05:
+            raise SetupError(f"{source}: implausible image size {w} × {h} px: the principal point ({cx:g}, {cy:g}) "
+                             f"px lies near the centre of a {h} × {w} image — width and height swapped?")
         if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
-            if -0.5 <= cx <= h - 0.5 and -0.5 <= cy <= w - 0.5:
-                hint = f"width and height swapped? (the principal point fits {h} × {w})"
-            else:
-                sx, sy = (2.0 * cx + 1.0) / w, (2.0 * cy + 1.0) / h  # principal point over image centre
-                hint = (f"calibrated at another resolution? (the principal point is {sx:.3g} × and {sy:.3g} × "
-                        f"the image centre)")
+            fx_, fy_ = (2.0 * cx + 1.0) / w, (2.0 * cy + 1.0) / h  # principal point over image centre
             raise SetupError(f"{source}: implausible image size {w} × {h} px: it does not contain the principal "
-                             f"point ({cx:g}, {cy:g}) px — {hint}")
+                             f"point ({cx:g}, {cy:g}) px — calibrated at another resolution? (the principal "
+                             f"point is {fx_:.3g} × and {fy_:.3g} × the image centre)")
+        if max(ox, oy) > MAX_PRINCIPAL_OFFSET:
+            warnings.warn(f"{source}: the principal point ({cx:g}, {cy:g}) px is {100 * max(ox, oy):.0f} % of the "
+                          f"image size from the centre of the {w} × {h} px image (more than "
+                          f"{100 * MAX_PRINCIPAL_OFFSET:.0f} %): is the image size the calibrated one?",
+                          CameraModelWarning, stacklevel=3)
     return w, h
 
 

@@ -237,9 +237,9 @@ def _camera_pose(r: _Reader) -> Pose:
     # Givens angles are singular at β = ±90°: make sure the stored angles give the same rotation.
     err = float(np.max(np.abs(pose.T_world_x.rotation - T_world_cam.rotation)))
     if err > 1e-9:
-        raise SetupError(f"{r.path}: this orientation (camera turned 90° about an axis at the Givens "
-                         f"singularity β = ±90°) cannot be stored as angles_deg (error {err:.1e}); turn it "
-                         f"slightly or give angles_deg")
+        raise SetupError(f"{r.path}: this orientation lies at (or within float precision of) the Givens "
+                         f"angles' singularity β = ±90° and cannot be stored as angles_deg (error {err:.1e}); "
+                         f"choose world axes in which the camera is not turned by ±90° about its y axis")
     return pose
 
 
