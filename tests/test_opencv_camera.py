@@ -12,8 +12,12 @@ import math
 import tomllib
 import warnings
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
+import tomli_w
 
 cv2 = pytest.importorskip("cv2")
 
@@ -24,7 +28,7 @@ from pmdsim.geometry.camera import Camera  # noqa: E402
 from pmdsim.geometry.camera_checks import CameraModelWarning, fold_over  # noqa: E402
 from pmdsim.io.opencv import read_filestorage, read_opencv_camera, write_opencv_camera  # noqa: E402
 from pmdsim.setup import default_setup  # noqa: E402
-from pmdsim.setup.toml import parse_setup  # noqa: E402
+from pmdsim.setup.toml import load_setup, parse_setup  # noqa: E402
 
 W, H = 640, 400
 K = np.array([[1400.0, 0.0, 321.3], [0.0, 1410.0, 203.7], [0.0, 0.0, 1.0]])
@@ -471,3 +475,69 @@ def test_rational_camera_survives_the_setup_file():
     assert set(doc["cameras"]["left"]["distortion"]) == {"k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
                                                          "s1", "s2", "s3", "s4"}
     assert parse_setup(doc).cameras["left"].camera == cam
+
+
+# ============================================================================ setups referencing OpenCV files
+def _setup_with_opencv_camera(tmp_path, default_toml, camera_file="calib/left.yml", **pose):
+    doc = tomllib.loads(default_toml)
+    left = doc["cameras"]["left"]
+    for k in ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm",
+              "angles_deg"):
+        left.pop(k)
+    left["opencv"] = camera_file
+    left.update(pose)
+    (tmp_path / "setup.toml").write_bytes(tomli_w.dumps(doc).encode("utf-8"))
+    return tmp_path / "setup.toml"
+
+
+def test_setup_references_opencv_file_relative_to_itself(tmp_path, default_toml, monkeypatch):
+    (tmp_path / "calib").mkdir()
+    d = np.array([-0.21, 0.13, 1.2e-3, -0.8e-3, 0.04, 0.01, 0.002, 0.0005])
+    k = np.array([[4400.5, 0.0, 961.25], [0.0, 4401.0, 598.75], [0.0, 0.0, 1.0]])
+    _write_cv(tmp_path / "calib" / "left.yml", k, d, (1920, 1200))
+    rvec, tvec = np.array([0.02, -0.25, 0.01]), np.array([-70.0, 5.0, 300.0])
+    path = _setup_with_opencv_camera(tmp_path, default_toml, rvec=rvec.tolist(), tvec=tvec.tolist())
+    monkeypatch.chdir(tmp_path / "calib")  # not the setup's directory
+    setup = load_setup(path)
+    cs = setup.cameras["left"]
+    p_world = np.random.default_rng(2).uniform(-60, 60, (200, 3))
+    uv = cs.camera.project(cs.T_world_cam.inv().apply(p_world))
+    np.testing.assert_allclose(uv, _cv_project(p_world, k, d, rvec, tvec), atol=1e-9, rtol=0)
+    # The setup written back is self-contained (the intrinsics inline) and reads to the same camera.
+    assert parse_setup(tomllib.loads(setup.to_toml())).cameras["left"].camera == cs.camera
+
+
+def test_setup_opencv_file_errors(tmp_path, default_toml):
+    path = _setup_with_opencv_camera(tmp_path, default_toml, "missing.yml", origin_world_mm=[0, 0, 0],
+                                     angles_deg=[0, 0, 0])
+    with pytest.raises(SetupError, match=r"cameras\.left\.opencv: .*missing\.yml' does not exist"):
+        load_setup(path)
+    _write_cv(tmp_path / "left.xml", K * 2.0, [0.1, 0, 0, 0, 0], (W, H))
+    path = _setup_with_opencv_camera(tmp_path, default_toml, "left.xml", origin_world_mm=[0, 0, 0],
+                                     angles_deg=[0, 0, 0])
+    with pytest.raises(SetupError, match=r"cameras\.left\.opencv: .*left\.xml: the camera matrix is not normalised"):
+        load_setup(path)
+    _write_cv(tmp_path / "left.yml", K, [0.1, 0, 0, 0, 0], (W, H))
+    path = _setup_with_opencv_camera(tmp_path, default_toml, "left.yml", origin_world_mm=[0, 0, 0],
+                                     angles_deg=[0, 0, 0], focal_length_px=[10.0, 10.0])
+    with pytest.raises(SetupError, match=r"cameras\.left\.focal_length_px: the intrinsics come from "
+                                         r"cameras\.left\.opencv = 'left\.yml'; give them in one place only"):
+        load_setup(path)
+
+
+def test_cli_shows_setup_with_opencv_camera(tmp_path, default_toml):
+    _write_cv(tmp_path / "left.yml", K, [0.1, -0.05, 1e-3, 2e-3, 0.0, 0.01, 0.0, 0.0], (W, H))
+    path = _setup_with_opencv_camera(tmp_path, default_toml, "left.yml", rotvec_deg=[0.0, 10.0, 0.0],
+                                     origin_world_mm=[-70.0, 0.0, -295.0])
+    out = subprocess.run([sys.executable, "-m", "pmdsim.cli", "setup", "--setup", str(path), "--show"],
+                         capture_output=True, text=True, cwd=tmp_path.parent)
+    assert out.returncode == 0, out.stderr
+    left = tomllib.loads(out.stdout)["cameras"]["left"]
+    assert left["image_size_px"] == [W, H] and left["focal_length_px"] == [K[0, 0], K[1, 1]]
+    assert left["distortion"]["k4"] == 0.01
+    np.testing.assert_allclose(left["angles_deg"], [0.0, 10.0, 0.0], atol=1e-12)
+    bad = _setup_with_opencv_camera(tmp_path, default_toml, "nope.yml", rotvec_deg=[0.0, 10.0, 0.0],
+                                    origin_world_mm=[-70.0, 0.0, -295.0])
+    out = subprocess.run([sys.executable, "-m", "pmdsim.cli", "setup", "--setup", str(bad)],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "pmdsim: error:" in out.stderr and "cameras.left.opencv" in out.stderr

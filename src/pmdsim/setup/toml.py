@@ -34,6 +34,7 @@ from .model import (
     Setup,
     default_setup,
 )
+from .opencv_file import read_opencv_camera
 
 __all__ = ["parse_setup", "load_setup", "dump_toml"]
 
@@ -44,7 +45,7 @@ _KNOWN_KEYS = {
     "": ("format", "format_version", "cameras", "screen", "sample", "patterns", "calibration", "calibration_report",
          "imaging"),
     "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg",
-               "rotvec_deg", "rvec", "tvec"),
+               "rotvec_deg", "rvec", "tvec", "opencv"),
     "distortion": DISTORTION_NAMES,
     "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
     "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm"),
@@ -177,7 +178,12 @@ def _pose(r: _Reader) -> Pose:
     return Pose(r.vector("origin_world_mm", 3), r.vector("angles_deg", 3))
 
 
-def _camera(r: _Reader) -> CameraSetup:
+_INTRINSIC_KEYS = ("image_size_px", "focal_length_px", "principal_point_px", "distortion")
+
+
+def _camera(r: _Reader, base_dir: Path | None = None) -> CameraSetup:
+    if r.has("opencv"):
+        return _camera_from_opencv_file(r, base_dir)
     size = r.raw("image_size_px")
     if (
         not isinstance(size, list)
@@ -205,6 +211,29 @@ def _camera(r: _Reader) -> CameraSetup:
     pose = _camera_pose(r)
     r.finish()
     warn_if_folds_over(cam, source=r.path)
+    return CameraSetup(cam, pose)
+
+
+def _camera_from_opencv_file(r: _Reader, base_dir: Path | None) -> CameraSetup:
+    """``[cameras.X] opencv = "file.yml"``: intrinsics from an OpenCV FileStorage file (path
+    relative to the setup file's directory), the pose from the table."""
+    name = r.raw("opencv")
+    if not isinstance(name, str) or not name:
+        raise SetupError(f"{r.key('opencv')} must be the path of an OpenCV camera file (.yml, .yaml, .xml, .json), "
+                         f"got {name!r}")
+    both = [k for k in _INTRINSIC_KEYS if r.has(k)]
+    if both:
+        raise SetupError(f"{r.key(both[0])}: the intrinsics come from {r.key('opencv')} = {name!r}; "
+                         f"give them in one place only")
+    path = Path(name)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    try:
+        cam = read_opencv_camera(path)
+    except SetupError as e:
+        raise SetupError(f"{r.key('opencv')}: {e}") from None
+    pose = _camera_pose(r)
+    r.finish()
     return CameraSetup(cam, pose)
 
 
@@ -243,8 +272,11 @@ def _camera_pose(r: _Reader) -> Pose:
     return pose
 
 
-def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
+def parse_setup(doc: dict[str, Any], *, source: str = "setup", base_dir: str | Path | None = None) -> Setup:
     """Validate a setup document (parsed TOML) and build the :class:`Setup`.
+
+    ``base_dir`` is the directory that relative file names in the document (``cameras.X.opencv``)
+    are relative to: the setup file's directory (:func:`load_setup`); None = the working directory.
 
     Raises
     ------
@@ -265,7 +297,7 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup") -> Setup:
     for name in cams_r.table:
         if not (name.isascii() and name.isidentifier()):  # a bare TOML key, file and HDF5 group name
             raise SetupError(f"camera name {name!r} must be a plain identifier (letters, digits, _)")
-        cameras[name] = _camera(cams_r.table_(name, "camera"))
+        cameras[name] = _camera(cams_r.table_(name, "camera"), None if base_dir is None else Path(base_dir))
 
     s = r.table_("screen")
     screen_pose = _pose(s)
@@ -385,7 +417,7 @@ def load_setup(path: str | Path) -> Setup:
     except tomllib.TOMLDecodeError as e:
         raise SetupError(f"{p}: not valid TOML: {e}") from None
     try:
-        return parse_setup(doc, source=str(p))
+        return parse_setup(doc, source=str(p), base_dir=p.parent)
     except SetupError as e:
         raise SetupError(f"{p}: {e}") from None
 
