@@ -541,3 +541,16 @@ def test_cli_shows_setup_with_opencv_camera(tmp_path, default_toml):
     out = subprocess.run([sys.executable, "-m", "pmdsim.cli", "setup", "--setup", str(bad)],
                          capture_output=True, text=True)
     assert out.returncode == 2 and "pmdsim: error:" in out.stderr and "cameras.left.opencv" in out.stderr
+
+
+@pytest.mark.parametrize("size, pp, expected", [
+    ([1200, 1920], [962.5, 597.5], ["cameras.left.image_size_px", "implausible image size 1200 × 1920", "swapped"]),
+    ([1920, 1200], [1920.0, 1200.0], ["cameras.left.image_size_px", "does not contain the principal point"]),
+])
+def test_setup_camera_with_implausible_image_size(default_toml, size, pp, expected):
+    doc = tomllib.loads(default_toml)
+    doc["cameras"]["left"].update(image_size_px=size, principal_point_px=pp)
+    with pytest.raises(SetupError) as ei:
+        parse_setup(doc)
+    for s in expected:
+        assert s in str(ei.value)

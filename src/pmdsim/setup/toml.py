@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import SetupError
 from ..geometry.camera import DISTORTION_NAMES, Camera
-from ..geometry.camera_checks import warn_if_folds_over
+from ..geometry.camera_checks import check_image_size, warn_if_folds_over
 from ..geometry.transform import RigidTransform, rotvec_to_matrix
 from .fringes import FringeSequence
 from .model import (
@@ -210,6 +210,7 @@ def _camera(r: _Reader, base_dir: Path | None = None) -> CameraSetup:
     cam = Camera(size[0], size[1], f[0], f[1], pp[0], pp[1], **dist)
     pose = _camera_pose(r)
     r.finish()
+    check_image_size(size, pp, source=f"{r.key('image_size_px')} with {r.key('principal_point_px')}")
     warn_if_folds_over(cam, source=r.path)
     return CameraSetup(cam, pose)
 
