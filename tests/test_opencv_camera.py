@@ -24,7 +24,7 @@ cv2 = pytest.importorskip("cv2")
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from pmdsim.errors import SetupError  # noqa: E402
-from pmdsim.geometry.camera import Camera  # noqa: E402
+from pmdsim.geometry.camera import DISTORTION_NAMES, Camera  # noqa: E402
 from pmdsim.geometry.camera_checks import CameraModelWarning, fold_over  # noqa: E402
 from pmdsim.io.opencv import read_filestorage, read_opencv_camera, write_opencv_camera  # noqa: E402
 from pmdsim.setup import default_setup  # noqa: E402
@@ -554,3 +554,24 @@ def test_setup_camera_with_implausible_image_size(default_toml, size, pp, expect
         parse_setup(doc)
     for s in expected:
         assert s in str(ei.value)
+
+
+def test_tracer_uses_the_full_model():
+    """The ray tracer's sample points of a 12-coefficient camera, projected by cv2.projectPoints
+    through the camera's pose, land on the pixel centres they were traced from."""
+    from pmdsim.simulation.render import trace_setup_camera
+
+    setup = default_setup().binned(16)  # 120 × 75 px
+    base = setup.cameras["left"].camera
+    d = _coeffs(np.random.default_rng(77), 12) * 2.0
+    k = np.array([[base.fx_px, 0, base.ppx_px], [0, base.fy_px, base.ppy_px], [0, 0, 1.0]])
+    setup = setup.with_camera("left", distortion=dict(zip(DISTORTION_NAMES, d.tolist())))
+    cs = setup.cameras["left"]
+    m = trace_setup_camera(setup, "left", store_points=True)
+    valid = m.valid
+    assert valid.mean() > 0.9
+    p_world = setup.sample.T_world_sample.apply(m.p_sample_mm[valid])
+    T_cam_world = cs.T_world_cam.inv()
+    rvec, _ = cv2.Rodrigues(T_cam_world.rotation)
+    uv = _cv_project(p_world, k, d, rvec.ravel(), T_cam_world.translation)
+    assert np.abs(uv - cs.camera.pixel_grid()[valid]).max() < 1e-9
