@@ -88,3 +88,38 @@ def test_invalid_parameters_rejected(kw):
     args.update(kw)
     with pytest.raises(ValueError):
         Camera(**args)
+
+
+# ---------------------------------------------------------------- OpenCV's full model (issue 12)
+def test_brown_camera_computes_eq3_bit_for_bit():
+    # The rational/thin-prism terms at 0 must not change a Brown camera by a single bit: the
+    # distortion equals eq. (3) written out, operation for operation.
+    cam = _camera(**DIST)
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-0.3, 0.3, (2, 1000))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (DIST["k1"] + r2 * (DIST["k2"] + r2 * DIST["k3"]))
+    xd = x * radial + 2.0 * DIST["p1"] * x * y + DIST["p2"] * (r2 + 2.0 * x * x)
+    yd = y * radial + DIST["p1"] * (r2 + 2.0 * y * y) + 2.0 * DIST["p2"] * x * y
+    np.testing.assert_array_equal(cam.distort(np.stack([x, y], -1)), np.stack([xd, yd], -1))
+
+
+def test_opencv_vector_lengths():
+    K = np.array([[1000.0, 0, 320.5], [0, 1001.0, 240.25], [0, 0, 1]])
+    d12 = np.arange(1, 13) * 1e-3
+    cam = Camera.from_opencv(K, d12, (640, 480))
+    assert [getattr(cam, n) for n in ("k4", "k5", "k6", "s1", "s2", "s3", "s4")] == d12[5:].tolist()
+    np.testing.assert_array_equal(cam.distortion, d12)
+    np.testing.assert_array_equal(cam.as_opencv(14)[1], np.r_[d12, 0.0, 0.0])
+    with pytest.raises(ValueError, match="8-coefficient .* s1, s2, s3, s4"):
+        cam.as_opencv(8)
+    cam8 = Camera.from_opencv(K, d12[:8], (640, 480))
+    assert cam8.distortion.size == 8 and not cam8.is_brown
+    assert Camera.from_opencv(K, d12[:5], (640, 480)).is_brown
+    assert Camera.from_opencv(K, [], (640, 480)).distortion.tolist() == [0.0] * 5
+
+
+@pytest.mark.parametrize("kw", [dict(k4=np.nan), dict(s3=np.inf)])
+def test_invalid_new_coefficients_rejected(kw):
+    with pytest.raises(ValueError):
+        Camera(10, 10, 10.0, 10.0, 5.0, 5.0, **kw)
