@@ -575,3 +575,38 @@ def test_tracer_uses_the_full_model():
     rvec, _ = cv2.Rodrigues(T_cam_world.rotation)
     uv = _cv_project(p_world, k, d, rvec.ravel(), T_cam_world.translation)
     assert np.abs(uv - cs.camera.pixel_grid()[valid]).max() < 1e-9
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".xml", ".json"])
+def test_cv2_structures_beside_the_camera(tmp_path, suffix):
+    # Other nodes OpenCV may write beside a camera (sequences of maps, flow maps, sequences of
+    # numbers and strings) are read as cv2 wrote them and do not disturb the camera.
+    path = tmp_path / f"cam{suffix}"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", W)
+    fs.write("image_height", H)
+    fs.startWriteStruct("views", cv2.FileNode_SEQ)
+    for i in range(2):
+        fs.startWriteStruct("", cv2.FileNode_MAP)
+        fs.write("id", i)
+        fs.write("name", f"view {i}")
+        fs.write("R", np.eye(3) * (i + 1))
+        fs.endWriteStruct()
+    fs.endWriteStruct()
+    fs.startWriteStruct("flowmap", cv2.FileNode_MAP | cv2.FileNode_FLOW)
+    fs.write("a", 1)
+    fs.write("b", 2.5)
+    fs.endWriteStruct()
+    fs.write("strs", ["a b", "c"])
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", np.array([0.1, -0.05, 1e-3, 2e-3, 0.01]))  # 1-D: an opencv-nd-matrix
+    fs.write("cube", np.arange(8.0).reshape(2, 2, 2))  # a 2 × 2 matrix of 2 channels
+    fs.release()
+    nodes = read_filestorage(path)
+    np.testing.assert_array_equal(nodes["cube"], np.arange(8.0).reshape(2, 2, 2))
+    assert [v["id"] for v in nodes["views"]] == [0, 1] and nodes["views"][1]["name"] == "view 1"
+    np.testing.assert_array_equal(nodes["views"][1]["R"], 2 * np.eye(3))
+    assert nodes["flowmap"] == {"a": 1, "b": 2.5} and nodes["strs"] == ["a b", "c"]
+    k2, d2 = read_opencv_camera(path).as_opencv()
+    np.testing.assert_array_equal(k2, K)
+    np.testing.assert_array_equal(d2, [0.1, -0.05, 1e-3, 2e-3, 0.01])

@@ -87,9 +87,23 @@ def _matrix(node: dict, where: str) -> np.ndarray:
     return arr.reshape(shape)
 
 
+def _nd_matrix(node: dict, where: str) -> np.ndarray:
+    """An ``opencv-nd-matrix`` node (sizes, dt, data), as OpenCV writes 1-D and n-D arrays."""
+    sizes = node.get("sizes")
+    sizes = [sizes] if isinstance(sizes, int) else sizes
+    if not isinstance(sizes, list) or not all(isinstance(v, int) and v >= 0 for v in sizes):
+        raise SetupError(f"{where}: an opencv-nd-matrix needs a list of integer sizes, got {sizes!r}")
+    n = int(np.prod(sizes)) if sizes else 0
+    flat = _matrix({"rows": 1, "cols": n, "dt": node.get("dt", "d"), "data": node.get("data", [])}, where)
+    return flat.reshape(tuple(sizes) + flat.shape[2:])
+
+
 def _finish(node: Any, where: str) -> Any:
-    """Turn matrix-like mappings (``type_id``/tag ``opencv-matrix``, or ROS's rows/cols/data) into arrays."""
+    """Turn matrix-like mappings (``type_id``/tag ``opencv-matrix`` or ``opencv-nd-matrix``, or
+    ROS's rows/cols/data) into arrays."""
     if isinstance(node, dict):
+        if node.get("type_id") == "opencv-nd-matrix":
+            return _nd_matrix(node, where)
         if node.get("type_id") == "opencv-matrix" or {"rows", "cols", "data"} <= set(node):
             return _matrix(node, where)
         return {k: _finish(v, f"{where}.{k}") for k, v in node.items()}
@@ -145,8 +159,8 @@ def _flow(text: str, where: str) -> Any:
     if t.startswith("!!"):  # a tag on a flow value, e.g. !!opencv-matrix { … }
         tag, _, t = t.partition(" ")
         value = _flow(t, where)
-        if tag == "!!opencv-matrix" and isinstance(value, dict):
-            value["type_id"] = "opencv-matrix"
+        if tag in ("!!opencv-matrix", "!!opencv-nd-matrix") and isinstance(value, dict):
+            value["type_id"] = tag[2:]
         return value
     if t.startswith("["):
         if not t.endswith("]"):
@@ -232,8 +246,8 @@ class _YamlParser:
             value, i = self.block(i + 1, self.lines[i + 1][0])
         else:
             value, i = None, i + 1
-        if tag == "!!opencv-matrix" and isinstance(value, dict):
-            value["type_id"] = "opencv-matrix"
+        if tag in ("!!opencv-matrix", "!!opencv-nd-matrix") and isinstance(value, dict):
+            value["type_id"] = tag[2:]
         return value, i
 
     def block(self, i: int, indent: int) -> tuple[Any, int]:
@@ -294,7 +308,8 @@ def _parse_yaml(text: str, source: str) -> dict:
 # ============================================================================ XML, JSON
 def _xml_node(el: ET.Element, where: str) -> Any:
     children = list(el)
-    if el.get("type_id") == "opencv-matrix" or (children and all(c.tag != "_" for c in children)):
+    is_matrix = el.get("type_id") in ("opencv-matrix", "opencv-nd-matrix")
+    if is_matrix or (children and all(c.tag != "_" for c in children)):
         node = {c.tag: _xml_node(c, f"{where}.{c.tag}") for c in children}
         if el.get("type_id"):
             node["type_id"] = el.get("type_id")
@@ -304,10 +319,9 @@ def _xml_node(el: ET.Element, where: str) -> Any:
     text = (el.text or "").strip()
     if text.startswith('"') and text.endswith('"') and len(text) >= 2:
         return text[1:-1]
-    tokens = text.split()
+    tokens = re.findall(r'"[^"]*"|\S+', text)  # a sequence of scalars is written as one text
     if len(tokens) > 1:
-        values = [_scalar(t) for t in tokens]
-        return values if all(isinstance(v, (int, float)) for v in values) else text
+        return [_scalar(t) for t in tokens]
     return _scalar(text) if tokens else None
 
 
