@@ -35,57 +35,83 @@ OPENCV_LENGTHS = (4, 5, 8, 12, 14)
 
 
 @numba.njit(cache=True)
-def _distort(x, y, c):
+def _unpack(c):
+    """The kernels' coefficients: a 12-tuple (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4) from
+    the array, and whether the rational (k4–k6) and thin-prism (s1–s4) terms are present. (A tuple
+    keeps the coefficients in registers: with the array the inversion ran 2× slower.)"""
+    t = (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10], c[11])
+    rational = t[5] != 0.0 or t[6] != 0.0 or t[7] != 0.0
+    prism = t[8] != 0.0 or t[9] != 0.0 or t[10] != 0.0 or t[11] != 0.0
+    return t, rational, prism
+
+
+@numba.njit(cache=True)
+def _distort(x, y, c, rational, prism):
     """OpenCV's distortion of normalised (x, y); c = (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4).
 
-    With k4…s4 = 0 every operation reduces exactly to Brown's eq. (3) (division by 1.0, adding 0.0).
+    Without the rational or thin-prism terms (flags) they are skipped: the arithmetic of a Brown
+    camera is exactly eq. (3).
     """
     k1, k2, p1, p2, k3 = c[0], c[1], c[2], c[3], c[4]
     r2 = x * x + y * y
-    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7])))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + r2 * (c[8] + r2 * c[9])
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + r2 * (c[10] + r2 * c[11])
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if rational:
+        radial = radial / (1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7])))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    if prism:
+        xd += r2 * (c[8] + r2 * c[9])
+        yd += r2 * (c[10] + r2 * c[11])
     return xd, yd
 
 
 @numba.njit(cache=True)
-def _distort_jac(x, y, c):
+def _distort_jac(x, y, c, rational, prism):
     """Jacobian of the distortion with respect to (x, y): (dxd/dx, dxd/dy, dyd/dx, dyd/dy),
     and the rational model's numerator and denominator (num, den)."""
     k1, k2, p1, p2, k3 = c[0], c[1], c[2], c[3], c[4]
     r2 = x * x + y * y
     num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
-    radial = num / den
     dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d num / d r2
-    dden = c[5] + r2 * (2.0 * c[6] + 3.0 * c[7] * r2)  # d den / d r2
-    dradial = (dnum * den - num * dden) / (den * den)  # d radial / d r2
-    sx = 2.0 * (c[8] + 2.0 * c[9] * r2)  # d(r2 (s1 + s2 r2)) / d r2, times 2 (dr2/dx = 2x)
-    sy = 2.0 * (c[10] + 2.0 * c[11] * r2)
-    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x + x * sx
-    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y + y * sx
-    cc = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y + x * sy
-    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x + y * sy
+    den = 1.0
+    radial = num
+    dradial = dnum  # d radial / d r2
+    if rational:
+        den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+        dden = c[5] + r2 * (2.0 * c[6] + 3.0 * c[7] * r2)  # d den / d r2
+        radial = num / den
+        dradial = (dnum * den - num * dden) / (den * den)
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    cc = b
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    if prism:
+        sx = 2.0 * (c[8] + 2.0 * c[9] * r2)  # d(r2 (s1 + s2 r2)) / d r2, times 2 (dr2/dx = 2x)
+        sy = 2.0 * (c[10] + 2.0 * c[11] * r2)
+        a += x * sx
+        b += y * sx
+        cc += x * sy
+        d += y * sy
     return a, b, cc, d, num, den
 
 
 @numba.njit(cache=True)
-def _physical(x, y, c):
+def _physical(x, y, c, rational, prism):
     """True if (x, y) lies where the distortion is a valid, orientation-preserving map: the
     rational model's denominator and the radial factor positive, det J > 0."""
-    a, b, cc, d, num, den = _distort_jac(x, y, c)
+    a, b, cc, d, num, den = _distort_jac(x, y, c, rational, prism)
     return den > 0.0 and num / den > 0.0 and (a * d - b * cc) > 0.0
 
 
 @numba.njit(cache=True)
-def _newton(xd, yd, x, y, c, tol, max_iter, damped):
+def _newton(xd, yd, x, y, c, rational, prism, tol, max_iter, damped):
     """Newton's method for distort(x, y) = (xd, yd) from (x, y). With ``damped`` a step that
     does not reduce the residual is halved (up to 40 times). Returns (x, y, converged)."""
-    fx, fy = _distort(x, y, c)
+    fx, fy = _distort(x, y, c, rational, prism)
     rx = fx - xd
     ry = fy - yd
     for _ in range(max_iter):
-        a, b, cc, d, num, den = _distort_jac(x, y, c)
+        a, b, cc, d, num, den = _distort_jac(x, y, c, rational, prism)
         det = a * d - b * cc
         if det == 0.0 or not np.isfinite(det):
             return x, y, False
@@ -95,7 +121,7 @@ def _newton(xd, yd, x, y, c, tol, max_iter, damped):
             res0 = rx * rx + ry * ry
             t = 1.0
             for _h in range(40):
-                fx, fy = _distort(x - t * dx, y - t * dy, c)
+                fx, fy = _distort(x - t * dx, y - t * dy, c, rational, prism)
                 if (fx - xd) ** 2 + (fy - yd) ** 2 < res0 or res0 == 0.0:
                     break
                 t *= 0.5
@@ -104,10 +130,10 @@ def _newton(xd, yd, x, y, c, tol, max_iter, damped):
         x -= dx
         y -= dy
         if abs(dx) <= tol and abs(dy) <= tol:
-            fx, fy = _distort(x, y, c)
+            fx, fy = _distort(x, y, c, rational, prism)
             ok = abs(fx - xd) <= tol and abs(fy - yd) <= tol
             return x, y, ok
-        fx, fy = _distort(x, y, c)
+        fx, fy = _distort(x, y, c, rational, prism)
         rx = fx - xd
         ry = fy - yd
     return x, y, False
@@ -160,7 +186,7 @@ def _radial_start(xd, yd, c):
 
 
 @numba.njit(cache=True)
-def _undistort_one(xd, yd, c, tol, max_iter):
+def _undistort_one(xd, yd, c, rational, prism, tol, max_iter):
     """Invert the distortion. Returns (x, y, converged).
 
     Newton's method from (x, y) = (xd, yd) first (the paper's inversion of eq. 3; for mild
@@ -172,32 +198,34 @@ def _undistort_one(xd, yd, c, tol, max_iter):
     denominator positive; beyond a fold-over there is no such inverse and the pixel is reported
     as not converged.
     """
-    x, y, ok = _newton(xd, yd, xd, yd, c, tol, max_iter, False)
-    if ok and _physical(x, y, c):
+    x, y, ok = _newton(xd, yd, xd, yd, c, rational, prism, tol, max_iter, False)
+    if ok and _physical(x, y, c, rational, prism):
         return x, y, True
     x0, y0, found = _radial_start(xd, yd, c)
     if not found:
         return x, y, False
-    x1, y1, ok1 = _newton(xd, yd, x0, y0, c, tol, max_iter, True)
-    if ok1 and _physical(x1, y1, c):
+    x1, y1, ok1 = _newton(xd, yd, x0, y0, c, rational, prism, tol, max_iter, True)
+    if ok1 and _physical(x1, y1, c, rational, prism):
         return x1, y1, True
     return x, y, False
 
 
 @numba.njit(cache=True, parallel=True)
-def _undistort_kernel(xyd, c, tol, max_iter, out, ok):
+def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
+    c, rational, prism = _unpack(coeffs)
     n = xyd.shape[0]
     for i in numba.prange(n):
-        x, y, conv = _undistort_one(xyd[i, 0], xyd[i, 1], c, tol, max_iter)
+        x, y, conv = _undistort_one(xyd[i, 0], xyd[i, 1], c, rational, prism, tol, max_iter)
         out[i, 0] = x
         out[i, 1] = y
         ok[i] = conv
 
 
 @numba.njit(cache=True)
-def _jacobian_kernel(xy, c, out):
+def _jacobian_kernel(xy, coeffs, out):
+    c, rational, prism = _unpack(coeffs)
     for i in range(xy.shape[0]):
-        a, b, cc, d, _, _ = _distort_jac(xy[i, 0], xy[i, 1], c)
+        a, b, cc, d, _, _ = _distort_jac(xy[i, 0], xy[i, 1], c, rational, prism)
         out[i, 0, 0] = a
         out[i, 0, 1] = b
         out[i, 1, 0] = cc
