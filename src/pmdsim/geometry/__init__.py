@@ -1,7 +1,8 @@
 """Geometry (layer 0): rigid transforms and Givens-angle poses, the camera model, surfaces.
 
 * :mod:`.transform` — :class:`RigidTransform` and the paper's Givens angles (§2.1, eq. 1);
-* :mod:`.camera` — pinhole + Brown distortion, numerically inverted (§2.2, eqs. 2–4);
+* :mod:`.camera` — pinhole + Brown distortion (OpenCV's full model), numerically inverted (§2.2,
+  eqs. 2–4); :mod:`.camera_checks` — plausibility checks of camera models;
 * :mod:`.surface` — not-a-knot spline and plane surfaces: height, gradient and ray
   intersection (§2.3, eqs. 8–16), with the numba kernels the tracer and calibration use.
 

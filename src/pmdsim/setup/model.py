@@ -353,7 +353,8 @@ class Setup:
 
         Keywords are the setup file's keys (units in the names): ``image_size_px`` (w, h),
         ``focal_length_px`` (fx, fy), ``principal_point_px`` (ppx, ppy), ``distortion``
-        (a mapping with any of k1, k2, p1, p2, k3), ``origin_world_mm`` and ``angles_deg``;
+        (a mapping with any of k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4), ``origin_world_mm`` and
+        ``angles_deg``;
         or :class:`~pmdsim.geometry.camera.Camera` field names (``fx_px``, ``k1``, …).
 
         >>> s = default_setup().with_camera("left", focal_length_px=(4410, 4410))
