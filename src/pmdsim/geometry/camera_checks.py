@@ -167,23 +167,27 @@ class FoldOver:
         The field angle atan(r) in degrees.
     uv_px : (float, float)
         The pixel where the fold lies (u, v).
+    radius_step : float
+        The sampling step in r (the fold lies within one step below ``radius``).
     """
 
     radius: float
     field_angle_deg: float
     uv_px: tuple[float, float]
+    radius_step: float
 
 
-def fold_over(camera: "Camera", *, n_directions: int = 72, n_radii: int = 4000) -> FoldOver | None:
+def fold_over(camera: "Camera", *, n_directions: int = 72, steps_per_field: int = 250) -> FoldOver | None:
     """The first fold-over of the camera's distortion inside its image, or None.
 
     Along ``n_directions`` rays from the principal point in undistorted normalised coordinates
-    (including the directions of the four corners and the four edge midpoints), the distortion is
-    sampled at ``n_radii`` radii from 0 outward until the distorted point leaves the image. The
-    model folds over where the distorted radius r_d(r) stops increasing or the Jacobian
-    determinant det ∂(x', y')/∂(x, y) (or the rational model's denominator or radial factor)
-    becomes ≤ 0 while the distorted point is still inside the image; pixels beyond that have no
-    unique view ray. Sampling is numerical: a fold narrower than a radius step can be missed.
+    (plus the directions of the four corners and the four edge midpoints), the distortion is
+    sampled outward from r = 0 in steps of r_c / ``steps_per_field`` (r_c: the pinhole radius of
+    the farthest image corner) until the distorted point leaves the image (or r reaches
+    max(20 r_c, 5)). The model folds over where the distorted radius r_d(r) stops increasing or
+    the Jacobian determinant det ∂(x', y')/∂(x, y) (or the rational model's denominator or
+    radial factor) becomes ≤ 0 while the distorted point is still inside the image; pixels beyond
+    that have no unique view ray. Sampling is numerical: a fold narrower than a step can be missed.
 
     Returns
     -------
@@ -192,11 +196,11 @@ def fold_over(camera: "Camera", *, n_directions: int = 72, n_radii: int = 4000) 
     """
     if not np.any(camera._coefficients()):
         return None  # a pinhole maps rays to pixels one to one
-    return _fold_over_cached(camera, int(n_directions), int(n_radii))
+    return _fold_over_cached(camera, int(n_directions), int(steps_per_field))
 
 
 @functools.lru_cache(maxsize=32)
-def _fold_over_cached(camera: "Camera", n_directions: int, n_radii: int) -> FoldOver | None:
+def _fold_over_cached(camera: "Camera", n_directions: int, steps_per_field: int) -> FoldOver | None:
     w, h = camera.width_px, camera.height_px
     fx, fy, cx, cy = camera.fx_px, camera.fy_px, camera.ppx_px, camera.ppy_px
     # Directions: to the corners and edge midpoints of the image (pinhole approximation), and uniform.
@@ -204,34 +208,43 @@ def _fold_over_cached(camera: "Camera", n_directions: int, n_radii: int) -> Fold
     v_ref = np.array([-0.5, -0.5, h - 0.5, h - 0.5, -0.5, cy, h - 0.5, cy])
     ref = np.column_stack([(u_ref - cx) / fx, (v_ref - cy) / fy])
     theta = np.concatenate([np.arctan2(ref[:, 1], ref[:, 0]), np.linspace(-np.pi, np.pi, n_directions, endpoint=False)])
+    dirs = np.column_stack([np.cos(theta), np.sin(theta)])
     r_corner = float(np.max(np.hypot(ref[:, 0], ref[:, 1])))
     r_max = max(20.0 * r_corner, 5.0)
-    r = np.linspace(0.0, r_max, n_radii)
-    dirs = np.column_stack([np.cos(theta), np.sin(theta)])
-    xy = r[None, :, None] * dirs[:, None, :]  # (n_dir, n_r, 2)
-    xyd = camera.distort(xy)
-    u = fx * xyd[..., 0] + cx
-    v = fy * xyd[..., 1] + cy
-    inside = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
-    # Only the stretch before the ray first leaves the image counts.
-    inside_prefix = np.cumprod(inside, axis=1).astype(bool)
-    jac = camera.distortion_jacobian(xy)
-    det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    step = r_corner / steps_per_field
     c = camera._coefficients()
-    r2 = r * r
-    num = 1.0 + r2 * (c[0] + r2 * (c[1] + r2 * c[4]))
-    den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
-    rd = np.hypot(xyd[..., 0], xyd[..., 1])
-    bad = ~(det > 0.0) | ~(den > 0.0)[None, :] | ~(num * den > 0.0)[None, :]
-    bad[:, 1:] |= ~(rd[:, 1:] > rd[:, :-1])  # the distorted radius must keep increasing
-    bad &= inside_prefix
-    if not bad.any():
-        return None
-    first = np.where(bad.any(axis=1), bad.argmax(axis=1), n_radii)
-    i_dir = int(np.argmin(first))
-    i_r = int(first[i_dir])
-    return FoldOver(radius=float(r[i_r]), field_angle_deg=float(np.degrees(np.arctan(r[i_r]))),
-                    uv_px=(float(u[i_dir, i_r]), float(v[i_dir, i_r])))
+    active = np.arange(len(dirs))  # rays still inside the image without a fold
+    rd_prev = np.zeros(len(dirs))
+    r0 = 0.0
+    chunk = 2 * steps_per_field
+    while active.size and r0 < r_max:
+        r = r0 + step * np.arange(1, chunk + 1)
+        xy = r[None, :, None] * dirs[active, None, :]  # (n_active, chunk, 2)
+        xyd = camera.distort(xy)
+        u = fx * xyd[..., 0] + cx
+        v = fy * xyd[..., 1] + cy
+        inside = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+        inside_prefix = np.cumprod(inside, axis=1).astype(bool)  # before the ray first leaves the image
+        jac = camera.distortion_jacobian(xy)
+        det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+        r2 = r * r
+        num = 1.0 + r2 * (c[0] + r2 * (c[1] + r2 * c[4]))
+        den = 1.0 + r2 * (c[5] + r2 * (c[6] + r2 * c[7]))
+        rd = np.hypot(xyd[..., 0], xyd[..., 1])
+        bad = ~(det > 0.0) | ~(den > 0.0)[None, :] | ~(num * den > 0.0)[None, :]
+        bad[:, 0] |= ~(rd[:, 0] > rd_prev[active])  # the distorted radius must keep increasing
+        bad[:, 1:] |= ~(rd[:, 1:] > rd[:, :-1])
+        bad &= inside_prefix
+        if bad.any():  # rays march in step: the first chunk with a fold holds the smallest radius
+            first = np.where(bad.any(axis=1), bad.argmax(axis=1), chunk)
+            i = int(np.argmin(first))
+            j = int(first[i])
+            return FoldOver(radius=float(r[j]), field_angle_deg=float(np.degrees(np.arctan(r[j]))),
+                            uv_px=(float(u[i, j]), float(v[i, j])), radius_step=step)
+        rd_prev[active] = rd[:, -1]
+        active = active[inside_prefix[:, -1]]
+        r0 = float(r[-1])
+    return None
 
 
 def warn_if_folds_over(camera: "Camera", *, source: str = "camera") -> FoldOver | None:
