@@ -9,11 +9,11 @@ differences — never with pmdsim's own output.
 from __future__ import annotations
 
 import math
-import tomllib
-import warnings
-
+import os
 import subprocess
 import sys
+import tomllib
+import warnings
 
 import numpy as np
 import pytest
@@ -610,3 +610,28 @@ def test_cv2_structures_beside_the_camera(tmp_path, suffix):
     k2, d2 = read_opencv_camera(path).as_opencv()
     np.testing.assert_array_equal(k2, K)
     np.testing.assert_array_equal(d2, [0.1, -0.05, 1e-3, 2e-3, 0.01])
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="file permissions do not apply (root)")
+def test_unreadable_file_permissions(tmp_path):
+    path = _write_cv(tmp_path / "cam.yml", K, [0.1, 0, 0, 0, 0], (W, H))
+    path.chmod(0)
+    try:
+        with pytest.raises(SetupError, match="cannot read OpenCV camera file .*cam.yml"):
+            read_opencv_camera(path)
+    finally:
+        path.chmod(0o644)
+
+
+def test_directory_instead_of_file(tmp_path):
+    (tmp_path / "cam.yml").mkdir()
+    with pytest.raises(SetupError, match="cannot read OpenCV camera file .*cam.yml"):
+        read_opencv_camera(tmp_path / "cam.yml")
+
+
+def test_byte_order_mark_and_crlf(tmp_path):
+    # Files saved by Windows editors: a UTF-8 byte-order mark and CRLF line ends.
+    src = _write_cv(tmp_path / "cam.yml", K, [0.1, -0.05, 1e-3, 2e-3, 0.01], (W, H))
+    bom = tmp_path / "bom.yml"
+    bom.write_bytes(b"\xef\xbb\xbf" + src.read_bytes().replace(b"\n", b"\r\n"))
+    assert read_opencv_camera(bom) == read_opencv_camera(src)

@@ -353,7 +353,7 @@ def read_filestorage(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     fmt = _format_of(p)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # tolerate a byte-order mark
     except FileNotFoundError:
         raise SetupError(f"OpenCV camera file {str(p)!r} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
