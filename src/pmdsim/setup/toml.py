@@ -428,8 +428,7 @@ _COMMENTS = {
     "": "pmdsim measurement setup. Units are in the key names (mm, deg, px); frames, signs and\n"
     "rotation order are fixed in docs/conventions.md. Angles (α, β, γ): R = Rz(γ)·Ry(β)·Rx(α),\n"
     "whose columns are the component's axes in world coordinates.",
-    "cameras": "Pinhole + Brown distortion (paper §2.2; OpenCV's k4-k6, s1-s4 optional). Pixel (0, 0) is the centre\n"
-    "of the top-left pixel (as in OpenCV).",
+    "cameras": "Pinhole + Brown distortion (paper §2.2). Pixel (0, 0) is the centre of the top-left pixel.",
     "screen": "Pattern screen (paper §2.3, §2.5). heights_mm (optional) is (len(grid_y_mm), len(grid_x_mm));\n"
     "bulge_mm sets the central control point (Δh); +z of the screen points away from the sample,\n"
     "so a positive bulge is concave as seen from the sample.",
