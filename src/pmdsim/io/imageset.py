@@ -655,7 +655,8 @@ def _full_scale(dtype: np.dtype, bit_depth: int | None, full_scale: float | None
     return 2**bit_depth - 1 if bit_depth is not None else _MAX_VALUE[dtype]
 
 
-def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
+def load_camera_stacks(manifest: ImageSetManifest, camera: str, *,
+                       expected_size_px: tuple[int, int] | None = None) -> CameraImages:
     """Read one camera's images and stack them per period.
 
     Parameters
@@ -664,6 +665,8 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
         From :func:`load_manifest`.
     camera : str
         One of ``manifest.cameras``.
+    expected_size_px : (int, int), optional
+        ``[width, height]`` the images must have, e.g. the setup camera's ``image_size_px``.
 
     Returns
     -------
@@ -689,8 +692,16 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
         except ImageSetError as exc:
             raise ImageSetError(f"{src}: {e.label()}: {exc}") from None
 
-    return _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
+    imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
                          manifest.image_size_px.get(camera), manifest.instrument.full_scale)
+    if expected_size_px is not None:
+        w, h = (int(v) for v in expected_size_px)
+        if (imgs.shape[1], imgs.shape[0]) != (w, h):
+            raise ImageSetError(
+                f"{src}: camera {camera!r}: the images are {imgs.shape[1]}×{imgs.shape[0]} px (W×H), but the setup's "
+                f"cameras.{camera}.image_size_px is {w}×{h}; use the setup of the camera that took them (binned or "
+                f"downsampled images need a camera model at their resolution)")
+    return imgs
 
 
 def camera_images_from_arrays(entries: Sequence[Mapping[str, Any]], images: Sequence, *,
@@ -815,8 +826,8 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     return dec
 
 
-def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, noise_std=None,
-                  **decoder_kw) -> ScreenCoordinates:
+def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, noise_std=None, *,
+                  expected_size_px: tuple[int, int] | None = None, **decoder_kw) -> ScreenCoordinates:
     """Read and decode one camera of an image set: the pixel → screen mapping (x_q, y_q).
 
     Parameters
@@ -829,6 +840,8 @@ def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, 
         Screen (width, height) in mm; default the manifest's ``screen_size_mm``.
     noise_std : float or array_like broadcastable to (H, W), optional
         Intensity noise σ_I in grey levels (default: quantisation noise 1/√12).
+    expected_size_px : (int, int), optional
+        ``[width, height]`` the images must have (the setup camera's ``image_size_px``).
     **decoder_kw
         Passed to :func:`pmdsim.evaluation.phase.decode_screen_coordinates`.
 
@@ -849,8 +862,8 @@ def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, 
         raise ImageSetError(f"{manifest.path}: the screen size is unknown: the manifest has no 'screen_size_mm'; "
                             f"pass screen_size_mm (width, height) in mm, e.g. from the setup")
     inst = manifest.instrument
-    dec = decode_camera_images(load_camera_stacks(manifest, camera), size, noise_std, response=inst.response,
-                               **decoder_kw)
+    stacks = load_camera_stacks(manifest, camera, expected_size_px=expected_size_px)
+    dec = decode_camera_images(stacks, size, noise_std, response=inst.response, **decoder_kw)
     if inst.mask is None and inst.screen_map is None:
         return dec
     return apply_mask_and_map(dec, mask=inst.mask, screen_map=inst.screen_map, source=str(manifest.path))
