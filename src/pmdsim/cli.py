@@ -105,32 +105,50 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
               help="Setup with the evaluation's knowledge of cameras and screen (default: Table 1).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True)
-@click.option("--screen-model", type=click.Choice(["planar", "setup"]), default="planar", show_default=True,
-              help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface.")
-@click.option("--seed-pixel", type=(int, int), default=None, help="Initial pixel (row, column); default: the image centre.")
-@click.option("--seed-height-mm", type=float, default=0.0, show_default=True,
-              help="Height of the initial point in the sample frame.")
+@click.option("--screen-model", type=click.Choice(["planar", "setup"]), default=None,
+              help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface. "
+                   "Default: the manifest's screen_model, else planar.")
+@click.option("--seed-pixel", type=(int, int), default=None,
+              help="Pixel (row, column) of known height (--seed-height-mm, default 0); default: the valid pixel nearest "
+                   "the mask centroid.")
+@click.option("--seed-height-mm", type=float, default=None,
+              help="Known height of the seed pixel in the sample frame (an anchor).")
+@click.option("--anchor-distance-mm", type=float, default=None,
+              help="Anchor: the surface at --anchor-pixel is this far (mm) from --anchor-point-mm (world).")
+@click.option("--anchor-pixel", type=(float, float), default=None, help="Anchor pixel (row, column), may be fractional.")
+@click.option("--anchor-point-mm", type=(float, float, float), default=None,
+              help="Anchor point (world, mm) of --anchor-distance-mm.")
 @click.option("--noise-std", type=float, default=None, help="Intensity noise σ_I in grey levels for the σ model (default: quantisation).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, noise_std, force,
-                 quiet) -> None:
+def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
+                 anchor_pixel, anchor_point_mm, noise_std, force, quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
-    camera's images described by such a manifest). Writes OUT/evaluation.h5 and
-    OUT/height_{camera}.png.
+    camera's images described by such a manifest). Writes OUT/evaluation.h5,
+    OUT/height_{camera}.png, OUT/surface_fit.json and OUT/slope_error.png. The height is fixed by
+    an anchor (--anchor-*, --seed-*, or the manifest's); without one the heights are relative.
     """
+    from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import evaluate_image_set
 
+    given = [anchor_distance_mm is not None, anchor_pixel is not None, anchor_point_mm is not None]
+    if any(given) and not all(given):
+        raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
+    anchor = DistanceAnchor(anchor_pixel, anchor_distance_mm, anchor_point_mm) if all(given) else None
     setup = _load(setup_path, None)
     with _bar(len(setup.cameras), "evaluating", quiet) as bar:
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
-                                     seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, noise_std=noise_std,
+                                     seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
+                                     noise_std=noise_std,
                                      force=force, command=_command(), progress=lambda msg: bar.update(1))
     for line in summary.lines():
         click.echo(line)
-    click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+    for w in summary.warnings:
+        click.echo(f"pmdsim: warning: {w}", err=True)
+    click.echo(f"wrote evaluation.h5, height_*.png, surface_fit.json and slope_error.png to {out_dir} in "
+               f"{summary.seconds:.1f} s", err=True)
 
 
 @main.command("calibrate")
