@@ -151,6 +151,38 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
                f"{summary.seconds:.1f} s", err=True)
 
 
+@main.group("import")
+def import_group() -> None:
+    """Import another instrument's measurement as a pmdsim setup and image set."""
+
+
+@import_group.command("sofast")
+@click.option("--measurement", required=True, type=click.Path(dir_okay=False), help="SOFAST measurement (.h5).")
+@click.option("--camera", required=True, type=click.Path(dir_okay=False), help="SOFAST camera (.h5).")
+@click.option("--display", required=True, type=click.Path(dir_okay=False),
+              help="SOFAST display shape (.h5): rectangular2D, distorted2D or distorted3D.")
+@click.option("--orientation", required=True, type=click.Path(dir_okay=False), help="SOFAST spatial orientation (.h5).")
+@click.option("--calibration", required=True, type=click.Path(dir_okay=False), help="SOFAST image calibration (.h5).")
+@click.option("--facet", type=click.Path(dir_okay=False), default=None, help="SOFAST facet definition (.json).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Output directory: setup.toml and images/.")
+@click.option("--force", is_flag=True, help="Replace an existing output directory.")
+def import_sofast_cmd(measurement, camera, display, orientation, calibration, facet, out_dir, force) -> None:
+    """A SOFAST fringe measurement → OUT/setup.toml and the image set OUT/images/ for `pmdsim evaluate`."""
+    import warnings
+
+    from .io.importers import import_sofast
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # reported below, once
+        summary = import_sofast(measurement=measurement, camera=camera, display=display, orientation=orientation,
+                                calibration=calibration, facet=facet, out_dir=out_dir, force=force, command=_command())
+    for w in summary.warnings:
+        click.echo(f"pmdsim: warning: {w}", err=True)
+    for line in summary.lines():
+        click.echo(line)
+
+
 @main.command("calibrate")
 @click.argument("image_dirs", nargs=-1, required=True, type=click.Path(file_okay=False))
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False),

@@ -5,9 +5,12 @@ best-fit paraboloid over the slopes (focal lengths, residual slope RMS) — issu
   sample frame (its +z is the height axis).
 * Piston and tilt: the least-squares plane z = c₀ + c₁x + c₂y over the reconstructed points is
   subtracted from their heights.
-* Paraboloid: z = a x² + b x y + c y² + d x + e y (+ piston), fitted by linear least squares to the
-  slopes g_x = 2a x + b y + d, g_y = b x + 2c y + e at the reconstructed points (x, y) — the
-  slope-domain fit SOFAST's "parabolic" surface uses. Focal lengths f_x = 1/(4a'), f_y = 1/(4c')
+* Paraboloid: z = a x² + b x y + c y² + d x + e y (+ piston), fitted to the slopes
+  g_x = 2a x + b y + d, g_y = b x + 2c y + e at the reconstructed points (x, y) — the
+  slope-domain fit SOFAST's "parabolic" surface uses — by robust least squares: iteratively
+  reweighted with Tukey's bisquare weights w = (1 − (r/(4.685·s))²)² (0 beyond), s = MAD/0.6745
+  of the residuals (Holland & Welsch 1977), so that edge defects and outliers do not bend the
+  fit (``robust=False``: plain least squares). Focal lengths f_x = 1/(4a'), f_y = 1/(4c')
   with a', c' the curvatures of the height measured **towards the camera** (the sample frame's
   −z when the camera is on its −z side, as in pmdsim's convention): a mirror concave as seen from
   the camera has positive focal lengths. The residual slope RMS is
@@ -86,7 +89,13 @@ def _design(x, y):
     return gx, gy
 
 
-def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float) -> ParaboloidFit:
+#: Tukey bisquare tuning constant (95 % efficiency at the normal distribution) and MAD → σ.
+_TUKEY_C = 4.685
+_MAD_TO_SIGMA = 0.6745
+
+
+def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, robust: bool = True,
+                          max_iter: int = 100) -> ParaboloidFit:
     """Least-squares paraboloid over slopes (module docstring).
 
     Parameters
@@ -99,6 +108,8 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float) -> 
     camera_z_mm : float
         The camera centre's z in the sample frame: fixes the direction "towards the camera" of
         the focal lengths' sign.
+    robust : bool
+        Tukey-bisquare IRLS (default) or plain least squares.
     """
     p = np.asarray(p_sample_mm, dtype=float)
     g = np.asarray(slopes, dtype=float)
@@ -113,6 +124,20 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float) -> 
     A = np.concatenate([Dx, Dy])
     rhs = np.concatenate([g[ok, 0], g[ok, 1]])
     coef, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    if robust:
+        for _ in range(max_iter):
+            r = rhs - A @ coef
+            s = np.median(np.abs(r - np.median(r))) / _MAD_TO_SIGMA
+            if not s > 0:
+                break
+            u = r / (_TUKEY_C * s)
+            w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
+            sw = np.sqrt(w)
+            new, *_ = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)
+            done = np.max(np.abs(new - coef)) <= 1e-12 * max(1.0, np.max(np.abs(coef)))
+            coef = new
+            if done:
+                break
     a, b, c, d, e = coef
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
