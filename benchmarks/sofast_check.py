@@ -88,6 +88,10 @@ def main() -> None:
     ap.add_argument("--display", default="distorted_2d", choices=["distorted_2d", "distorted_3d", "rectangular"])
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--method", default="stepwise", choices=["stepwise", "least_squares"])
+    ap.add_argument("--anchor-pixel", type=float, nargs=2, default=None,
+                    help="control: override the imported anchor's pixel (row, column), e.g. SOFAST's refined "
+                         "measure-point pixel 98.0868 111.8048")
     a = ap.parse_args()
     D = a.data
     work = a.work or Path(tempfile.mkdtemp(prefix="sofast_check_"))
@@ -96,8 +100,13 @@ def main() -> None:
          "--camera", str(D / "camera_sofast_downsampled.h5"), "--display", str(D / f"display_{a.display}.h5"),
          "--orientation", str(D / "spatial_orientation.h5"), "--calibration", str(D / "image_calibration.h5"),
          "--facet", str(D / "Facet_NSTTF.json"), "--out", str(imp), "--force"])
+    extra = []
+    if a.anchor_pixel is not None:
+        anc = json.loads((imp / "images" / "manifest.json").read_text())["anchor"]
+        extra = ["--anchor-distance-mm", str(anc["distance_mm"]), "--anchor-pixel", *map(str, a.anchor_pixel),
+                 "--anchor-point-mm", *map(str, anc["point_world_mm"])]
     r = run(["evaluate", str(imp / "images"), "--setup", str(imp / "setup.toml"), "--out", str(ev), "--force",
-             "--quiet"])
+             "--quiet", "--method", a.method, *extra])
     print(r.stdout.strip())
     fit = json.loads((ev / "surface_fit.json").read_text())
 

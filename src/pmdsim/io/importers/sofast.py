@@ -260,8 +260,9 @@ def pattern_mm_to_fraction(pattern_xy_mm, size_mm) -> np.ndarray:
 
 # ============================================================================ mask
 def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """Lit pixels: light − dark above the Otsu threshold of the difference, largest connected
-    region (SOFAST's raw mask keeps the largest area as well)."""
+    """Lit pixels: light − dark above the level halfway between the dark and the lit pixels
+    (separated by Otsu's threshold of the difference), largest connected region (SOFAST's raw
+    mask keeps the largest area as well)."""
     from scipy import ndimage
 
     delta = light.astype(float) - dark.astype(float)
@@ -274,13 +275,94 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
         mu0 = m0 / w0
         mu1 = (m0[-1] - m0) / w1
         between = w0 * w1 * (mu0 - mu1) ** 2
-    thr = centres[int(np.nanargmax(between))]
+    otsu = centres[int(np.nanargmax(between))]
+    # A pixel is lit when the light covers more than half of it: threshold halfway between the
+    # dark and the lit level (the means of the two Otsu classes), so that the region's edge is
+    # where the lit fraction crosses ½ (unbiased to the pixel quantisation).
+    thr = 0.5 * (np.median(delta[delta <= otsu]) + np.median(delta[delta > otsu]))
     m = delta > thr
     lab, n = ndimage.label(m)
     if n > 1:
         sizes = ndimage.sum(m, lab, index=np.arange(1, n + 1))
         m = lab == (1 + int(np.argmax(sizes)))
     return m
+
+
+def _boundary(mask: np.ndarray) -> np.ndarray:
+    """Edge points (u, v) of the lit region, (K, 2): the midpoints between 4-neighbouring pixel
+    centres of which one is inside the mask and one outside (the region's edge, not its border
+    pixels' centres, which lie half a pixel inside)."""
+    m = np.asarray(mask, bool)
+    v, u = np.nonzero(m[1:, :] != m[:-1, :])
+    pv = np.stack([u.astype(float), v + 0.5], axis=-1)
+    v, u = np.nonzero(m[:, 1:] != m[:, :-1])
+    pu = np.stack([u + 0.5, v.astype(float)], axis=-1)
+    return np.concatenate([pv, pu])
+
+
+def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Total-least-squares line n·p = c through points (K, 2) (unit normal n)."""
+    c0 = pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(pts - c0)
+    n = vt[-1]
+    return n, float(n @ c0)
+
+
+def facet_outline_corners(mask: np.ndarray) -> np.ndarray:
+    """The four corners (u, v) px of a quadrilateral mask, in cyclic order: initial corners are
+    the boundary points extreme along the diagonals of the frame (rotated in 15° steps, the set
+    of largest area kept); each side's boundary points (nearest to it, away from the corners)
+    are fitted by a total-least-squares line, twice, and adjacent lines intersected."""
+    pts = _boundary(mask)
+    if len(pts) < 16:
+        raise SofastImportError("the lit region is too small to find the facet's outline")
+    best, best_area = None, -1.0
+    for ang in np.radians(np.arange(0.0, 90.0, 15.0)):
+        c, s_ = np.cos(ang), np.sin(ang)
+        r = pts @ np.array([[c, -s_], [s_, c]])
+        idx = [int(np.argmax(r[:, 0] + r[:, 1])), int(np.argmax(-r[:, 0] + r[:, 1])),
+               int(np.argmax(-r[:, 0] - r[:, 1])), int(np.argmax(r[:, 0] - r[:, 1]))]
+        q = pts[idx]
+        area = 0.5 * abs(sum(q[i, 0] * q[(i + 1) % 4, 1] - q[(i + 1) % 4, 0] * q[i, 1] for i in range(4)))
+        if area > best_area:
+            best, best_area = q, area
+    corners = best
+    for _ in range(3):
+        lines = []
+        for i in range(4):
+            a, b = corners[i], corners[(i + 1) % 4]
+            ab = b - a
+            L = float(np.linalg.norm(ab))
+            t = (pts - a) @ ab / L**2
+            dist = np.abs((pts - a) @ np.array([-ab[1], ab[0]]) / L)
+            sel = (t > 0.1) & (t < 0.9) & (dist < max(3.0, 0.05 * L))
+            if sel.sum() < 4:
+                raise SofastImportError("cannot fit the facet's outline to the lit region (a side has too few "
+                                        "boundary pixels); is the facet fully in view?")
+            lines.append(_line_fit(pts[sel]))
+        new = []
+        for i in range(4):
+            (n1, c1), (n2, c2) = lines[i - 1], lines[i]
+            new.append(np.linalg.solve(np.stack([n1, n2]), np.array([c1, c2])))
+        corners = np.array(new)
+    return corners
+
+
+def facet_centre_pixel(mask: np.ndarray, cam: Camera) -> tuple[float, float]:
+    """Pixel (row, column) of the centre of a parallelogram facet (a rectangle, a square) from
+    its outline in ``mask``: the intersection of the diagonals of the outline's corners in
+    undistorted normalised coordinates (a pinhole maps the facet's plane projectively, which
+    keeps the diagonals' intersection), distorted back to pixels."""
+    corners = facet_outline_corners(mask)
+    xy_d = np.stack([(corners[:, 0] - cam.ppx_px) / cam.fx_px, (corners[:, 1] - cam.ppy_px) / cam.fy_px], -1)
+    xy, ok = cam.undistort(xy_d)
+    if not np.all(ok):
+        raise SofastImportError("the facet's corners could not be undistorted")
+    p0, p1, p2, p3 = xy
+    # p0 + s (p2 − p0) = p1 + t (p3 − p1)
+    st = np.linalg.solve(np.stack([p2 - p0, -(p3 - p1)], axis=-1), p1 - p0)
+    c = cam.distort((p0 + st[0] * (p2 - p0))[None])[0]
+    return (float(c[1] * cam.fy_px + cam.ppy_px), float(c[0] * cam.fx_px + cam.ppx_px))
 
 
 # ============================================================================ import
@@ -406,7 +488,24 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     mask = _mask(mask_imgs[..., 0], mask_imgs[..., 1])
     vv, uu = np.nonzero(mask)
     pix = (float(vv.mean()), float(uu.mean()))
-    if np.any(mp != 0):
+    anchor_how = "the mask centroid (no --facet)"
+    fcent = None
+    if facet is not None:
+        try:
+            fdoc = json.loads(Path(facet).read_text(encoding="utf-8"))
+            fc = np.stack([np.asarray(fdoc["v_facet_corners"][k], dtype=float) for k in ("x", "y", "z")], -1)
+            fcent = np.array([float(np.ravel(fdoc["v_centroid_facet"][k])[0]) for k in ("x", "y", "z")])
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
+            raise SofastImportError(f"facet file {str(facet)!r}: expected JSON with v_facet_corners.x/.y/.z and "
+                                    f"v_centroid_facet (m): {e!r}") from None
+        para = fc.shape == (4, 3) and np.allclose(fc[0] + fc[2], fc[1] + fc[3], atol=1e-9)
+        if not para or not np.allclose(fc.mean(axis=0), fcent, atol=1e-9) or not np.allclose(mp, fcent, atol=1e-9):
+            warn.append(f"{str(facet)!r}: the facet is not a parallelogram centred on its centroid, or the measure "
+                        f"point {mp.tolist()} is not the centroid; the anchor pixel is the mask centroid")
+        else:
+            pix = facet_centre_pixel(mask, cam)
+            anchor_how = "the facet's centre, located from its outline in the mask (diagonals of the corners)"
+    elif np.any(mp != 0):
         warn.append(f"{src_m}: v_measure_point_facet = {mp.tolist()} is not the facet origin; the anchor pixel is the "
                     f"mask centroid, which is where SOFAST places the optic's origin before refining it")
     ray, ok = cam.sensor_rays()
@@ -419,14 +518,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     z_s = -((-p_opt) / np.linalg.norm(p_opt) + (s_world - p_opt) / np.linalg.norm(s_world - p_opt))
     R_s = _frame_from_z(z_s, np.array([1.0, 0.0, 0.0]))
     half = 1000.0
-    if facet is not None:
-        try:
-            fdoc = json.loads(Path(facet).read_text(encoding="utf-8"))
-            cx = np.asarray(fdoc["v_facet_corners"]["x"], dtype=float)
-            cy = np.asarray(fdoc["v_facet_corners"]["y"], dtype=float)
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise SofastImportError(f"facet file {str(facet)!r}: expected JSON with v_facet_corners.x/.y (m): {e!r}") from None
-        half = 1e3 * float(max(np.abs(cx).max(), np.abs(cy).max()))
+    if fcent is not None:
+        half = 1e3 * float(np.abs(fc[:, :2] - fcent[:2]).max())
     sample = SampleSetup(Pose.from_transform(RigidTransform(R_s, p_opt)), (-half, half), (-half, half))
     seq = FringeSequence(tuple(sorted((Wmm / n for n in px), reverse=True)),
                          tuple(sorted((Hmm / n for n in py), reverse=True)), n_shifts=4, mean_level=0.5, amplitude=0.5)
@@ -466,8 +559,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
             "screen_map": {"file": "screen_map.json"},
             "anchor": {"kind": "distance", "pixel_vu": [pix[0], pix[1]], "distance_mm": 1e3 * dist_m,
                        "point_world_mm": s_world.tolist(),
-                       "description": "SOFAST dist_optic_screen: the optic's measure point (seen at the mask "
-                                      "centroid) to the display origin"},
+                       "description": f"SOFAST dist_optic_screen: the optic's measure point (seen at {anchor_how}) "
+                                      f"to the display origin"},
             "screen_model": "setup" if disp.model == "distorted3D" else "planar",
             "description": f"imported from SOFAST: {measurement}",
             "metadata": {"sofast": {"measurement": str(measurement), "camera": str(camera), "display": str(display),
