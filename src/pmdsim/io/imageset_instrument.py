@@ -34,8 +34,9 @@ the N-step formula; samples above the brightest level of the series are flagged 
 **Screen map**: ``{"pattern_xy_mm": [[x, y], ...], "screen_xy_mm": [[x, y], ...]}`` (in the
 manifest or a JSON file): scattered pattern coordinates (what the fringes encode, mm) and the
 physical screen-frame positions (mm) where the display shows them; decoded pattern coordinates
-are mapped by piecewise-linear interpolation over their Delaunay triangulation
-(:class:`scipy.interpolate.LinearNDInterpolator`); outside the triangulation a pixel is NaN
+are mapped by piecewise-linear interpolation over the Delaunay triangulation of the pattern
+samples scaled to their unit square (x/extent_x, y/extent_y: for SOFAST's maps the triangulation
+of its screen fractions) (:class:`scipy.interpolate.LinearNDInterpolator`); outside the triangulation a pixel is NaN
 (registration marks it *outside the screen model*). This is how a display whose pattern is
 distorted in its plane (a projector, SOFAST's ``distorted2D``/``distorted3D`` models) is
 described; heights out of the plane belong to the setup's screen surface.
@@ -246,8 +247,13 @@ class ScreenMap:
             raise ImageSetError("screen map: samples must be finite")
         object.__setattr__(self, "pattern_xy_mm", a)
         object.__setattr__(self, "screen_xy_mm", b)
+        lo = a.min(axis=0)
+        ext = a.max(axis=0) - lo
+        if not np.all(ext > 0):
+            raise ImageSetError(f"screen map: the pattern samples span no area (extent {ext.tolist()} mm)")
+        object.__setattr__(self, "_norm", (lo, ext))
         try:
-            object.__setattr__(self, "_interp", LinearNDInterpolator(a, b))
+            object.__setattr__(self, "_interp", LinearNDInterpolator((a - lo) / ext, b))
         except Exception as e:  # qhull errors: degenerate samples
             raise ImageSetError(f"screen map: cannot triangulate the pattern samples: {e}") from None
 
@@ -257,7 +263,8 @@ class ScreenMap:
         out = np.full(p.shape, np.nan)
         ok = np.isfinite(p).all(axis=-1)
         if ok.any():
-            out[ok] = self._interp(p[ok])
+            lo, ext = self._norm
+            out[ok] = self._interp((p[ok] - lo) / ext)
         return out
 
     def as_dict(self) -> dict:
