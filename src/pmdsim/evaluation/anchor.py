@@ -32,7 +32,7 @@ from .integration import Reconstruction, _default_seed
 from .reconstruction import reconstruct
 
 __all__ = ["AnchorError", "HeightAnchor", "DistanceAnchor", "AnchoredReconstruction", "default_seed_pixel",
-           "evaluate_anchored",
+           "evaluate_anchored", "register_model",
            "anchor_from_dict", "reconstruct_anchored"]
 
 
@@ -283,6 +283,17 @@ def evaluate_anchored(model, camera: str, decoded, *, screen_model=None, method:
     """Register ``decoded`` with ``model``'s camera and screen (as
     :func:`pmdsim.evaluation.pipeline.evaluate_decoded`), then :func:`reconstruct_anchored` in
     the model's sample frame. Returns (Registration, AnchoredReconstruction)."""
+    reg = register_model(model, camera, decoded, screen_model=screen_model)
+    if not reg.valid.any():
+        raise AnchorError(f"camera {camera!r}: no pixel was decoded and registered; nothing to reconstruct")
+    out = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=anchor,
+                               T_world_ref=model.sample.T_world_sample, method=method)
+    return reg, out
+
+
+def register_model(model, camera: str, decoded, *, screen_model=None):
+    """:func:`pmdsim.evaluation.registration.register` with ``model``'s camera, screen pose and
+    sample frame; ``screen_model`` None is the plane z = 0 of the screen frame over its grid."""
     from ..geometry.surface import SplineSurface
     from .registration import register
 
@@ -290,10 +301,5 @@ def evaluate_anchored(model, camera: str, decoded, *, screen_model=None, method:
     if screen_model is None:
         scr = model.screen
         screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
-    reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
-                   decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample)
-    if not reg.valid.any():
-        raise AnchorError(f"camera {camera!r}: no pixel was decoded and registered; nothing to reconstruct")
-    out = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=anchor,
-                               T_world_ref=model.sample.T_world_sample, method=method)
-    return reg, out
+    return register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
+                    decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample)

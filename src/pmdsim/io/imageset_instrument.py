@@ -31,12 +31,16 @@ or ``"linear"`` (the piecewise-linear interpolant of the series, as SOFAST's ima
 defines it). Linearising maps each recorded sample c to the display level d(c) ∈ [0, 1] before
 the N-step formula; samples above the brightest level of the series are flagged SATURATED.
 
-**Screen map**: ``{"pattern_xy_mm": [[x, y], ...], "screen_xy_mm": [[x, y], ...]}`` (in the
-manifest or a JSON file): scattered pattern coordinates (what the fringes encode, mm) and the
+**Screen map**: ``{"pattern_xy_mm": [[x, y], ...], "screen_xy_mm": [[x, y], ...]}`` and
+optionally ``"unit_affine": [[a, b, c], [d, e, f]]`` with the samples' own unit coordinates
+``"unit_xy"`` (in the manifest or a JSON file): scattered pattern coordinates (what the fringes encode, mm) and the
 physical screen-frame positions (mm) where the display shows them; decoded pattern coordinates
 are mapped by piecewise-linear interpolation over the Delaunay triangulation of the pattern
-samples scaled to their unit square (x/extent_x, y/extent_y: for SOFAST's maps the triangulation
-of its screen fractions) (:class:`scipy.interpolate.LinearNDInterpolator`); outside the triangulation a pixel is NaN
+samples mapped to unit coordinates — by ``unit_affine`` (u = a·x + b·y + c, v = d·x + e·y + f)
+if given, else scaled to their bounding box; the triangulation of a nearly regular grid is
+ambiguous (even last-bit differences flip diagonals), so an instrument's own coordinates fix it:
+``unit_xy`` gives the samples' unit coordinates exactly as the instrument triangulates them
+(SOFAST's screen fractions) (:class:`scipy.interpolate.LinearNDInterpolator`); outside the triangulation a pixel is NaN
 (registration marks it *outside the screen model*). This is how a display whose pattern is
 distorted in its plane (a projector, SOFAST's ``distorted2D``/``distorted3D`` models) is
 described; heights out of the plane belong to the setup's screen surface.
@@ -234,6 +238,8 @@ class ScreenMap:
 
     pattern_xy_mm: np.ndarray
     screen_xy_mm: np.ndarray
+    unit_affine: np.ndarray | None = None
+    unit_xy: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         from scipy.interpolate import LinearNDInterpolator
@@ -247,13 +253,28 @@ class ScreenMap:
             raise ImageSetError("screen map: samples must be finite")
         object.__setattr__(self, "pattern_xy_mm", a)
         object.__setattr__(self, "screen_xy_mm", b)
-        lo = a.min(axis=0)
-        ext = a.max(axis=0) - lo
-        if not np.all(ext > 0):
-            raise ImageSetError(f"screen map: the pattern samples span no area (extent {ext.tolist()} mm)")
-        object.__setattr__(self, "_norm", (lo, ext))
+        if self.unit_affine is None:
+            lo = a.min(axis=0)
+            ext = a.max(axis=0) - lo
+            if not np.all(ext > 0):
+                raise ImageSetError(f"screen map: the pattern samples span no area (extent {ext.tolist()} mm)")
+            A = np.array([[1.0 / ext[0], 0.0, -lo[0] / ext[0]], [0.0, 1.0 / ext[1], -lo[1] / ext[1]]])
+        else:
+            A = np.asarray(self.unit_affine, dtype=float)
+            if A.shape != (2, 3) or not np.isfinite(A).all() or abs(np.linalg.det(A[:, :2])) == 0:
+                raise ImageSetError(f"screen map: unit_affine must be an invertible 2×3 affine map, got {A.tolist()}")
+        object.__setattr__(self, "unit_affine", A)
+        if self.unit_xy is not None:
+            un = np.asarray(self.unit_xy, dtype=float)
+            if un.shape != a.shape or not np.isfinite(un).all():
+                raise ImageSetError(f"screen map: unit_xy must be finite and (M, 2) like pattern_xy_mm, got {un.shape}")
+            if np.abs(un - self._unit(a)).max() > 1e-9:
+                raise ImageSetError("screen map: unit_xy disagrees with unit_affine applied to pattern_xy_mm")
+            object.__setattr__(self, "unit_xy", un)
+        else:
+            un = self._unit(a)
         try:
-            object.__setattr__(self, "_interp", LinearNDInterpolator((a - lo) / ext, b))
+            object.__setattr__(self, "_interp", LinearNDInterpolator(un, b))
         except Exception as e:  # qhull errors: degenerate samples
             raise ImageSetError(f"screen map: cannot triangulate the pattern samples: {e}") from None
 
@@ -263,12 +284,20 @@ class ScreenMap:
         out = np.full(p.shape, np.nan)
         ok = np.isfinite(p).all(axis=-1)
         if ok.any():
-            lo, ext = self._norm
-            out[ok] = self._interp((p[ok] - lo) / ext)
+            out[ok] = self._interp(self._unit(p[ok]))
         return out
 
+    def _unit(self, p: np.ndarray) -> np.ndarray:
+        A = self.unit_affine
+        return np.stack([A[0, 0] * p[:, 0] + A[0, 1] * p[:, 1] + A[0, 2],
+                         A[1, 0] * p[:, 0] + A[1, 1] * p[:, 1] + A[1, 2]], axis=-1)
+
     def as_dict(self) -> dict:
-        return {"pattern_xy_mm": self.pattern_xy_mm.tolist(), "screen_xy_mm": self.screen_xy_mm.tolist()}
+        out = {"pattern_xy_mm": self.pattern_xy_mm.tolist(), "screen_xy_mm": self.screen_xy_mm.tolist(),
+               "unit_affine": self.unit_affine.tolist()}
+        if self.unit_xy is not None:
+            out["unit_xy"] = self.unit_xy.tolist()
+        return out
 
 
 def _parse_screen_map(doc: Any, src: str, directory: Path) -> ScreenMap:
@@ -278,11 +307,17 @@ def _parse_screen_map(doc: Any, src: str, directory: Path) -> ScreenMap:
             doc = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:
             raise ImageSetError(f"{src}: key 'screen_map.file': cannot read {str(path)!r}: {e}") from None
-    if not isinstance(doc, dict) or set(doc) != {"pattern_xy_mm", "screen_xy_mm"}:
-        raise ImageSetError(f"{src}: key 'screen_map' must hold exactly 'pattern_xy_mm' and 'screen_xy_mm' "
-                            f"(or be {{'file': ...}} naming a JSON file that does)")
+    if not isinstance(doc, dict) or not ({"pattern_xy_mm", "screen_xy_mm"} <= set(doc) <=
+                                         {"pattern_xy_mm", "screen_xy_mm", "unit_affine", "unit_xy"}):
+        raise ImageSetError(f"{src}: key 'screen_map' must hold 'pattern_xy_mm' and 'screen_xy_mm' (and optionally "
+                            f"'unit_affine'), or be {{'file': ...}} naming a JSON file that does")
     try:
-        return ScreenMap(np.asarray(doc["pattern_xy_mm"], dtype=float), np.asarray(doc["screen_xy_mm"], dtype=float))
+        ua, un = doc.get("unit_affine"), doc.get("unit_xy")
+        if un is not None and ua is None:
+            raise ImageSetError(f"{src}: key 'screen_map': unit_xy needs unit_affine (to map decoded points)")
+        return ScreenMap(np.asarray(doc["pattern_xy_mm"], dtype=float), np.asarray(doc["screen_xy_mm"], dtype=float),
+                         None if ua is None else np.asarray(ua, dtype=float),
+                         None if un is None else np.asarray(un, dtype=float))
     except (TypeError, ValueError) as e:
         raise ImageSetError(f"{src}: key 'screen_map': {e}") from None
     except ImageSetError as e:

@@ -29,7 +29,6 @@ from ..calibration import (
     observations_from_mapping,
 )
 from ..errors import ComputationError, PmdsimError
-from ..evaluation.pipeline import evaluate_decoded
 from ..io import (
     IMAGESET_FORMAT,
     MANIFEST_NAME,
@@ -212,7 +211,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``surface_fit.json`` (``focal_length_x_mm``, ``focal_length_y_mm``,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
     """
-    from ..evaluation.anchor import HeightAnchor, default_seed_pixel, evaluate_anchored, reconstruct_anchored
+    from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
     from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import slope_error_figure
@@ -239,20 +238,27 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
                                     expected_size_px=(c.width_px, c.height_px))
             warnings += check_orientation(setup, cam, decoded.screen_xy_mm, decoded.valid)
-            if isinstance(anchor, tuple):  # a seed height without a pixel: the default seed pixel
-                reg, _ = evaluate_anchored(setup, cam, decoded, screen_model=model_surface, method=method)
-                px = default_seed_pixel(reg.valid)
-                ar = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid,
-                                          anchor=HeightAnchor((float(px[0]), float(px[1])), anchor[1]),
-                                          T_world_ref=setup.sample.T_world_sample, method=method)
-            else:
-                reg, ar = evaluate_anchored(setup, cam, decoded, screen_model=model_surface, method=method,
-                                            anchor=anchor)
-            rec = ar.reconstruction
+            reg = register_model(setup, cam, decoded, screen_model=model_surface)
             bounds = (model_surface.bounds_mm if model_surface is not None else
                       (setup.screen.grid_x_mm[0], setup.screen.grid_x_mm[-1], setup.screen.grid_y_mm[0],
                        setup.screen.grid_y_mm[-1]))
-            warnings += check_screen_coverage(decoded.valid, reg.status, decoded.screen_xy_mm, bounds, cam)
+            coverage = check_screen_coverage(decoded.valid, reg.status, decoded.screen_xy_mm, bounds, cam)
+            warnings += coverage
+            cam_anchor = anchor
+            if isinstance(anchor, tuple):  # a seed height without a pixel: the default seed pixel
+                px = default_seed_pixel(reg.valid) if reg.valid.any() else (0, 0)
+                cam_anchor = HeightAnchor((float(px[0]), float(px[1])), anchor[1])
+            try:
+                if not reg.valid.any():
+                    raise JobInputError(f"camera {cam!r}: no pixel was decoded and registered; nothing to "
+                                        f"reconstruct")
+                ar = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=cam_anchor,
+                                          T_world_ref=setup.sample.T_world_sample, method=method)
+            except PmdsimError as exc:
+                if not (coverage or warnings):
+                    raise
+                raise type(exc)(f"{exc}; likely cause: {' / '.join(coverage or warnings)}") from None
+            rec = ar.reconstruction
             results[cam] = (decoded, reg, rec)
             anchors[cam] = ar.anchor
             p = rec.p_sample_mm

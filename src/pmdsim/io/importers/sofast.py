@@ -463,17 +463,19 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     else:
         f_s = disp.fraction
     p_scr = fraction_to_screen_mm(f_s, disp)
-    smap = {"pattern_xy_mm": fraction_to_pattern_mm(f_s, disp.size_mm).tolist(), "screen_xy_mm": p_scr[:, :2].tolist()}
-    gx = (0.0, 0.5 * Wmm, Wmm)
-    gy = (0.0, 0.5 * Hmm, Hmm)
+    # Triangulated in SOFAST's screen fractions (f_x = x_q/W, f_y = 1 − y_q/H), as SOFAST does.
+    smap = {"pattern_xy_mm": fraction_to_pattern_mm(f_s, disp.size_mm).tolist(), "screen_xy_mm": p_scr[:, :2].tolist(),
+            "unit_affine": [[1.0 / Wmm, 0.0, 0.0], [0.0, -1.0 / Hmm, 1.0]], "unit_xy": f_s.tolist()}
+    gx = (0.0, 0.5 * float(Wmm), float(Wmm))
+    gy = (0.0, 0.5 * float(Hmm), float(Hmm))
     heights = None
     if disp.model == "distorted3D":
         from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
         nx = max(3, len(np.unique(np.round(disp.fraction[:, 0], 6))))
         ny = max(3, len(np.unique(np.round(disp.fraction[:, 1], 6))))
-        gx = tuple(np.linspace(0.0, Wmm, nx))
-        gy = tuple(np.linspace(0.0, Hmm, ny))
+        gx = tuple(float(v) for v in np.linspace(0.0, Wmm, nx))
+        gy = tuple(float(v) for v in np.linspace(0.0, Hmm, ny))
         GX, GY = np.meshgrid(gx, gy)
         z = LinearNDInterpolator(p_scr[:, :2], p_scr[:, 2])(GX, GY)
         z = np.where(np.isfinite(z), z, NearestNDInterpolator(p_scr[:, :2], p_scr[:, 2])(GX, GY))
@@ -521,8 +523,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     if fcent is not None:
         half = 1e3 * float(np.abs(fc[:, :2] - fcent[:2]).max())
     sample = SampleSetup(Pose.from_transform(RigidTransform(R_s, p_opt)), (-half, half), (-half, half))
-    seq = FringeSequence(tuple(sorted((Wmm / n for n in px), reverse=True)),
-                         tuple(sorted((Hmm / n for n in py), reverse=True)), n_shifts=4, mean_level=0.5, amplitude=0.5)
+    seq = FringeSequence(tuple(sorted((float(Wmm / n) for n in px), reverse=True)),
+                         tuple(sorted((float(Hmm / n) for n in py), reverse=True)), n_shifts=4, mean_level=0.5, amplitude=0.5)
     bits = 8 if fr.dtype == np.uint8 else 16
     setup = Setup(cameras={CAMERA_NAME: CameraSetup(cam, Pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))}, screen=screen,
                   sample=sample, patterns=PatternSetup(seq, bit_depth=bits))
