@@ -7,15 +7,17 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
+
+from pmdsim.cli import main
 
 from pmdsim.io.imageset import decode_camera, decode_camera_images, load_camera_stacks, load_manifest
 from pmdsim.io.imageset_instrument import ScreenMap
@@ -42,8 +44,19 @@ def files(display="distorted_2d", **override):
     return f
 
 
+@dataclass
+class Run:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "pmdsim.cli", *map(str, args)], capture_output=True, text=True)
+    """``pmdsim ARGS`` in-process (the CLI's parsing and its error handling; no subprocess start-up)."""
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return Run(r.exit_code, r.stdout, r.stderr)
 
 
 def do_import(out, display="distorted_2d", **override):
