@@ -27,7 +27,7 @@ STEP_TOL_MM = 1e-12
 #: The step tolerance is never below this many units in the last place (float64 spacing) of
 #: the working distance (the largest coordinate of the camera centre and the screen points):
 #: at a 10 m stand-off |Δz| cannot get below ~1e-12 mm, so STEP_TOL_MM alone never converges.
-STEP_TOL_ULPS = 64
+STEP_TOL_ULPS = 16
 
 
 def step_tolerance_mm(o, q, valid) -> float:
