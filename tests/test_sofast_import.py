@@ -163,6 +163,7 @@ def test_cli_end_to_end_focal_lengths_and_outputs(imported):
     assert abs(fit["focal_length_x_mm"] / fx - 1) < 0.02 and abs(fit["focal_length_y_mm"] / fy - 1) < 0.02, (fit, fx, fy)
     assert "converged" in r.stdout and "NOT converged" not in r.stdout
     assert "anchored" in r.stdout and "RELATIVE" not in r.stdout
+    assert "linearised with the declared response (a 27-level grey series from response.json, linear" in r.stdout
     assert (d / "ev" / "slope_error.png").stat().st_size > 10_000
     with h5py.File(d / "ev" / "evaluation.h5") as f:
         inst = json.loads(f.attrs["instrument"])

@@ -2,7 +2,9 @@
 
     pmdsim setup --show | --setup FILE
     pmdsim simulate [--setup FILE] [--bulge-mm H] --out DIR [--force]
-    pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR
+    pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR [--anchor-* | --seed-*]
+    pmdsim import sofast --measurement M.h5 --camera C.h5 --display D.h5 --orientation O.h5
+                         --calibration CAL.h5 [--facet F.json] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
     pmdsim experiment 1|2|3 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]

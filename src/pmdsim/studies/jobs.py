@@ -151,9 +151,16 @@ class EvaluationSummary:
     seconds: float
     surface_fit: dict | None = None
     warnings: tuple[str, ...] = ()
+    response: dict | None = None
 
     def lines(self) -> list[str]:
         out = []
+        if self.response:
+            r = self.response
+            what = (f"gamma {r['gamma']:g}" if r.get("kind") == "gamma" else
+                    f"a {r.get('n_levels')}-level grey series{' from ' + r['file'] if r.get('file') else ''}")
+            out.append(f"images linearised with the declared response ({what}, {r.get('interpolation')} "
+                       f"interpolation) before decoding")
         for cam, c in self.cameras.items():
             rng = (f"height {c['height_min_um']:.3f} … {c['height_max_um']:.3f} µm (sample frame)"
                    if c["reconstructed"] else "no height")
@@ -288,7 +295,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "height_min_um": float(np.min(h)) if h.size else float("nan"),
                      "height_max_um": float(np.max(h)) if h.size else float("nan"),
                      "converged": bool(rec.converged), "anchor": anchors[cam]}
-    return EvaluationSummary(cams, time.perf_counter() - t0, fit.as_json(), tuple(warnings))
+    return EvaluationSummary(cams, time.perf_counter() - t0, fit.as_json(), tuple(warnings),
+                             manifest.instrument.response_info)
 
 
 # ============================================================================ calibrate
