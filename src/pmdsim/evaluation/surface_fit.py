@@ -76,9 +76,13 @@ class ParaboloidFit:
     n_points: int
 
     def as_json(self) -> dict:
-        """Exactly the keys of ``surface_fit.json`` (issue 12)."""
-        return {"focal_length_x_mm": self.focal_length_x_mm, "focal_length_y_mm": self.focal_length_y_mm,
-                "slope_residual_rms_mrad": self.slope_residual_rms_mrad}
+        """Exactly the keys of ``surface_fit.json`` (issue 12); a focal length that is infinite
+        (no curvature: a plane) is null."""
+        def num(v):
+            return float(v) if np.isfinite(v) else None
+
+        return {"focal_length_x_mm": num(self.focal_length_x_mm), "focal_length_y_mm": num(self.focal_length_y_mm),
+                "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
 
 
 def _design(x, y):

@@ -180,8 +180,13 @@ class EvaluationSummary:
                                f"({a['pixel_vu'][0]:.2f}, {a['pixel_vu'][1]:.2f})")
         if self.surface_fit:
             f = self.surface_fit
-            out.append(f"paraboloid over the slopes: focal length x {f['focal_length_x_mm']:.6g} mm, "
-                       f"y {f['focal_length_y_mm']:.6g} mm; slope residual RMS {f['slope_residual_rms_mrad']:.4g} mrad")
+
+            def fmt(v, spec):
+                return "∞ (flat)" if v is None else format(v, spec)
+
+            out.append(f"paraboloid over the slopes: focal length x {fmt(f['focal_length_x_mm'], '.6g')} mm, "
+                       f"y {fmt(f['focal_length_y_mm'], '.6g')} mm; slope residual RMS "
+                       f"{fmt(f['slope_residual_rms_mrad'], '.4g')} mrad")
         return out
 
 
@@ -275,11 +280,18 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                               label="height (µm)", path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
         cam0 = manifest.cameras[0]
-        fit, extras = surface_fit_summary([results[c][2] for c in manifest.cameras],
-                                          float(results[cam0][1].o_ref_mm[2]))
-        write_json(tmp / "surface_fit.json", fit.as_json())
-        slope_error_figure({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
-                            for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
+        try:
+            fit, extras = surface_fit_summary([results[c][2] for c in manifest.cameras],
+                                              float(results[cam0][1].o_ref_mm[2]))
+        except ComputationError as exc:  # too few points for a paraboloid: the rest stands
+            warnings.append(f"no surface fit: {exc}")
+            fit, extras = None, [{} for _ in manifest.cameras]
+        fit_json = (fit.as_json() if fit is not None else
+                    {"focal_length_x_mm": None, "focal_length_y_mm": None, "slope_residual_rms_mrad": None})
+        write_json(tmp / "surface_fit.json", fit_json)
+        if fit is not None:
+            slope_error_figure({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
+                                for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
                              "instrument": json.dumps(json_ready(manifest.instrument.describe())),
@@ -295,7 +307,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "height_min_um": float(np.min(h)) if h.size else float("nan"),
                      "height_max_um": float(np.max(h)) if h.size else float("nan"),
                      "converged": bool(rec.converged), "anchor": anchors[cam]}
-    return EvaluationSummary(cams, time.perf_counter() - t0, fit.as_json(), tuple(warnings),
+    return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
                              manifest.instrument.response_info)
 
 
