@@ -429,7 +429,7 @@ MALFORMED = [
     ("empty-images", _set_top("images", []), "manifest", ["'images'", "non-empty"]),
     ("wrong-format", _set_top("format", "pmdsim-setup"), "manifest", ["'format'", "pmdsim-imageset"]),
     ("format-version", _set_top("format_version", 2), "manifest", ["'format_version'", "2"]),
-    ("bit-depth-12", _set_top("bit_depth", 12), "manifest", ["'bit_depth'", "8 or 16", "12"]),
+    ("bit-depth-11", _set_top("bit_depth", 11), "manifest", ["'bit_depth'", "8, 10, 12, 14, 16", "11"]),
     ("bad-screen-size", _set_top("screen_size_mm", [400, -1]), "manifest", ["'screen_size_mm'", "-1"]),
     ("entry-not-object", lambda d, doc: doc["images"].__setitem__(2, "x.png"), "manifest",
      ["images[2]", "object"]),

@@ -135,7 +135,8 @@ def evaluate(decoded: ScreenCoordinates, setup: Setup, camera: str, *, screen: s
         screen surface (e.g. a calibrated free-form screen).
     method : {"stepwise", "least_squares"}
     seed_pixel : (row, column), optional
-        Pixel whose height is known; default the registered pixel nearest the image centre.
+        Pixel whose height is known; default the registered pixel nearest the centroid of the
+        registered pixels (:func:`pmdsim.evaluation.anchor.default_seed_pixel`), height 0.
     seed_height_mm : float
         Its height in the sample frame (mm).
     """

@@ -2,7 +2,9 @@
 
     pmdsim setup --show | --setup FILE
     pmdsim simulate [--setup FILE] [--bulge-mm H] --out DIR [--force]
-    pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR
+    pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR [--anchor-* | --seed-*]
+    pmdsim import sofast --measurement M.h5 --camera C.h5 --display D.h5 --orientation O.h5
+                         --calibration CAL.h5 [--facet F.json] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
     pmdsim experiment 1|2|3 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
@@ -105,32 +107,82 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
               help="Setup with the evaluation's knowledge of cameras and screen (default: Table 1).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True)
-@click.option("--screen-model", type=click.Choice(["planar", "setup"]), default="planar", show_default=True,
-              help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface.")
-@click.option("--seed-pixel", type=(int, int), default=None, help="Initial pixel (row, column); default: the image centre.")
-@click.option("--seed-height-mm", type=float, default=0.0, show_default=True,
-              help="Height of the initial point in the sample frame.")
+@click.option("--screen-model", type=click.Choice(["planar", "setup"]), default=None,
+              help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface. "
+                   "Default: the manifest's screen_model, else planar.")
+@click.option("--seed-pixel", type=(int, int), default=None,
+              help="Pixel (row, column) of known height (--seed-height-mm, default 0); default: the valid pixel nearest "
+                   "the mask centroid.")
+@click.option("--seed-height-mm", type=float, default=None,
+              help="Known height of the seed pixel in the sample frame (an anchor).")
+@click.option("--anchor-distance-mm", type=float, default=None,
+              help="Anchor: the surface at --anchor-pixel is this far (mm) from --anchor-point-mm (world).")
+@click.option("--anchor-pixel", type=(float, float), default=None, help="Anchor pixel (row, column), may be fractional.")
+@click.option("--anchor-point-mm", type=(float, float, float), default=None,
+              help="Anchor point (world, mm) of --anchor-distance-mm.")
 @click.option("--noise-std", type=float, default=None, help="Intensity noise σ_I in grey levels for the σ model (default: quantisation).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, noise_std, force,
-                 quiet) -> None:
+def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
+                 anchor_pixel, anchor_point_mm, noise_std, force, quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
-    camera's images described by such a manifest). Writes OUT/evaluation.h5 and
-    OUT/height_{camera}.png.
+    camera's images described by such a manifest). Writes OUT/evaluation.h5,
+    OUT/height_{camera}.png, OUT/surface_fit.json and OUT/slope_error.png. The height is fixed by
+    an anchor (--anchor-*, --seed-*, or the manifest's); without one the heights are relative.
     """
+    from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import evaluate_image_set
 
+    given = [anchor_distance_mm is not None, anchor_pixel is not None, anchor_point_mm is not None]
+    if any(given) and not all(given):
+        raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
+    anchor = DistanceAnchor(anchor_pixel, anchor_distance_mm, anchor_point_mm) if all(given) else None
     setup = _load(setup_path, None)
     with _bar(len(setup.cameras), "evaluating", quiet) as bar:
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
-                                     seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, noise_std=noise_std,
+                                     seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
+                                     noise_std=noise_std,
                                      force=force, command=_command(), progress=lambda msg: bar.update(1))
     for line in summary.lines():
         click.echo(line)
-    click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+    for w in summary.warnings:
+        click.echo(f"pmdsim: warning: {w}", err=True)
+    click.echo(f"wrote evaluation.h5, height_*.png, surface_fit.json and slope_error.png to {out_dir} in "
+               f"{summary.seconds:.1f} s", err=True)
+
+
+@main.group("import")
+def import_group() -> None:
+    """Import another instrument's measurement as a pmdsim setup and image set."""
+
+
+@import_group.command("sofast")
+@click.option("--measurement", required=True, type=click.Path(dir_okay=False), help="SOFAST measurement (.h5).")
+@click.option("--camera", required=True, type=click.Path(dir_okay=False), help="SOFAST camera (.h5).")
+@click.option("--display", required=True, type=click.Path(dir_okay=False),
+              help="SOFAST display shape (.h5): rectangular2D, distorted2D or distorted3D.")
+@click.option("--orientation", required=True, type=click.Path(dir_okay=False), help="SOFAST spatial orientation (.h5).")
+@click.option("--calibration", required=True, type=click.Path(dir_okay=False), help="SOFAST image calibration (.h5).")
+@click.option("--facet", type=click.Path(dir_okay=False), default=None, help="SOFAST facet definition (.json).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Output directory: setup.toml and images/.")
+@click.option("--force", is_flag=True, help="Replace an existing output directory.")
+def import_sofast_cmd(measurement, camera, display, orientation, calibration, facet, out_dir, force) -> None:
+    """A SOFAST fringe measurement → OUT/setup.toml and the image set OUT/images/ for `pmdsim evaluate`."""
+    import warnings
+
+    from .io.importers import import_sofast
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # reported below, once
+        summary = import_sofast(measurement=measurement, camera=camera, display=display, orientation=orientation,
+                                calibration=calibration, facet=facet, out_dir=out_dir, force=force, command=_command())
+    for w in summary.warnings:
+        click.echo(f"pmdsim: warning: {w}", err=True)
+    for line in summary.lines():
+        click.echo(line)
 
 
 @main.command("calibrate")

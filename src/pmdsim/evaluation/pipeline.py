@@ -12,6 +12,7 @@ import numpy as np
 from ..geometry.surface import SplineSurface
 from ..setup import Setup
 from .phase import ScreenCoordinates, decode_screen_coordinates
+from .anchor import default_seed_pixel
 from .reconstruction import Reconstruction, ReconstructionError, reconstruct
 from .registration import Registration, register
 
@@ -54,13 +55,11 @@ def evaluate_decoded(model: Setup, camera: str, decoded: ScreenCoordinates, *, s
     reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
                    decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample)
     if seed_pixel is None:
-        # The registered pixel nearest to the image centre.
-        centre = np.array([cs.camera.height_px // 2, cs.camera.width_px // 2])
-        rows, cols = np.nonzero(reg.valid)
-        if rows.size == 0:
+        # The documented default shared with the CLI: the registered pixel nearest the centroid
+        # of the registered pixels (pmdsim.evaluation.anchor.default_seed_pixel).
+        if not reg.valid.any():
             raise ReconstructionError(f"camera {camera!r}: no pixel was decoded and registered; nothing to reconstruct")
-        k = int(np.argmin((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2))
-        seed_pixel = (int(rows[k]), int(cols[k]))
+        seed_pixel = default_seed_pixel(reg.valid)
     rec = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, method=method,
                       seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
     return reg, rec

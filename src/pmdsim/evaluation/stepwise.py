@@ -17,11 +17,28 @@ from .integration import (
     _points_and_normals,
 )
 
-__all__ = ["reconstruct_stepwise", "STEP_TOL_MM", "STEP_MAX_ITER"]
+__all__ = ["reconstruct_stepwise", "step_tolerance_mm", "STEP_TOL_MM", "STEP_TOL_ULPS", "STEP_MAX_ITER"]
 
 
 #: Convergence tolerance of the corrector iteration of one integration step (|Δz|), in mm.
 STEP_TOL_MM = 1e-12
+
+
+#: The step tolerance is never below this many units in the last place (float64 spacing) of
+#: the working distance (the largest coordinate of the camera centre and the screen points):
+#: at a 10 m stand-off |Δz| cannot get below ~1e-12 mm, so STEP_TOL_MM alone never converges.
+STEP_TOL_ULPS = 16
+
+
+def step_tolerance_mm(o, q, valid) -> float:
+    """max(:data:`STEP_TOL_MM`, :data:`STEP_TOL_ULPS` · ulp(working distance)), mm: the
+    convergence tolerance of one step, relative to what float64 resolves at the coordinates
+    involved (the camera centre ``o`` (3,), the valid screen points of ``q`` (H, W, 3))."""
+    scale = float(np.max(np.abs(o)))
+    qv = q[valid]
+    if qv.size:
+        scale = max(scale, float(np.max(np.abs(qv))))
+    return max(STEP_TOL_MM, STEP_TOL_ULPS * float(np.spacing(scale)))
 
 
 #: Maximum number of corrector iterations of one integration step.
@@ -354,7 +371,8 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     equation is linear in t_b (for one neighbour: p_b is the intersection of b's ray with the
     plane through p_a of slope G). The predictor uses G_i = g_ai; each corrector recomputes g_b
     at the new p_b and uses G_i = ½(g_ai + g_b), until the height changes by less than
-    :data:`STEP_TOL_MM` (at most :data:`STEP_MAX_ITER` correctors; the last iterate is kept
+    :func:`step_tolerance_mm` (:data:`STEP_TOL_MM`, or a few float64 ulps of the working
+    distance where those are larger; at most :data:`STEP_MAX_ITER` correctors; the last iterate is kept
     either way). The rule is exact for height functions of degree ≤ 2 (planes, paraboloids).
     A step that fails (the ray misses the plane in front of the camera, or the normal is
     undefined or perpendicular to z) is skipped and b may be reached from a later wavefront.
@@ -389,7 +407,8 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     """
     o, d, q, valid = _check_inputs(o, d, q, valid)
     seed, z0 = _check_seed(seed_pixel, seed_height_mm, o, d, valid)
-    z, done, max_used, max_change, n_unconv = _run_stepwise(o, d, q, valid, seed, z0)
+    z, done, max_used, max_change, n_unconv = _run_stepwise(o, d, q, valid, seed, z0,
+                                                            tol=step_tolerance_mm(o, q, valid))
     points, normals = _points_and_normals(o, d, q, z)
     return Reconstruction(
         height_mm=z,

@@ -83,7 +83,7 @@ def write_reconstructions_h5(path: str | Path, cases, attrs: dict[str, Any]) -> 
             add(c)
 
 
-def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) -> None:
+def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any], extras: dict | None = None) -> None:
     """Write an evaluation: one group per camera with the decoded coordinates, masks, normals
     and the height map.
 
@@ -92,7 +92,8 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) 
     :class:`pmdsim.evaluation.phase.PhaseFlag`), ``registration_status`` (uint8,
     :class:`pmdsim.evaluation.registration.RegistrationStatus`), ``normals`` (H×W×3, unit, sample frame),
     ``points_mm`` (H×W×3, sample frame), ``height_mm`` (H×W, sample frame, NaN where not
-    reconstructed) and ``reconstructed`` (bool).
+    reconstructed) and ``reconstructed`` (bool); ``extras[camera]`` adds further (H×W[×k])
+    float datasets of that camera by name (e.g. ``slopes``, ``height_detrended_mm``).
     """
     from ..evaluation.phase import PhaseFlag
     from ..evaluation.registration import RegistrationStatus
@@ -120,3 +121,6 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any]) 
             g.attrs["seed_pixel"] = list(rec.seed_pixel)
             g.attrs["converged"] = bool(rec.converged)
             g.attrs["iterations"] = int(rec.iterations)
+            for name, arr in ((extras or {}).get(cam) or {}).items():
+                d = g.create_dataset(name, data=np.asarray(arr), **kw)
+                d.attrs["frame"] = "sample"

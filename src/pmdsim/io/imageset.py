@@ -7,7 +7,8 @@ a user from a real camera. The manifest is a JSON object::
     {
       "format": "pmdsim-imageset",          # optional; if given, must be this
       "format_version": 1,                  # optional; if given, must be 1
-      "bit_depth": 8,                       # optional: 8 or 16; images must agree
+      "bit_depth": 8,                       # optional: 8, 10, 12, 14 or 16; images must agree
+                                            # (10–14 bit: stored in 16-bit files)
       "screen_size_mm": [708.0, 398.0],     # optional: screen width (x_q) and height (y_q), mm
       "cameras": {"left": {"image_size_px": [W, H]}, ...},   # optional
       "images": [
@@ -18,7 +19,10 @@ a user from a real camera. The manifest is a JSON object::
     }
 
 plus the provenance keys ``pmdsim_version``, ``command`` and ``setup_toml`` that pmdsim writes
-and free-form ``description``/``metadata``. Every image entry needs ``file``, ``camera``,
+and free-form ``description``/``metadata``. A real instrument's manifest may also declare its
+intensity ``response`` (applied before decoding), a pixel ``mask``, a ``screen_map`` (pattern →
+physical screen coordinates), the depth ``anchor``, ``full_scale`` of float (TIFF float32)
+images and the default ``screen_model``: :mod:`pmdsim.io.imageset_instrument`. Every image entry needs ``file``, ``camera``,
 ``direction`` (``"x"`` for fringes encoding the screen's x_q, ``"y"`` for y_q),
 ``shift_index`` k (shift δ_k = 2πk/N, docs/conventions.md) and exactly one of
 
@@ -27,7 +31,7 @@ and free-form ``description``/``metadata``. Every image entry needs ``file``, ``
   (direction y); then the screen size must be known (manifest ``screen_size_mm`` or the
   ``screen_size_mm`` argument of :func:`load_manifest`).
 
-``n_shifts`` N is optional (default: the number of shifts listed for that camera, direction and
+``page`` selects a page of a multi-page TIFF (required for multi-page files). ``n_shifts`` N is optional (default: the number of shifts listed for that camera, direction and
 period); ``period_index`` (written by ``pmdsim simulate``) is accepted and checked for
 consistency. The shifts of every (camera, direction, period) group must be exactly 0 … N−1 with
 N ≥ 3, and every camera needs at least one period per direction.
@@ -60,7 +64,14 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..errors import ImageSetError
-from .images import read_image
+from .imageset_instrument import (
+    INTEGER_BIT_DEPTHS,
+    InstrumentInfo,
+    apply_mask_and_map,
+    linearise_stacks,
+    parse_instrument,
+    read_frame,
+)
 from .outputs import IMAGESET_FORMAT, MANIFEST_NAME
 from ..evaluation.phase import ScreenCoordinates, decode_screen_coordinates
 
@@ -85,10 +96,11 @@ FORMAT_VERSION = 1
 
 _REQUIRED_ENTRY_KEYS = ("file", "camera", "direction", "shift_index")
 _PERIOD_KEYS = ("period_mm", "period_fraction")
-_OPTIONAL_ENTRY_KEYS = ("n_shifts", "period_index")
+_OPTIONAL_ENTRY_KEYS = ("n_shifts", "period_index", "page")
 _ENTRY_KEYS = _REQUIRED_ENTRY_KEYS + _PERIOD_KEYS + _OPTIONAL_ENTRY_KEYS
 _TOP_KEYS = ("format", "format_version", "pmdsim_version", "command", "setup_toml", "bit_depth",
-             "screen_size_mm", "cameras", "images", "description", "metadata")
+             "screen_size_mm", "cameras", "images", "description", "metadata",
+             "response", "mask", "screen_map", "anchor", "full_scale", "screen_model")
 
 #: Two periods of one camera and direction are the same period if they differ by less than this
 #: relative amount (periods computed from ``period_fraction`` may differ in the last bits).
@@ -96,6 +108,7 @@ _PERIOD_RTOL = 1e-9
 
 _MAX_VALUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 _BITS = {np.dtype(np.uint8): 8, np.dtype(np.uint16): 16}
+_FLOAT_TYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 # ============================================================================ data types
@@ -131,6 +144,7 @@ class ImageEntry:
     period_mm: float
     shift_index: int
     n_shifts: int
+    page: int | None = None
 
     def label(self) -> str:
         """``images[i] ('file')`` — how messages name this entry."""
@@ -198,6 +212,7 @@ class ImageSetManifest:
     entries: tuple[ImageEntry, ...]
     layout: Mapping[str, Mapping[str, tuple[PeriodGroup, ...]]]
     raw: Mapping[str, Any]
+    instrument: InstrumentInfo = InstrumentInfo()
 
     def groups(self, camera: str, direction: str) -> tuple[PeriodGroup, ...]:
         """The period groups of ``camera`` and ``direction`` ("x" or "y"), coarsest first."""
@@ -227,13 +242,14 @@ class CameraImages:
     ----------
     camera : str
         Camera name.
-    x_stacks, y_stacks : tuple of ndarray, each shape (N_i, H, W), uint8 or uint16
+    x_stacks, y_stacks : tuple of ndarray, each shape (N_i, H, W), uint8, uint16 or float
         One stack per period for direction x (encoding x_q) and y (y_q), coarsest period
         first; ``stack[k]`` is shift k (δ_k = 2πk/N_i). Grey levels.
     x_periods_mm, y_periods_mm : tuple of float
         The stacks' fringe periods in mm, coarsest first.
-    max_value : int
-        Full-scale grey level: 255 (uint8) or 65535 (uint16).
+    max_value : int or float
+        Full-scale grey level: 2^bits − 1 of the (declared) bit depth, or the manifest's
+        ``full_scale`` for float images (default 1.0).
     shape : (int, int)
         Image size (H, W) in pixels.
     """
@@ -247,9 +263,11 @@ class CameraImages:
     shape: tuple[int, int]
 
     @property
-    def bit_depth(self) -> int:
-        """8 or 16."""
-        return 8 if self.max_value == 255 else 16
+    def bit_depth(self) -> int | None:
+        """8 … 16 for integer images (from ``max_value`` = 2^bits − 1), None for float images."""
+        if self.x_stacks and np.issubdtype(self.x_stacks[0].dtype, np.floating):
+            return None
+        return int(round(math.log2(self.max_value + 1)))
 
     def stacks(self, direction: str) -> tuple[np.ndarray, ...]:
         """``x_stacks`` or ``y_stacks``."""
@@ -333,6 +351,9 @@ def _parse_entry(i: int, raw: Any, source: str, screen_size: tuple[float, float]
     pidx = raw.get("period_index")
     if pidx is not None and (not _is_int(pidx) or pidx < 0):
         raise ImageSetError(f"{label}: key 'period_index' must be an integer ≥ 0, got {pidx!r}")
+    page = raw.get("page")
+    if page is not None and (not _is_int(page) or page < 0):
+        raise ImageSetError(f"{label}: key 'page' must be an integer ≥ 0 (a page of a multi-page TIFF), got {page!r}")
     given = [key for key in _PERIOD_KEYS if key in raw]
     if len(given) != 1:
         what = "both" if given else "neither"
@@ -355,7 +376,7 @@ def _parse_entry(i: int, raw: Any, source: str, screen_size: tuple[float, float]
     if directory is not None and isinstance(file, str):
         path = directory / file
     entry = ImageEntry(index=i, file=file if isinstance(file, str) else None, path=path, camera=camera,
-                       direction=direction, period_mm=period, shift_index=k, n_shifts=-1)
+                       direction=direction, period_mm=period, shift_index=k, n_shifts=-1, page=page)
     return entry, n, pidx
 
 
@@ -368,13 +389,14 @@ def _build_layout(raw_entries: Sequence, source: str, screen_size: tuple[float, 
     parsed = [_parse_entry(i, r, source, screen_size, directory, require_file) for i, r in enumerate(raw_entries)]
 
     # The same file twice is a copy-and-paste error, not a second image.
-    seen_files: dict[str, int] = {}
+    seen_files: dict[tuple, int] = {}
     for e, _, _ in parsed:
         if e.file is not None:
-            key = str(Path(e.file))
+            key = (str(Path(e.file)), e.page)
             if key in seen_files:
+                what = "file" if e.page is None else f"file and page {e.page}"
                 raise ImageSetError(f"{source}: images[{e.index}] ({e.file!r}): key 'file' repeats "
-                                    f"images[{seen_files[key]}]'s file")
+                                    f"images[{seen_files[key]}]'s {what}")
             seen_files[key] = e.index
 
     # Group by (camera, direction, period); periods equal to within _PERIOD_RTOL.
@@ -448,7 +470,7 @@ def _build_layout(raw_entries: Sequence, source: str, screen_size: tuple[float, 
                 ordered = []
                 for k in range(n):
                     e = by_shift[k]
-                    e = ImageEntry(e.index, e.file, e.path, e.camera, e.direction, period, e.shift_index, n)
+                    e = ImageEntry(e.index, e.file, e.path, e.camera, e.direction, period, e.shift_index, n, e.page)
                     entries_out[e.index] = e
                     ordered.append(e)
                 pgroups.append(PeriodGroup(period_mm=period, n_shifts=n, entries=tuple(ordered)))
@@ -516,8 +538,9 @@ def load_manifest(path_or_dir: str | Path, *, screen_size_mm=None, check_files: 
         raise ImageSetError(f"{src}: key 'format_version' = {doc['format_version']!r} is not supported "
                             f"(this pmdsim reads version {FORMAT_VERSION})")
     bit_depth = doc.get("bit_depth")
-    if bit_depth is not None and (not _is_int(bit_depth) or bit_depth not in (8, 16)):
-        raise ImageSetError(f"{src}: key 'bit_depth' must be 8 or 16, got {bit_depth!r}")
+    if bit_depth is not None and (not _is_int(bit_depth) or bit_depth not in INTEGER_BIT_DEPTHS):
+        raise ImageSetError(f"{src}: key 'bit_depth' must be one of {list(INTEGER_BIT_DEPTHS)} (10–14 bit are "
+                            f"stored in 16-bit files), got {bit_depth!r}")
     size = None
     if "screen_size_mm" in doc:
         size = _screen_size(doc["screen_size_mm"], f"{src}: key 'screen_size_mm'")
@@ -547,16 +570,41 @@ def load_manifest(path_or_dir: str | Path, *, screen_size_mm=None, check_files: 
         if missing:
             raise ImageSetError(f"{src}: {len(missing)} image file(s) missing in {str(manifest_path.parent)!r}: "
                                 f"{_fmt_list(missing)}")
+    instrument = parse_instrument(doc, src, manifest_path.parent)
     return ImageSetManifest(
         path=manifest_path, directory=manifest_path.parent, cameras=cameras, screen_size_mm=size,
         bit_depth=bit_depth, image_size_px=MappingProxyType(image_size), entries=entries, layout=layout,
-        raw=MappingProxyType(doc),
+        raw=MappingProxyType(doc), instrument=instrument,
     )
 
 
 # ============================================================================ stacks
+def _check_depth(img: np.ndarray, e: ImageEntry, source: str, bit_depth: int | None) -> None:
+    """The image's pixel type against the declared bit depth (module docstring)."""
+    if img.dtype in _FLOAT_TYPES:
+        if bit_depth is not None:
+            raise ImageSetError(f"{source}: {e.label()}: a floating-point image ({img.dtype}), but 'bit_depth' is "
+                                f"{bit_depth}; float images take 'full_scale' (their grey level of full scale)")
+        return
+    if img.dtype not in _MAX_VALUE:
+        raise ImageSetError(f"{source}: {e.label()}: pixel type {img.dtype}; 8-bit (uint8), 16-bit (uint16) or "
+                            f"float32 grey levels expected")
+    if bit_depth is None:
+        return
+    container = 8 if bit_depth == 8 else 16
+    if _BITS[img.dtype] != container:
+        raise ImageSetError(f"{source}: {e.label()}: the image is {_BITS[img.dtype]}-bit, but 'bit_depth' is "
+                            f"{bit_depth} (stored in {container}-bit files)")
+    top = 2**bit_depth - 1
+    mx = int(img.max()) if img.size else 0
+    if mx > top:
+        raise ImageSetError(f"{source}: {e.label()}: grey levels up to {mx} exceed the declared {bit_depth}-bit range "
+                            f"0 … {top}; is 'bit_depth' right (e.g. 12-bit images scaled to 16 bit)?")
+
+
 def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], source: str,
-                  bit_depth: int | None, size_wh: tuple[int, int] | None) -> CameraImages:
+                  bit_depth: int | None, size_wh: tuple[int, int] | None,
+                  full_scale: float | None = None) -> CameraImages:
     """Fetch every image of ``camera`` with ``get``, check size and dtype, stack per period."""
     ref: tuple[ImageEntry, tuple[int, int], np.dtype] | None = None
     out: dict[str, list[np.ndarray]] = {}
@@ -569,12 +617,7 @@ def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], 
                 if img.ndim != 2:
                     raise ImageSetError(f"{source}: {e.label()}: expected a greyscale (H, W) image, "
                                         f"got shape {img.shape}")
-                if img.dtype not in _MAX_VALUE:
-                    raise ImageSetError(f"{source}: {e.label()}: pixel type {img.dtype}; 8-bit (uint8) or "
-                                        f"16-bit (uint16) grey levels expected")
-                if bit_depth is not None and _BITS[img.dtype] != bit_depth:
-                    raise ImageSetError(f"{source}: {e.label()}: the image is {_BITS[img.dtype]}-bit, but "
-                                        f"'bit_depth' is {bit_depth}")
+                _check_depth(img, e, source, bit_depth)
                 if ref is None:
                     if size_wh is not None and (img.shape[1], img.shape[0]) != size_wh:
                         raise ImageSetError(
@@ -588,7 +631,8 @@ def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], 
                         what = (f"image size {img.shape[1]}×{img.shape[0]} px (W×H), expected "
                                 f"{ref[1][1]}×{ref[1][0]} px")
                     else:
-                        what = f"{_BITS[img.dtype]}-bit ({img.dtype}), expected {_BITS[ref[2]]}-bit ({ref[2]})"
+                        what = (f"{_BITS[img.dtype]}-bit ({img.dtype}), expected {_BITS[ref[2]]}-bit ({ref[2]})"
+                                if img.dtype in _BITS and ref[2] in _BITS else f"pixel type {img.dtype}, expected {ref[2]}")
                     raise ImageSetError(f"{source}: {e.label()}: {what} like {r.label()}, the first image "
                                         f"of camera {camera!r}; all images of a camera must agree")
                 imgs.append(img)
@@ -600,11 +644,19 @@ def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], 
         camera=camera,
         x_stacks=tuple(out["x"]), x_periods_mm=tuple(g.period_mm for g in layout[camera]["x"]),
         y_stacks=tuple(out["y"]), y_periods_mm=tuple(g.period_mm for g in layout[camera]["y"]),
-        max_value=_MAX_VALUE[ref[2]], shape=(int(ref[1][0]), int(ref[1][1])),
+        max_value=_full_scale(ref[2], bit_depth, full_scale), shape=(int(ref[1][0]), int(ref[1][1])),
     )
 
 
-def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
+def _full_scale(dtype: np.dtype, bit_depth: int | None, full_scale: float | None):
+    """The grey level of full scale: declared bit depth, the dtype's, or ``full_scale`` (floats)."""
+    if dtype in _FLOAT_TYPES:
+        return 1.0 if full_scale is None else float(full_scale)
+    return 2**bit_depth - 1 if bit_depth is not None else _MAX_VALUE[dtype]
+
+
+def load_camera_stacks(manifest: ImageSetManifest, camera: str, *,
+                       expected_size_px: tuple[int, int] | None = None) -> CameraImages:
     """Read one camera's images and stack them per period.
 
     Parameters
@@ -613,6 +665,8 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
         From :func:`load_manifest`.
     camera : str
         One of ``manifest.cameras``.
+    expected_size_px : (int, int), optional
+        ``[width, height]`` the images must have, e.g. the setup camera's ``image_size_px``.
 
     Returns
     -------
@@ -634,12 +688,20 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str) -> CameraImages:
 
     def get(e: ImageEntry) -> np.ndarray:
         try:
-            return read_image(e.path)
+            return read_frame(e.path, e.page)
         except ImageSetError as exc:
             raise ImageSetError(f"{src}: {e.label()}: {exc}") from None
 
-    return _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
-                         manifest.image_size_px.get(camera))
+    imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
+                         manifest.image_size_px.get(camera), manifest.instrument.full_scale)
+    if expected_size_px is not None:
+        w, h = (int(v) for v in expected_size_px)
+        if (imgs.shape[1], imgs.shape[0]) != (w, h):
+            raise ImageSetError(
+                f"{src}: camera {camera!r}: the images are {imgs.shape[1]}×{imgs.shape[0]} px (W×H), but the setup's "
+                f"cameras.{camera}.image_size_px is {w}×{h}; use the setup of the camera that took them (binned or "
+                f"downsampled images need a camera model at their resolution)")
+    return imgs
 
 
 def camera_images_from_arrays(entries: Sequence[Mapping[str, Any]], images: Sequence, *,
@@ -677,8 +739,8 @@ def camera_images_from_arrays(entries: Sequence[Mapping[str, Any]], images: Sequ
     images = list(images)
     if len(entries) != len(images):
         raise ImageSetError(f"{source}: {len(entries)} entries but {len(images)} images; one image per entry")
-    if bit_depth is not None and bit_depth not in (8, 16):
-        raise ImageSetError(f"{source}: bit_depth must be 8 or 16, got {bit_depth!r}")
+    if bit_depth is not None and bit_depth not in INTEGER_BIT_DEPTHS:
+        raise ImageSetError(f"{source}: bit_depth must be one of {list(INTEGER_BIT_DEPTHS)}, got {bit_depth!r}")
     size = None if screen_size_mm is None else _screen_size(screen_size_mm, "argument screen_size_mm")
     if camera is None:
         names = list(dict.fromkeys(e.get("camera") for e in entries if isinstance(e, Mapping)))
@@ -697,7 +759,8 @@ def camera_images_from_arrays(entries: Sequence[Mapping[str, Any]], images: Sequ
 
 
 # ============================================================================ decoding
-def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, **decoder_kw) -> ScreenCoordinates:
+def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *, response=None,
+                         **decoder_kw) -> ScreenCoordinates:
     """Decode the pixel → screen mapping (x_q, y_q) of one camera's image stacks.
 
     Parameters
@@ -708,6 +771,10 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
         Screen (width along x_q, height along y_q) in mm; the unwrapping extent.
     noise_std : float or array_like broadcastable to (H, W), optional
         Intensity noise σ_I in grey levels for the predicted σ (default: quantisation noise).
+    response : IntensityResponse or LinearResponse, optional
+        The display → camera response: the images are linearised (c → d(c), fractions of full
+        scale) before decoding; samples at full scale or above the response's brightest level
+        flag the pixel SATURATED (:mod:`pmdsim.io.imageset_instrument`).
     **decoder_kw
         Further keyword arguments of :func:`pmdsim.evaluation.phase.decode_screen_coordinates`
         (``screen_origin_mm``, thresholds, ``tolerance``, ``margin_mm``, ``check_saturation``).
@@ -734,14 +801,33 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
                 f"than the screen's {'width' if i == 0 else 'height'} {size[i]:g} mm; absolute (hierarchical) "
                 f"unwrapping needs a coarsest period of at least the screen extent"
             )
-    return decode_screen_coordinates(
-        list(images.x_stacks), list(images.x_periods_mm), list(images.y_stacks), list(images.y_periods_mm),
-        size, images.max_value, noise_std, **decoder_kw,
-    )
+    if response is None:
+        return decode_screen_coordinates(
+            list(images.x_stacks), list(images.x_periods_mm), list(images.y_stacks), list(images.y_periods_mm),
+            size, images.max_value, noise_std, **decoder_kw,
+        )
+    full = float(images.max_value)
+    xs, sat_x = linearise_stacks(images.x_stacks, full, response)
+    ys, sat_y = linearise_stacks(images.y_stacks, full, response)
+    # σ_I (grey levels; default quantisation noise) → display-level units through the inverse
+    # response's slope at each pixel's mean level of the finest x period.
+    s_grey = 1.0 / np.sqrt(12.0) if noise_std is None else np.asarray(noise_std, dtype=float)
+    mean_c = np.mean(images.x_stacks[-1], axis=0, dtype=float) / full
+    h = 0.5 / full
+    lo, _ = response.linearise(mean_c - h)
+    hi, _ = response.linearise(mean_c + h)
+    sigma = s_grey / full * np.abs(hi - lo) / (2.0 * h)
+    kw = dict(decoder_kw)
+    kw["check_saturation"] = False
+    dec = decode_screen_coordinates(xs, list(images.x_periods_mm), ys, list(images.y_periods_mm), size, 1.0,
+                                    sigma, **kw)
+    if decoder_kw.get("check_saturation", True):
+        return apply_mask_and_map(dec, saturated=sat_x | sat_y)
+    return dec
 
 
-def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, noise_std=None,
-                  **decoder_kw) -> ScreenCoordinates:
+def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, noise_std=None, *,
+                  expected_size_px: tuple[int, int] | None = None, **decoder_kw) -> ScreenCoordinates:
     """Read and decode one camera of an image set: the pixel → screen mapping (x_q, y_q).
 
     Parameters
@@ -754,6 +840,8 @@ def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, 
         Screen (width, height) in mm; default the manifest's ``screen_size_mm``.
     noise_std : float or array_like broadcastable to (H, W), optional
         Intensity noise σ_I in grey levels (default: quantisation noise 1/√12).
+    expected_size_px : (int, int), optional
+        ``[width, height]`` the images must have (the setup camera's ``image_size_px``).
     **decoder_kw
         Passed to :func:`pmdsim.evaluation.phase.decode_screen_coordinates`.
 
@@ -773,4 +861,9 @@ def decode_camera(manifest: ImageSetManifest, camera: str, screen_size_mm=None, 
     if size is None:
         raise ImageSetError(f"{manifest.path}: the screen size is unknown: the manifest has no 'screen_size_mm'; "
                             f"pass screen_size_mm (width, height) in mm, e.g. from the setup")
-    return decode_camera_images(load_camera_stacks(manifest, camera), size, noise_std, **decoder_kw)
+    inst = manifest.instrument
+    stacks = load_camera_stacks(manifest, camera, expected_size_px=expected_size_px)
+    dec = decode_camera_images(stacks, size, noise_std, response=inst.response, **decoder_kw)
+    if inst.mask is None and inst.screen_map is None:
+        return dec
+    return apply_mask_and_map(dec, mask=inst.mask, screen_map=inst.screen_map, source=str(manifest.path))

@@ -115,7 +115,12 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         c = model.cameras[cam].camera
         seed_px = (c.height_px // 2, c.width_px // 2)
         if not decoded.valid[seed_px]:  # e.g. washed-out fringes (issue 13): the decoded pixel nearest the centre
-            seed_px = None
+            rows, cols = np.nonzero(decoded.valid)
+            if rows.size:
+                k = int(np.argmin((rows - seed_px[0]) ** 2 + (cols - seed_px[1]) ** 2))
+                seed_px = (int(rows[k]), int(cols[k]))
+            else:
+                seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
         n_rec = int(rec.reconstructed.sum())

@@ -11,6 +11,7 @@ functions say how many calls to expect (for a progress bar).
 
 from __future__ import annotations
 
+import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -28,7 +29,6 @@ from ..calibration import (
     observations_from_mapping,
 )
 from ..errors import ComputationError, PmdsimError
-from ..evaluation.pipeline import evaluate_decoded
 from ..io import (
     IMAGESET_FORMAT,
     MANIFEST_NAME,
@@ -144,56 +144,161 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
 # ============================================================================ evaluate
 @dataclass(frozen=True)
 class EvaluationSummary:
-    """Per camera: decoded, reconstructed pixels, height range (µm) and convergence; seconds."""
+    """Per camera: decoded, reconstructed pixels, height range (µm) and convergence; seconds;
+    the anchor (or that heights are relative), the surface fit and the plausibility warnings."""
 
     cameras: dict[str, dict]
     seconds: float
+    surface_fit: dict | None = None
+    warnings: tuple[str, ...] = ()
+    response: dict | None = None
 
     def lines(self) -> list[str]:
         out = []
+        if self.response:
+            r = self.response
+            what = (f"gamma {r['gamma']:g}" if r.get("kind") == "gamma" else
+                    f"a {r.get('n_levels')}-level grey series{' from ' + r['file'] if r.get('file') else ''}")
+            out.append(f"images linearised with the declared response ({what}, {r.get('interpolation')} "
+                       f"interpolation) before decoding")
         for cam, c in self.cameras.items():
             rng = (f"height {c['height_min_um']:.3f} … {c['height_max_um']:.3f} µm (sample frame)"
                    if c["reconstructed"] else "no height")
             out.append(f"{cam}: {c['decoded']}/{c['pixels']} pixels decoded, {c['reconstructed']} reconstructed; "
                        f"{rng}, {'converged' if c['converged'] else 'NOT converged'}")
+            a = c.get("anchor")
+            if a is not None:
+                if a["kind"] == "none":
+                    out.append(f"{cam}: heights are RELATIVE (no anchor): seeded at pixel {tuple(a['seed_pixel_vu'])} "
+                               f"with height 0; give an anchor (a known point or a measured distance) for absolute "
+                               f"heights and slopes")
+                elif a["kind"] == "distance":
+                    out.append(f"{cam}: anchored: the surface at pixel ({a['pixel_vu'][0]:.2f}, {a['pixel_vu'][1]:.2f}) "
+                               f"is {a['distance_mm']:g} mm from {a['point_world_mm']} (world)")
+                else:
+                    out.append(f"{cam}: anchored: height {a['height_mm']:g} mm at pixel "
+                               f"({a['pixel_vu'][0]:.2f}, {a['pixel_vu'][1]:.2f})")
+        if self.surface_fit:
+            f = self.surface_fit
+
+            def fmt(v, spec):
+                return "∞ (flat)" if v is None else format(v, spec)
+
+            out.append(f"paraboloid over the slopes: focal length x {fmt(f['focal_length_x_mm'], '.6g')} mm, "
+                       f"y {fmt(f['focal_length_y_mm'], '.6g')} mm; slope residual RMS "
+                       f"{fmt(f['slope_residual_rms_mrad'], '.4g')} mrad")
         return out
 
 
+def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
+    """The anchor of an evaluation: explicit > seed options > the manifest's > none."""
+    from ..evaluation.anchor import HeightAnchor, anchor_from_dict
+
+    if anchor is not None:
+        return anchor
+    if seed_pixel is not None:
+        return HeightAnchor((float(seed_pixel[0]), float(seed_pixel[1])),
+                            0.0 if seed_height_mm is None else float(seed_height_mm))
+    if seed_height_mm is not None:
+        return ("default-pixel", float(seed_height_mm))
+    if manifest.instrument.anchor is not None:
+        return anchor_from_dict(manifest.instrument.anchor, source=f"{manifest.path}: key 'anchor'")
+    return None
+
+
 def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str = "stepwise",
-                       screen_model: str = "planar", seed_pixel=None, seed_height_mm: float = 0.0,
-                       noise_std=None, force: bool = False, command: str | None = None,
+                       screen_model: str | None = None, seed_pixel=None, seed_height_mm: float | None = None,
+                       anchor=None, noise_std=None, force: bool = False, command: str | None = None,
                        progress: Progress | None = None) -> EvaluationSummary:
     """Decode, register and reconstruct every camera of an image set (paper §2.5).
 
     ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
-    "setup" (the setup's screen surface). Writes ``evaluation.h5`` (per camera
-    ``screen_xy_mm``, ``std_xy_mm``, ``decoded``, ``phase_flags``, ``registration_status``,
-    ``normals``, ``points_mm``, ``height_mm``, ``reconstructed``) and ``height_{camera}.png``.
+    "setup" (the setup's screen surface); None: the manifest's ``screen_model``, else "planar".
+    The height is fixed by ``anchor`` (:mod:`pmdsim.evaluation.anchor`), else by ``seed_pixel``
+    / ``seed_height_mm`` (a known point), else by the manifest's ``anchor``; without any, heights
+    are relative (default seed at height 0) and the summary says so. Writes ``evaluation.h5``
+    (per camera ``screen_xy_mm``, ``std_xy_mm``, ``decoded``, ``phase_flags``,
+    ``registration_status``, ``normals``, ``points_mm``, ``height_mm``, ``reconstructed``,
+    ``slopes``, ``height_detrended_mm``, ``residual_slopes``), ``height_{camera}.png``,
+    ``surface_fit.json`` (``focal_length_x_mm``, ``focal_length_y_mm``,
+    ``slope_residual_rms_mrad``) and ``slope_error.png``.
     """
+    from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
+    from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
+    from ..evaluation.surface_fit import surface_fit_summary
+    from .surface_figures import slope_error_figure
+
+    manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
+    if screen_model is None:
+        screen_model = manifest.instrument.screen_model or "planar"
     if screen_model not in ("planar", "setup"):
         raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
-    manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
     unknown = [c for c in manifest.cameras if c not in setup.cameras]
     if unknown:
         raise JobInputError(f"camera(s) {unknown} of {image_dir}/manifest.json are not in the setup "
                             f"(setup cameras: {list(setup.cameras)})")
+    anchor = _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor)
     prov = provenance(command, setup.to_toml())
     model_surface = None if screen_model == "planar" else setup.screen.surface
+    warnings = list(check_scale(setup))
     t0 = time.perf_counter()
     results = {}
+    anchors = {}
     with atomic_output_dir(out_dir, force=force) as tmp:
         for cam in manifest.cameras:
-            decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std)
-            reg, rec = evaluate_decoded(setup, cam, decoded, screen_model=model_surface, method=method,
-                                        seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
+            c = setup.cameras[cam].camera
+            decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
+                                    expected_size_px=(c.width_px, c.height_px))
+            warnings += check_orientation(setup, cam, decoded.screen_xy_mm, decoded.valid)
+            reg = register_model(setup, cam, decoded, screen_model=model_surface)
+            bounds = (model_surface.bounds_mm if model_surface is not None else
+                      (setup.screen.grid_x_mm[0], setup.screen.grid_x_mm[-1], setup.screen.grid_y_mm[0],
+                       setup.screen.grid_y_mm[-1]))
+            coverage = check_screen_coverage(decoded.valid, reg.status, decoded.screen_xy_mm, bounds, cam)
+            warnings += coverage
+            cam_anchor = anchor
+            if isinstance(anchor, tuple):  # a seed height without a pixel: the default seed pixel
+                px = default_seed_pixel(reg.valid) if reg.valid.any() else (0, 0)
+                cam_anchor = HeightAnchor((float(px[0]), float(px[1])), anchor[1])
+            try:
+                if not reg.valid.any():
+                    raise JobInputError(f"camera {cam!r}: no pixel was decoded and registered; nothing to "
+                                        f"reconstruct")
+                ar = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=cam_anchor,
+                                          T_world_ref=setup.sample.T_world_sample, method=method)
+            except PmdsimError as exc:
+                if not (coverage or warnings):
+                    raise
+                raise type(exc)(f"{exc}; likely cause: {' / '.join(coverage or warnings)}") from None
+            rec = ar.reconstruction
             results[cam] = (decoded, reg, rec)
+            anchors[cam] = ar.anchor
             p = rec.p_sample_mm
             height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                              title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model)",
+                              title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
+                                    f"{', relative' if ar.relative else ''})",
                               label="height (µm)", path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
+        cam0 = manifest.cameras[0]
+        try:
+            fit, extras = surface_fit_summary([results[c][2] for c in manifest.cameras],
+                                              float(results[cam0][1].o_ref_mm[2]))
+        except ComputationError as exc:  # too few points for a paraboloid: the rest stands
+            warnings.append(f"no surface fit: {exc}")
+            fit, extras = None, [{} for _ in manifest.cameras]
+        fit_json = (fit.as_json() if fit is not None else
+                    {"focal_length_x_mm": None, "focal_length_y_mm": None, "slope_residual_rms_mrad": None})
+        write_json(tmp / "surface_fit.json", fit_json)
+        if fit is not None:
+            slope_error_figure({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
+                                for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
-                            {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir)})
+                            {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
+                             "instrument": json.dumps(json_ready(manifest.instrument.describe())),
+                             "anchors": json.dumps(json_ready(anchors)),
+                             "heights_relative": any(a["kind"] == "none" for a in anchors.values()),
+                             "warnings": json.dumps(warnings)},
+                            extras=dict(zip(manifest.cameras, extras)))
     cams = {}
     for cam, (decoded, reg, rec) in results.items():
         h = rec.height_mm[rec.reconstructed] * 1e3
@@ -201,8 +306,9 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "reconstructed": int(rec.reconstructed.sum()),
                      "height_min_um": float(np.min(h)) if h.size else float("nan"),
                      "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged)}
-    return EvaluationSummary(cams, time.perf_counter() - t0)
+                     "converged": bool(rec.converged), "anchor": anchors[cam]}
+    return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
+                             manifest.instrument.response_info)
 
 
 # ============================================================================ calibrate

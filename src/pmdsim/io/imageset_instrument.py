@@ -1,0 +1,420 @@
+"""What a real instrument's image set declares beside its images (issue 12), and how decoding
+applies it: the intensity response, the pixel mask, the display's screen map, the depth anchor,
+and image pages, bit depths and floating-point images.
+
+Manifest keys (all optional; :mod:`pmdsim.io.imageset` validates the rest of the manifest)::
+
+    "bit_depth": 12,                 # 8, 10, 12, 14 or 16: grey levels 0 … 2^bits − 1 (10- to
+                                     # 14-bit images are stored in 16-bit files); samples at
+                                     # 2^bits − 1 are flagged SATURATED per pixel
+    "full_scale": 1.0,               # float images (TIFF float32): the grey level of full scale
+    "response": {...},               # the display → camera response, applied before decoding
+    "mask": {"file": "mask.png"},    # pixels to evaluate (non-zero); others are flagged DARK
+    "screen_map": {"file": "screen_map.json"},   # pattern → physical screen coordinates
+    "anchor": {...},                 # what fixes the height (pmdsim.evaluation.anchor)
+    "screen_model": "setup",         # the screen model `pmdsim evaluate` uses by default
+
+An image entry may name a ``page`` of a multi-page TIFF (0-based); a multi-page file without
+``page`` is refused (never page 0 silently).
+
+**Response** (docs/conventions.md, "Intensity response"): one of
+
+* ``{"gamma": γ, "black_level": b, "white_level": w}`` — c = b + (w − b)·d^γ;
+* ``{"display_levels": [...], "camera_levels": [...]}`` — fractions of full scale;
+* ``{"file": "response.json" | "image_calibration.h5", "display_full_scale": 255,
+  "camera_full_scale": 255}`` — a measured grey-level series in grey units: a JSON object with
+  ``display_values`` and ``camera_values``, or an HDF5 file with those datasets at its root or
+  under ``ImageCalibration/`` (SOFAST's ``image_calibration.h5``);
+
+plus ``"interpolation": "pchip"`` (default, :class:`~pmdsim.setup.response.IntensityResponse`)
+or ``"linear"`` (the piecewise-linear interpolant of the series, as SOFAST's image calibration
+defines it). Linearising maps each recorded sample c to the display level d(c) ∈ [0, 1] before
+the N-step formula; samples above the brightest level of the series are flagged SATURATED.
+
+**Screen map**: ``{"pattern_xy_mm": [[x, y], ...], "screen_xy_mm": [[x, y], ...]}`` and
+optionally ``"unit_affine": [[a, b, c], [d, e, f]]`` with the samples' own unit coordinates
+``"unit_xy"`` (in the manifest or a JSON file): scattered pattern coordinates (what the fringes encode, mm) and the
+physical screen-frame positions (mm) where the display shows them; decoded pattern coordinates
+are mapped by piecewise-linear interpolation over the Delaunay triangulation of the pattern
+samples mapped to unit coordinates — by ``unit_affine`` (u = a·x + b·y + c, v = d·x + e·y + f)
+if given, else scaled to their bounding box; the triangulation of a nearly regular grid is
+ambiguous (even last-bit differences flip diagonals), so an instrument's own coordinates fix it:
+``unit_xy`` gives the samples' unit coordinates exactly as the instrument triangulates them
+(SOFAST's screen fractions) (:class:`scipy.interpolate.LinearNDInterpolator`); outside the triangulation a pixel is NaN
+(registration marks it *outside the screen model*). This is how a display whose pattern is
+distorted in its plane (a projector, SOFAST's ``distorted2D``/``distorted3D`` models) is
+described; heights out of the plane belong to the setup's screen surface.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ImageSetError
+from ..evaluation.phase import PhaseFlag, ScreenCoordinates
+from ..setup.response import IntensityResponse, ResponseError
+
+__all__ = [
+    "INTEGER_BIT_DEPTHS",
+    "LinearResponse",
+    "ScreenMap",
+    "InstrumentInfo",
+    "read_frame",
+    "parse_instrument",
+    "linearise_stacks",
+    "apply_mask_and_map",
+]
+
+#: Declared bit depths of integer images (10–14 bit are stored in 16-bit files).
+INTEGER_BIT_DEPTHS = (8, 10, 12, 14, 16)
+
+_RESPONSE_KEYS = {"gamma", "black_level", "white_level", "display_levels", "camera_levels", "file",
+                  "display_full_scale", "camera_full_scale", "interpolation"}
+
+
+# ============================================================================ image pages
+def read_frame(path: Path, page: int | None) -> np.ndarray:
+    """Read one greyscale frame: (H, W) uint8, uint16 or float32/float64.
+
+    PNG and single-page TIFF are read whole; a multi-page TIFF needs ``page`` (0-based) and a
+    page index beyond the file's pages is an error. Float TIFF (mode ``F``) is returned as
+    float32.
+
+    Raises
+    ------
+    ImageSetError
+        Missing or unreadable file, colour/palette image, a multi-page file without ``page``
+        or a page out of range.
+    """
+    from PIL import Image
+
+    p = Path(path)
+    if not p.is_file():
+        raise ImageSetError(f"image file {str(p)!r} does not exist")
+    try:
+        with Image.open(p) as im:
+            n = int(getattr(im, "n_frames", 1))
+            if page is None and n > 1:
+                raise ImageSetError(
+                    f"image {str(p)!r} is a multi-page file with {n} pages; give the entry a 'page' "
+                    f"(0 … {n - 1}) — pmdsim does not read page 0 of a stack silently")
+            k = 0 if page is None else page
+            if k >= n:
+                raise ImageSetError(f"image {str(p)!r}: 'page' = {k} is out of range (the file has {n} page(s))")
+            im.seek(k)
+            mode = im.mode
+            arr = np.array(im)
+    except ImageSetError:
+        raise
+    except Exception as e:  # PIL raises several types for broken files
+        raise ImageSetError(f"cannot read image {str(p)!r}: {e}") from None
+    if arr.ndim != 2 or mode not in ("L", "I;16", "I;16B", "I;16L", "I", "F"):
+        raise ImageSetError(
+            f"image {str(p)!r} is not greyscale (mode {mode}, shape {arr.shape}); 8/16-bit or float greyscale "
+            "expected — palette, colour and 1-bit images are not fringe images")
+    if mode == "F":
+        return arr.astype(np.float32, copy=False)
+    if mode in ("I;16", "I;16B", "I;16L", "I") and arr.dtype != np.uint16:
+        if arr.min() < 0 or arr.max() > 65535:
+            raise ImageSetError(f"image {str(p)!r}: values outside the 16-bit range")
+        arr = arr.astype(np.uint16)
+    if arr.dtype not in (np.uint8, np.uint16):
+        raise ImageSetError(f"image {str(p)!r} has pixel type {arr.dtype}; 8/16-bit or float greyscale expected")
+    return arr
+
+
+# ============================================================================ response
+@dataclass(frozen=True)
+class LinearResponse:
+    """The piecewise-linear display → camera response through a grey-level series (fractions
+    of full scale; strictly increasing) and its exact inverse (piecewise linear as well)."""
+
+    display_levels: tuple[float, ...]
+    camera_levels: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        IntensityResponse(self.display_levels, self.camera_levels)  # the same validation
+
+    def forward(self, display_level) -> np.ndarray:
+        """Camera level c(d) (clipped to the measured range)."""
+        return np.interp(np.asarray(display_level, dtype=float), self.display_levels, self.camera_levels)
+
+    def linearise(self, camera_level) -> tuple[np.ndarray, np.ndarray]:
+        """(d(c), out of the measured camera range) as :meth:`IntensityResponse.linearise`."""
+        c = np.asarray(camera_level, dtype=float)
+        lo, hi = self.camera_levels[0], self.camera_levels[-1]
+        out = (c < lo) | (c > hi) | ~np.isfinite(c)
+        return np.interp(np.nan_to_num(c, nan=lo), self.camera_levels, self.display_levels), out
+
+
+def _read_series(path: Path, src: str) -> tuple[np.ndarray, np.ndarray]:
+    """(display_values, camera_values) in grey units from a JSON or HDF5 file."""
+    if not path.is_file():
+        raise ImageSetError(f"{src}: key 'response.file': {str(path)!r} does not exist")
+    if path.suffix.lower() in (".h5", ".hdf5", ".hdf"):
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                for prefix in ("", "ImageCalibration/"):
+                    if prefix + "display_values" in f and prefix + "camera_values" in f:
+                        return (np.asarray(f[prefix + "display_values"][()], dtype=float),
+                                np.asarray(f[prefix + "camera_values"][()], dtype=float))
+        except OSError as e:
+            raise ImageSetError(f"{src}: key 'response.file': cannot read {str(path)!r}: {e}") from None
+        raise ImageSetError(f"{src}: key 'response.file': {str(path)!r} has no datasets display_values and "
+                            f"camera_values (at its root or under ImageCalibration/)")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        return np.asarray(doc["display_values"], dtype=float), np.asarray(doc["camera_values"], dtype=float)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ImageSetError(f"{src}: key 'response.file': {str(path)!r} must be JSON with 'display_values' and "
+                            f"'camera_values' lists (grey levels): {e!r}") from None
+
+
+def parse_response(doc: Any, src: str, directory: Path):
+    """The manifest's ``response`` → (response object, description dict for the outputs)."""
+    if not isinstance(doc, dict):
+        raise ImageSetError(f"{src}: key 'response' must be an object, got {doc!r:.80}")
+    unknown = sorted(set(doc) - _RESPONSE_KEYS)
+    if unknown:
+        raise ImageSetError(f"{src}: key 'response': unknown key(s) {unknown} (allowed: {sorted(_RESPONSE_KEYS)})")
+    interp = doc.get("interpolation", "pchip")
+    if interp not in ("pchip", "linear"):
+        raise ImageSetError(f"{src}: key 'response.interpolation' must be 'pchip' or 'linear', got {interp!r}")
+    kinds = [k for k in ("gamma", "display_levels", "file") if k in doc]
+    if len(kinds) != 1:
+        raise ImageSetError(f"{src}: key 'response' needs exactly one of 'gamma', 'display_levels'/'camera_levels' "
+                            f"or 'file', got {kinds or 'none'}")
+    kind = kinds[0]
+    try:
+        if kind == "gamma":
+            g = doc["gamma"]
+            if not isinstance(g, (int, float)) or isinstance(g, bool):
+                raise ImageSetError(f"{src}: key 'response.gamma' must be a number, got {g!r}")
+            base = IntensityResponse.from_gamma(float(g), black_level=float(doc.get("black_level", 0.0)),
+                                                white_level=float(doc.get("white_level", 1.0)))
+            desc = {"kind": "gamma", "gamma": float(g), "black_level": float(doc.get("black_level", 0.0)),
+                    "white_level": float(doc.get("white_level", 1.0))}
+        elif kind == "display_levels":
+            base = IntensityResponse(tuple(doc["display_levels"]), tuple(doc.get("camera_levels", ())))
+            desc = {"kind": "series"}
+        else:
+            f = doc["file"]
+            if not isinstance(f, str) or not f:
+                raise ImageSetError(f"{src}: key 'response.file' must be a file name, got {f!r}")
+            dv, cv = _read_series(directory / f, src)
+            dfs = float(doc.get("display_full_scale", 255.0))
+            cfs = float(doc.get("camera_full_scale", 255.0))
+            base = IntensityResponse.from_samples(dv, cv, display_full_scale=dfs, camera_full_scale=cfs)
+            desc = {"kind": "series", "file": f, "display_full_scale": dfs, "camera_full_scale": cfs}
+    except ResponseError as e:
+        raise ImageSetError(f"{src}: key 'response': {e}") from None
+    except (TypeError, ValueError) as e:
+        raise ImageSetError(f"{src}: key 'response': {e}") from None
+    resp = base if interp == "pchip" else LinearResponse(base.display_levels, base.camera_levels)
+    desc.update(interpolation=interp, n_levels=len(base.display_levels),
+                camera_range=[base.camera_levels[0], base.camera_levels[-1]])
+    return resp, desc
+
+
+# ============================================================================ screen map
+@dataclass(frozen=True, eq=False)
+class ScreenMap:
+    """Pattern coordinates → physical screen-frame coordinates (mm), piecewise linear over
+    the Delaunay triangulation of scattered samples (see the module docstring).
+
+    Attributes
+    ----------
+    pattern_xy_mm, screen_xy_mm : ndarray, shape (M, 2)
+        The samples: pattern coordinates and the screen-frame position shown there.
+    """
+
+    pattern_xy_mm: np.ndarray
+    screen_xy_mm: np.ndarray
+    unit_affine: np.ndarray | None = None
+    unit_xy: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        from scipy.interpolate import LinearNDInterpolator
+
+        a = np.asarray(self.pattern_xy_mm, dtype=float)
+        b = np.asarray(self.screen_xy_mm, dtype=float)
+        if a.ndim != 2 or a.shape[1] != 2 or a.shape != b.shape or a.shape[0] < 3:
+            raise ImageSetError(f"screen map: pattern_xy_mm and screen_xy_mm must be (M, 2) with M ≥ 3, "
+                                f"got {a.shape} and {b.shape}")
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
+            raise ImageSetError("screen map: samples must be finite")
+        object.__setattr__(self, "pattern_xy_mm", a)
+        object.__setattr__(self, "screen_xy_mm", b)
+        if self.unit_affine is None:
+            lo = a.min(axis=0)
+            ext = a.max(axis=0) - lo
+            if not np.all(ext > 0):
+                raise ImageSetError(f"screen map: the pattern samples span no area (extent {ext.tolist()} mm)")
+            A = np.array([[1.0 / ext[0], 0.0, -lo[0] / ext[0]], [0.0, 1.0 / ext[1], -lo[1] / ext[1]]])
+        else:
+            A = np.asarray(self.unit_affine, dtype=float)
+            if A.shape != (2, 3) or not np.isfinite(A).all() or abs(np.linalg.det(A[:, :2])) == 0:
+                raise ImageSetError(f"screen map: unit_affine must be an invertible 2×3 affine map, got {A.tolist()}")
+        object.__setattr__(self, "unit_affine", A)
+        if self.unit_xy is not None:
+            un = np.asarray(self.unit_xy, dtype=float)
+            if un.shape != a.shape or not np.isfinite(un).all():
+                raise ImageSetError(f"screen map: unit_xy must be finite and (M, 2) like pattern_xy_mm, got {un.shape}")
+            if np.abs(un - self._unit(a)).max() > 1e-9:
+                raise ImageSetError("screen map: unit_xy disagrees with unit_affine applied to pattern_xy_mm")
+            object.__setattr__(self, "unit_xy", un)
+        else:
+            un = self._unit(a)
+        try:
+            object.__setattr__(self, "_interp", LinearNDInterpolator(un, b))
+        except Exception as e:  # qhull errors: degenerate samples
+            raise ImageSetError(f"screen map: cannot triangulate the pattern samples: {e}") from None
+
+    def __call__(self, pattern_xy_mm) -> np.ndarray:
+        """Screen-frame (x, y) in mm for pattern coordinates (..., 2); NaN outside the samples' hull."""
+        p = np.asarray(pattern_xy_mm, dtype=float)
+        out = np.full(p.shape, np.nan)
+        ok = np.isfinite(p).all(axis=-1)
+        if ok.any():
+            out[ok] = self._interp(self._unit(p[ok]))
+        return out
+
+    def _unit(self, p: np.ndarray) -> np.ndarray:
+        A = self.unit_affine
+        return np.stack([A[0, 0] * p[:, 0] + A[0, 1] * p[:, 1] + A[0, 2],
+                         A[1, 0] * p[:, 0] + A[1, 1] * p[:, 1] + A[1, 2]], axis=-1)
+
+    def as_dict(self) -> dict:
+        out = {"pattern_xy_mm": self.pattern_xy_mm.tolist(), "screen_xy_mm": self.screen_xy_mm.tolist(),
+               "unit_affine": self.unit_affine.tolist()}
+        if self.unit_xy is not None:
+            out["unit_xy"] = self.unit_xy.tolist()
+        return out
+
+
+def _parse_screen_map(doc: Any, src: str, directory: Path) -> ScreenMap:
+    if isinstance(doc, dict) and set(doc) == {"file"}:
+        path = directory / str(doc["file"])
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise ImageSetError(f"{src}: key 'screen_map.file': cannot read {str(path)!r}: {e}") from None
+    if not isinstance(doc, dict) or not ({"pattern_xy_mm", "screen_xy_mm"} <= set(doc) <=
+                                         {"pattern_xy_mm", "screen_xy_mm", "unit_affine", "unit_xy"}):
+        raise ImageSetError(f"{src}: key 'screen_map' must hold 'pattern_xy_mm' and 'screen_xy_mm' (and optionally "
+                            f"'unit_affine'), or be {{'file': ...}} naming a JSON file that does")
+    try:
+        ua, un = doc.get("unit_affine"), doc.get("unit_xy")
+        if un is not None and ua is None:
+            raise ImageSetError(f"{src}: key 'screen_map': unit_xy needs unit_affine (to map decoded points)")
+        return ScreenMap(np.asarray(doc["pattern_xy_mm"], dtype=float), np.asarray(doc["screen_xy_mm"], dtype=float),
+                         None if ua is None else np.asarray(ua, dtype=float),
+                         None if un is None else np.asarray(un, dtype=float))
+    except (TypeError, ValueError) as e:
+        raise ImageSetError(f"{src}: key 'screen_map': {e}") from None
+    except ImageSetError as e:
+        raise ImageSetError(f"{src}: key 'screen_map': {e}") from None
+
+
+# ============================================================================ all of it
+@dataclass(frozen=True, eq=False)
+class InstrumentInfo:
+    """The instrument keys of a manifest, validated (see the module docstring)."""
+
+    response: Any = None
+    response_info: dict | None = None
+    mask: np.ndarray | None = None
+    mask_file: str | None = None
+    screen_map: ScreenMap | None = None
+    anchor: dict | None = None
+    full_scale: float | None = None
+    screen_model: str | None = None
+
+    def describe(self) -> dict:
+        """JSON-ready summary for the evaluation's outputs."""
+        return {"response": self.response_info or "none (images decoded as recorded)",
+                "mask": self.mask_file, "screen_map": self.screen_map is not None,
+                "anchor": self.anchor}
+
+
+def parse_instrument(doc: dict, src: str, directory: Path) -> InstrumentInfo:
+    """Validate the instrument keys of a manifest ``doc``; errors name ``src`` and the key."""
+    resp = info = None
+    if "response" in doc:
+        resp, info = parse_response(doc["response"], src, directory)
+    mask = mask_file = None
+    if "mask" in doc:
+        m = doc["mask"]
+        if not isinstance(m, dict) or set(m) != {"file"} or not isinstance(m["file"], str):
+            raise ImageSetError(f"{src}: key 'mask' must be {{'file': 'mask.png'}}, got {m!r:.80}")
+        mask_file = m["file"]
+        try:
+            mask = read_frame(directory / mask_file, None) != 0
+        except ImageSetError as e:
+            raise ImageSetError(f"{src}: key 'mask.file': {e}") from None
+    smap = _parse_screen_map(doc["screen_map"], src, directory) if "screen_map" in doc else None
+    anchor = doc.get("anchor")
+    if anchor is not None and not isinstance(anchor, dict):
+        raise ImageSetError(f"{src}: key 'anchor' must be an object, got {anchor!r:.80}")
+    full = doc.get("full_scale")
+    if full is not None and (not isinstance(full, (int, float)) or isinstance(full, bool)
+                             or not math.isfinite(full) or full <= 0):
+        raise ImageSetError(f"{src}: key 'full_scale' must be a positive number (the grey level of full scale of "
+                            f"float images), got {full!r}")
+    sm = doc.get("screen_model")
+    if sm is not None and sm not in ("planar", "setup"):
+        raise ImageSetError(f"{src}: key 'screen_model' must be 'planar' or 'setup', got {sm!r}")
+    return InstrumentInfo(resp, info, mask, mask_file, smap, anchor, None if full is None else float(full), sm)
+
+
+# ============================================================================ decoding steps
+def linearise_stacks(stacks, max_value: float, response):
+    """Linearise image stacks with ``response``: returns (stacks of display levels d ∈ [0, 1],
+    per-pixel saturated mask (H, W): a sample at full scale or above the series' brightest level)."""
+    top = response.camera_levels[-1]
+    out = []
+    sat = None
+    for st in stacks:
+        c = np.asarray(st, dtype=float) / max_value
+        d, _ = response.linearise(c)
+        s = ((c > top) | (np.asarray(st) >= max_value)).any(axis=0)
+        sat = s if sat is None else (sat | s)
+        out.append(d)
+    return out, sat
+
+
+def apply_mask_and_map(dec: ScreenCoordinates, *, saturated=None, mask=None, screen_map: ScreenMap | None = None,
+                       source: str = "") -> ScreenCoordinates:
+    """Flag saturated pixels (SATURATED) and pixels outside ``mask`` (DARK: not lit in the
+    instrument's mask), then map pattern coordinates to screen coordinates with ``screen_map``
+    (σ scaled by the map's local scale per axis)."""
+    flags = dec.flags.copy()
+    if saturated is not None:
+        flags |= np.where(saturated, np.uint8(PhaseFlag.SATURATED), np.uint8(0))
+    if mask is not None:
+        if mask.shape != flags.shape:
+            raise ImageSetError(f"{source}: the mask is {mask.shape[1]}×{mask.shape[0]} px (W×H) but the images are "
+                                f"{flags.shape[1]}×{flags.shape[0]} px")
+        flags |= np.where(mask, np.uint8(0), np.uint8(PhaseFlag.DARK))
+    valid = flags == 0
+    xy = np.where(valid[..., None], dec.screen_xy_mm, np.nan)
+    std = np.where(valid[..., None], dec.std_xy_mm, np.nan)
+    if screen_map is not None:
+        h = 1e-3 * max(1.0, float(np.nanmax(np.abs(screen_map.pattern_xy_mm))))
+        mapped = screen_map(xy)
+        jx = (screen_map(xy + [h, 0.0]) - mapped) / h
+        jy = (screen_map(xy + [0.0, h]) - mapped) / h
+        with np.errstate(invalid="ignore"):
+            std = np.stack([np.hypot(jx[..., 0] * std[..., 0], jy[..., 0] * std[..., 1]),
+                            np.hypot(jx[..., 1] * std[..., 0], jy[..., 1] * std[..., 1])], axis=-1)
+        std = np.where(np.isfinite(std), std, np.nan)
+        xy = mapped
+    return replace(dec, screen_xy_mm=xy, valid=valid, flags=flags, std_xy_mm=std)

@@ -1,0 +1,28 @@
+"""The slope-error figure of an evaluation (issue 12, item 4): the residual slopes after the
+best-fit paraboloid, x and y component, in mrad over the sample frame's x, y (mm)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from .figures import _panel, _save
+
+__all__ = ["slope_error_figure"]
+
+
+def slope_error_figure(per_camera: dict, fit, *, path: str | Path | None = None) -> Figure:
+    """``per_camera[name] = (p_sample_mm (H, W, 3), residual_slopes (H, W, 2) rad)``; ``fit`` a
+    :class:`~pmdsim.evaluation.surface_fit.ParaboloidFit`. One row per camera, x and y residuals."""
+    n = max(1, len(per_camera))
+    fig = Figure(figsize=(10.0, 4.2 * n), dpi=110)
+    axes = np.atleast_2d(fig.subplots(n, 2))
+    for row, (name, (p, res)) in enumerate(per_camera.items()):
+        for k, comp in enumerate("xy"):
+            _panel(fig, axes[row, k], p[..., 0], p[..., 1], res[..., k] * 1e3,
+                   f"{name}: slope error {comp} after the best-fit paraboloid\n"
+                   f"(f_x {fit.focal_length_x_mm:.6g} mm, f_y {fit.focal_length_y_mm:.6g} mm, "
+                   f"RMS {fit.slope_residual_rms_mrad:.3g} mrad)", "slope error (mrad)")
+    return _save(fig, path)

@@ -1,0 +1,387 @@
+"""``pmdsim import sofast`` + ``pmdsim evaluate`` on a real SOFAST measurement (OpenCSP's
+heliostat facet, tests/data/sofast/README.md), checked against SOFAST's own evaluation of it
+(issue 12, items 2 and 5), the conventions' round trips, and the silent mistakes of converting
+such data, each of which must now give an error or a warning naming the likely cause."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.spatial.transform import Rotation
+
+from pmdsim.cli import main
+
+from pmdsim.io.imageset import decode_camera, decode_camera_images, load_camera_stacks, load_manifest
+from pmdsim.io.imageset_instrument import ScreenMap
+from pmdsim.io.importers import (
+    SofastImportError,
+    fraction_to_pattern_mm,
+    fraction_to_screen_mm,
+    import_sofast,
+    pattern_mm_to_fraction,
+)
+from pmdsim.io.importers.sofast import SofastImportWarning, read_sofast_camera, read_sofast_display
+from pmdsim.setup import load_setup
+
+DATA = Path(__file__).parent / "data" / "sofast"
+EXP = np.load(DATA / "expected_facet_distorted_2d_extract.npz")
+
+
+def files(display="distorted_2d", **override):
+    """The fixture's files; ``display`` a model name or a path."""
+    f = dict(measurement=DATA / "measurement_facet.h5", camera=DATA / "camera_sofast_downsampled.h5",
+             display=display if isinstance(display, Path) else DATA / f"display_{display}.h5", orientation=DATA / "spatial_orientation.h5",
+             calibration=DATA / "image_calibration.h5", facet=DATA / "Facet_NSTTF.json")
+    f.update(override)
+    return f
+
+
+@dataclass
+class Run:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def cli(*args):
+    """``pmdsim ARGS`` in-process (the CLI's parsing and its error handling; no subprocess start-up)."""
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return Run(r.exit_code, r.stdout, r.stderr)
+
+
+def do_import(out, display="distorted_2d", **override):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SofastImportWarning)
+        return import_sofast(out_dir=out, **files(display, **override))
+
+
+@pytest.fixture(scope="module")
+def imported(tmp_path_factory):
+    """The CLI import with display_distorted_2d.h5 and its evaluation (two subprocesses)."""
+    d = tmp_path_factory.mktemp("sofast")
+    f = files()
+    r = cli("import", "sofast", "--measurement", f["measurement"], "--camera", f["camera"], "--display", f["display"],
+            "--orientation", f["orientation"], "--calibration", f["calibration"], "--facet", f["facet"],
+            "--out", d / "imp")
+    assert r.returncode == 0, r.stderr
+    assert "K[2,2] = 0.125" in r.stderr  # the not-normalised intrinsic matrix is reported
+    r2 = cli("evaluate", d / "imp" / "images", "--setup", d / "imp" / "setup.toml", "--out", d / "ev", "--quiet")
+    assert r2.returncode == 0, r2.stderr
+    return d, r2
+
+
+# ============================================================================ conventions
+def test_fraction_to_screen_and_back_rectangular():
+    """Rectangular display: SOFAST fraction → display (centred, m) → pmdsim screen (corner, mm,
+    y flipped) in closed form, and back."""
+    disp = read_sofast_display(DATA / "display_rectangular.h5")
+    W, H = disp.size_mm
+    with h5py.File(DATA / "display_rectangular.h5") as f:
+        assert (W, H) == (1e3 * f["DisplayShape/screen_x"][()], 1e3 * f["DisplayShape/screen_y"][()])
+    f = np.random.default_rng(1).random((50, 2))
+    p = fraction_to_screen_mm(f, disp)
+    np.testing.assert_allclose(p, np.stack([f[:, 0] * W, (1 - f[:, 1]) * H, np.zeros(50)], -1), atol=1e-9)
+    # The pattern coordinates the fringes encode are the screen coordinates themselves.
+    np.testing.assert_allclose(fraction_to_pattern_mm(f, (W, H)), p[:, :2], atol=1e-9)
+    np.testing.assert_allclose(pattern_mm_to_fraction(p[:, :2], (W, H)), f, atol=1e-15)
+    # Display coordinates (SOFAST's rectangular2D formula) from our screen point: (f − ½)·size.
+    x_d = (p[:, 0] - W / 2) / 1e3
+    y_d = -(p[:, 1] - H / 2) / 1e3
+    np.testing.assert_allclose(np.stack([x_d, y_d], -1), (f - 0.5) * [W / 1e3, H / 1e3], atol=1e-12)
+
+
+def test_distorted_display_points_in_camera_frame_match_sofast(tmp_path):
+    """SOFAST's screen points of the measurement (fractions → display coordinates, its
+    v_screen_points_screen) reach the same camera-frame positions through pmdsim's imported
+    screen map and screen pose as through SOFAST's transform p_cam = R(r_cam_screen)ᵀ p + v."""
+    imp = tmp_path / "imp"
+    do_import(imp)
+    setup = load_setup(imp / "setup.toml")
+    m = load_manifest(imp / "images")
+    frac = EXP["v_screen_points_fractional_screens"].T
+    pattern = fraction_to_pattern_mm(frac, m.screen_size_mm)
+    xy = m.instrument.screen_map(pattern)
+    p_screen = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+    p_cam = setup.screen.T_world_screen.apply(p_screen)  # world = camera frame
+    with h5py.File(DATA / "spatial_orientation.h5") as f:
+        r = Rotation.from_rotvec(f["SpatialOrientation/r_cam_screen"][()])
+        v = f["SpatialOrientation/v_cam_screen_cam"][()].ravel()
+    ref = 1e3 * (r.inv().apply(EXP["v_screen_points_screen"].T) + v)
+    err = np.linalg.norm(p_cam - ref, axis=1)
+    assert np.nanmax(err) < 1e-6, np.nanmax(err)  # mm
+
+
+# ============================================================================ end to end (real data)
+def test_decoded_screen_points_match_sofast(tmp_path):
+    """pmdsim's linearised decoding vs SOFAST's v_screen_points_fractional_screens: issue target
+    ≤ 2 µm median on the screen (measured: 0.27 µm median, 0.53 µm p95)."""
+    imp = tmp_path / "imp"
+    do_import(imp)
+    m = load_manifest(imp / "images")
+    dec = decode_camera_images(load_camera_stacks(m, "camera"), m.screen_size_mm, response=m.instrument.response)
+    mask = EXP["mask_processed"]
+    ours = pattern_mm_to_fraction(dec.screen_xy_mm[mask], m.screen_size_mm)
+    ok = np.isfinite(ours).all(axis=1)
+    assert ok.sum() >= 0.99 * mask.sum()
+    d_um = np.abs(ours[ok] - EXP["v_screen_points_fractional_screens"].T[ok]) * np.array(m.screen_size_mm) * 1e3
+    med = np.median(np.hypot(d_um[:, 0], d_um[:, 1]))
+    assert med <= 2.0, med
+    # Without the declared response (raw images) the 4φ ripple of the display's gamma is back.
+    raw = decode_camera_images(load_camera_stacks(m, "camera"), m.screen_size_mm)
+    d_raw = np.abs(pattern_mm_to_fraction(raw.screen_xy_mm[mask], m.screen_size_mm)[ok]
+                   - EXP["v_screen_points_fractional_screens"].T[ok]) * np.array(m.screen_size_mm) * 1e3
+    assert np.median(np.hypot(d_raw[:, 0], d_raw[:, 1])) > 20 * med
+
+
+def _slopes_in_sofast_frame(eval_dir, setup):
+    with h5py.File(eval_dir / "evaluation.h5") as f:
+        n = f["camera/normals"][()][EXP["mask_processed"]]
+    n_cam = setup.sample.T_world_sample.apply_vector(n)
+    n_f = (EXP["trans_alignment"][:3, :3] @ Rotation.from_rotvec(EXP["r_cam_optic"]).apply(n_cam).T).T
+    return -n_f[:, :2] / n_f[:, 2:3]
+
+
+def test_cli_end_to_end_focal_lengths_and_outputs(imported):
+    """surface_fit.json has exactly the issue's keys, focal lengths within 2 % of SOFAST's
+    (measured −0.25 %, +0.23 %), the stepwise integration converges at the 10 m stand-off, the
+    heights are anchored (not relative)."""
+    d, r = imported
+    fit = json.loads((d / "ev" / "surface_fit.json").read_text())
+    assert set(fit) == {"focal_length_x_mm", "focal_length_y_mm", "slope_residual_rms_mrad"}
+    c = EXP["surf_coefs_facet"]
+    fx, fy = 1e3 / (4 * c[2]), 1e3 / (4 * c[5])
+    assert abs(fit["focal_length_x_mm"] / fx - 1) < 0.02 and abs(fit["focal_length_y_mm"] / fy - 1) < 0.02, (fit, fx, fy)
+    assert "converged" in r.stdout and "NOT converged" not in r.stdout
+    assert "anchored" in r.stdout and "RELATIVE" not in r.stdout
+    assert "linearised with the declared response (a 27-level grey series from response.json, linear" in r.stdout
+    assert (d / "ev" / "slope_error.png").stat().st_size > 10_000
+    with h5py.File(d / "ev" / "evaluation.h5") as f:
+        inst = json.loads(f.attrs["instrument"])
+        assert inst["response"]["kind"] == "series" and inst["response"]["interpolation"] == "linear"
+        assert f["camera/slopes"].shape == (154, 203, 2)
+        assert json.loads(f.attrs["anchors"])["camera"]["kind"] == "distance"
+
+
+def test_slopes_match_sofast_with_its_measure_point_pixel(imported):
+    """Control: anchored at SOFAST's own (refined) measure-point pixel, pmdsim's slopes equal
+    SOFAST's to ≤ 0.005 mrad mean and median (measured ≈ 0.001). With pmdsim's own location of
+    the facet centre (0.4 px away) the offset is ≈ 0.026 mrad in x — the issue's target is not
+    met there (docs/benchmarks.md); this test pins the algorithms, not the pixel."""
+    d, _ = imported
+    import cv2
+
+    cam, _ = read_sofast_camera(DATA / "camera_sofast_downsampled.h5")
+    K, dist = cam.as_opencv()
+    px = cv2.projectPoints(EXP["v_cam_optic_cam_refine_2"].reshape(1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    u, v = px.ravel()
+    anc = json.loads((d / "imp" / "images" / "manifest.json").read_text())["anchor"]
+    out = d / "ev_control"
+    r = cli("evaluate", d / "imp" / "images", "--setup", d / "imp" / "setup.toml", "--out", out, "--quiet",
+            "--anchor-distance-mm", anc["distance_mm"], "--anchor-pixel", v, u,
+            "--anchor-point-mm", *anc["point_world_mm"])
+    assert r.returncode == 0, r.stderr
+    g = _slopes_in_sofast_frame(out, load_setup(d / "imp" / "setup.toml"))
+    dg = (g - EXP["slopes_facet_xy"].T) * 1e3
+    ok = np.isfinite(dg).all(axis=1)
+    assert ok.sum() > 0.99 * len(dg)
+    for k in range(2):
+        assert abs(dg[ok, k].mean()) <= 0.005 and abs(np.median(dg[ok, k])) <= 0.005, (k, dg[ok, k].mean())
+
+
+def test_three_display_models_run_unchanged(tmp_path, imported):
+    """The same commands with display_rectangular.h5 and display_distorted_3d.h5. The 3-D model
+    of this display has z = 0 and the 2-D model's x, y: its evaluation (through the setup's
+    screen surface) must equal the 2-D one; the rectangular model differs by its distortion."""
+    d, _ = imported
+    res = {}
+    for disp in ("distorted_3d", "rectangular"):
+        imp, ev = tmp_path / f"imp_{disp}", tmp_path / f"ev_{disp}"
+        do_import(imp, disp)
+        r = cli("evaluate", imp / "images", "--setup", imp / "setup.toml", "--out", ev, "--quiet")
+        assert r.returncode == 0, r.stderr
+        with h5py.File(ev / "evaluation.h5") as f:
+            res[disp] = (f["camera/normals"][()], f.attrs["screen_model"])
+    with h5py.File(d / "ev" / "evaluation.h5") as f:
+        n2 = f["camera/normals"][()]
+    n3, sm3 = res["distorted_3d"]
+    assert sm3 == "setup"
+    ok = np.isfinite(n2).all(-1) & np.isfinite(n3).all(-1)
+    assert ok.sum() > 7000
+    np.testing.assert_allclose(n3[ok], n2[ok], atol=1e-9)
+    nr = res["rectangular"][0]
+    ang = np.degrees(np.arccos(np.clip((nr[ok] * n2[ok]).sum(-1), -1, 1))) * 1e3 * np.pi / 180  # mrad
+    assert 0.01 < np.median(ang) < 5.0  # up to 16 mm display distortion at 10 m: sub-mrad to mrad
+
+
+def test_distorted_3d_shape_becomes_the_screen_surface(tmp_path):
+    """A measured 3-D screen shape (a smooth 30 mm bulge written into a copy of the 3-D display
+    file) becomes the setup's screen surface: its heights at the measured points agree with the
+    file's (screen +z = −display z, mm) to a fraction of the bulge."""
+    src = tmp_path / "display_3d_bulge.h5"
+    shutil.copy(DATA / "display_distorted_3d.h5", src)
+    with h5py.File(src, "r+") as f:
+        c = f["DisplayShape/xyz_screen_coords"][()]
+        fr = f["DisplayShape/xy_screen_fraction"][()]
+        c[2] = 0.03 * np.sin(np.pi * fr[0]) * np.sin(np.pi * fr[1])  # m, towards +z_display
+        f["DisplayShape/xyz_screen_coords"][...] = c
+    imp = tmp_path / "imp"
+    do_import(imp, display=src)
+    setup = load_setup(imp / "setup.toml")
+    m = load_manifest(imp / "images")
+    disp = read_sofast_display(src)
+    p = fraction_to_screen_mm(disp.fraction, disp)
+    h = setup.screen.surface.height(p[:, 0], p[:, 1])
+    np.testing.assert_allclose(p[:, 2], -1e3 * c[2], atol=1e-9)
+    err = np.abs(h - p[:, 2])
+    inner = (disp.fraction > 0.05).all(1) & (disp.fraction < 0.95).all(1)
+    assert err[inner].max() < 0.05 * 30.0, err[inner].max()
+    assert m.instrument.screen_model == "setup"
+
+
+# ============================================================================ silent mistakes
+def _edit_setup(imp: Path, fn):
+    doc = (imp / "setup.toml").read_text()
+    (imp / "setup.toml").write_text(fn(doc))
+
+
+def test_screen_grid_centred_warns(tmp_path):
+    imp = tmp_path / "imp"
+    do_import(imp)
+    s = load_setup(imp / "setup.toml")
+    W, H = s.screen.size_mm
+    from dataclasses import replace
+
+    s2 = replace(s, screen=replace(s.screen, grid_x_mm=(-W / 2, 0.0, W / 2), grid_y_mm=(-H / 2, 0.0, H / 2)))
+    (imp / "centred.toml").write_text(s2.to_toml())
+    r = cli("evaluate", imp / "images", "--setup", imp / "centred.toml", "--out", tmp_path / "ev", "--quiet")
+    # The anchor pixel falls outside the usable pixels: an error that names the likely cause.
+    assert r.returncode == 2 and "lie outside the screen model" in r.stderr, r.stderr
+    assert "grid is centred on the screen" in r.stderr and "start screen.grid_x_mm and grid_y_mm at 0" in r.stderr
+
+
+def test_display_y_flipped_warns(tmp_path):
+    imp = tmp_path / "imp"
+    do_import(imp)
+    smap = json.loads((imp / "images" / "screen_map.json").read_text())
+    H = load_setup(imp / "setup.toml").screen.size_mm[1]
+    smap["screen_xy_mm"] = [[x, H - y] for x, y in smap["screen_xy_mm"]]  # y counted from the other edge
+    (imp / "images" / "screen_map.json").write_text(json.dumps(smap))
+    r = cli("evaluate", imp / "images", "--setup", imp / "setup.toml", "--out", tmp_path / "ev", "--quiet")
+    assert "display's y axis is likely flipped" in r.stderr, r.stderr
+    # The correct import gives no such warning.
+    imp2 = tmp_path / "imp2"
+    do_import(imp2)
+    r2 = cli("evaluate", imp2 / "images", "--setup", imp2 / "setup.toml", "--out", tmp_path / "ev2", "--quiet")
+    assert "likely flipped" not in r2.stderr and "warning" not in r2.stderr, r2.stderr
+
+
+def test_display_in_millimetres_refused(tmp_path):
+    src = tmp_path / "display_mm.h5"
+    shutil.copy(DATA / "display_rectangular.h5", src)
+    with h5py.File(src, "r+") as f:
+        for k in ("screen_x", "screen_y"):
+            v = f[f"DisplayShape/{k}"][()]
+            del f[f"DisplayShape/{k}"]
+            f[f"DisplayShape/{k}"] = v * 1e3
+    with pytest.raises(SofastImportError, match=r"implausible in metres.*millimetres"):
+        do_import(tmp_path / "imp", display=src)
+
+
+def test_distance_in_millimetres_refused(tmp_path):
+    src = tmp_path / "m.h5"
+    shutil.copy(DATA / "measurement_facet.h5", src)
+    with h5py.File(src, "r+") as f:
+        v = f["MeasurementSofastFringe/dist_optic_screen"][()]
+        del f["MeasurementSofastFringe/dist_optic_screen"]
+        f["MeasurementSofastFringe/dist_optic_screen"] = v * 1e3
+    with pytest.raises(SofastImportError, match=r"dist_optic_screen = 10232 is implausible in metres"):
+        do_import(tmp_path / "imp", measurement=src)
+
+
+def test_setup_in_metres_warns(tmp_path):
+    from pmdsim.evaluation.plausibility import check_scale
+
+    imp = tmp_path / "imp"
+    do_import(imp)
+    s = load_setup(imp / "setup.toml")
+    from dataclasses import replace
+
+    scaled = replace(s, screen=replace(s.screen, grid_x_mm=tuple(x / 1e3 for x in s.screen.grid_x_mm),
+                                       grid_y_mm=tuple(y / 1e3 for y in s.screen.grid_y_mm)))
+    assert check_scale(s) == []
+    w = check_scale(scaled)
+    assert len(w) == 1 and "metres" in w[0] and "8.72601 × 3.4765 mm" in w[0]
+
+
+def test_anchor_distance_in_metres_refused(imported, tmp_path):
+    d, _ = imported
+    anc = json.loads((d / "imp" / "images" / "manifest.json").read_text())["anchor"]
+    r = cli("evaluate", d / "imp" / "images", "--setup", d / "imp" / "setup.toml", "--out", tmp_path / "ev", "--quiet",
+            "--anchor-distance-mm", 10.232, "--anchor-pixel", *anc["pixel_vu"], "--anchor-point-mm",
+            *anc["point_world_mm"])
+    assert r.returncode == 2 and "is the distance in mm" in r.stderr, r.stderr
+
+
+def test_camera_checks(tmp_path):
+    with pytest.warns(SofastImportWarning, match=r"K\[2,2\] = 0.125"):
+        import_sofast(out_dir=tmp_path / "a", **files())
+    # The full-resolution camera with the downsampled images: refused, naming the right file.
+    with pytest.raises(SofastImportError, match=r"1626×1236 px images.*203×154 px.*downsampled"):
+        do_import(tmp_path / "b", camera=DATA / "camera_sofast.h5")
+    # Rational terms beyond k3 (s1 is adding them to pmdsim's camera): refused clearly.
+    src = tmp_path / "cam8.h5"
+    shutil.copy(DATA / "camera_sofast_downsampled.h5", src)
+    with h5py.File(src, "r+") as f:
+        dc = f["Camera/distortion_coef"][()]
+        del f["Camera/distortion_coef"]
+        f["Camera/distortion_coef"] = np.concatenate([dc.ravel(), [0.01, 0.0, 0.0]])
+    with pytest.raises(SofastImportError, match=r"k4 = 0.01"):
+        do_import(tmp_path / "c", camera=src)
+    cam, w = read_sofast_camera(DATA / "camera_sofast.h5")
+    assert w == [] and (cam.width_px, cam.height_px) == (1626, 1236)
+
+
+def test_image_size_differs_from_setup_cli(imported, tmp_path):
+    d, _ = imported
+    _ = tmp_path
+    doc = (d / "imp" / "setup.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(doc.replace("image_size_px = [203, 154]", "image_size_px = [1626, 1236]"))
+    assert bad.read_text() != doc
+    r = cli("evaluate", d / "imp" / "images", "--setup", bad, "--out", tmp_path / "ev", "--quiet")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "203×154 px (W×H), but the setup's cameras.camera.image_size_px is 1626×1236" in r.stderr, r.stderr
+
+
+def test_without_anchor_heights_are_relative(imported, tmp_path):
+    d, _ = imported
+    img = tmp_path / "images"
+    shutil.copytree(d / "imp" / "images", img)
+    doc = json.loads((img / "manifest.json").read_text())
+    del doc["anchor"]
+    (img / "manifest.json").write_text(json.dumps(doc))
+    r = cli("evaluate", img, "--setup", d / "imp" / "setup.toml", "--out", tmp_path / "ev", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "heights are RELATIVE" in r.stdout
+    with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
+        assert bool(f.attrs["heights_relative"])
+
+
+def test_screen_map_unit():
+    pat = np.array([[0, 0], [10, 0], [0, 5], [10, 5]], float)
+    scr = pat * [2, -1] + [1, 5]
+    smap = ScreenMap(pat, scr)
+    q = np.array([[2.5, 1.0], [7.0, 4.0], [11.0, 1.0]])
+    out = smap(q)
+    np.testing.assert_allclose(out[:2], q[:2] * [2, -1] + [1, 5])
+    assert np.isnan(out[2]).all()
