@@ -61,7 +61,11 @@ def _numba_cache_fallback() -> str | None:
     import tempfile
 
     uid = os.getuid() if hasattr(os, "getuid") else 0
-    for base in (tempfile.gettempdir(), "/dev/shm"):
+    try:
+        bases = [tempfile.gettempdir(), "/dev/shm"]
+    except OSError:  # "No usable temporary directory found"
+        bases = ["/dev/shm"]
+    for base in bases:
         tmp = os.path.join(base, f"pmdsim-numba-cache-{uid}")
         if _writable_dir(tmp):
             _set_numba_cache_dir(tmp)
