@@ -49,7 +49,7 @@ from ..errors import OutputExistsError, OutputLockedError, OutputPathError
 
 __all__ = ["MANIFEST_NAME", "MAPPING_NAME", "IMAGESET_FORMAT", "MARKER_NAME", "MARKER_FORMAT", "provenance",
            "atomic_output_dir", "atomic_file", "reused_output_dir", "check_output_target", "output_lock",
-           "read_marker", "stale_partials", "write_json"]
+           "read_marker", "stale_partials", "partial_file", "write_json"]
 
 log = logging.getLogger("pmdsim")
 
@@ -309,6 +309,16 @@ def _new_partial(target: Path, make) -> Path:
         except OSError as e:
             raise OutputPathError(f"cannot write output {str(target)!r}: {e.strerror} ({str(p)!r})") from None
     raise OutputPathError(f"cannot create a partial output beside {str(target)!r}")  # pragma: no cover
+
+
+def partial_file(target: str | Path) -> tuple[int, str]:
+    """A new hidden partial file beside ``target`` (``.{name}.partial-*``), opened for writing:
+    ``(fd, path)`` like :func:`tempfile.mkstemp`, but with mode 0o666 and the umask (mkstemp
+    makes 0600 files, which the umask cannot open up for colleagues)."""
+    target = Path(target)
+    fds: list[int] = []
+    p = _new_partial(target, lambda q: fds.append(os.open(q, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)))
+    return fds[0], str(p)
 
 
 def _discard(p: Path) -> None:
