@@ -36,6 +36,14 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 PY = sys.executable
+
+
+def _foreground():
+    """As an interactive shell starts a foreground job: SIGINT and SIGTERM at their defaults (a
+    background job of a script inherits SIGINT ignored, and pmdsim keeps an ignored signal
+    ignored, as Python does)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -168,7 +176,7 @@ def lock_cases(c: Cases, w: Path, small: Path, mid: Path) -> None:
     # two real runs started together: exactly one writes, the other is refused (or finds it done)
     out = w / "race"
     ps = [subprocess.Popen([PY, "-m", "pmdsim.cli", "simulate", "--setup", str(mid), "--out", str(out), "--quiet"],
-                           stderr=subprocess.PIPE, text=True) for _ in range(2)]
+                           stderr=subprocess.PIPE, text=True, preexec_fn=_foreground) for _ in range(2)]
     errs = [p.communicate()[1] for p in ps]
     codes = sorted(p.returncode for p in ps)
     good = codes == [0, 2] and complete(out) and hidden(w) == [] and any(
@@ -178,7 +186,7 @@ def lock_cases(c: Cases, w: Path, small: Path, mid: Path) -> None:
     for k in (1, 20):
         out = w / f"killed{k}"
         p = subprocess.Popen([PY, "-m", "pmdsim.cli", "simulate", "--setup", str(mid), "--out", str(out), "--quiet"],
-                             stderr=subprocess.PIPE, text=True)
+                             stderr=subprocess.PIPE, text=True, preexec_fn=_foreground)
         t0 = time.time()
         while p.poll() is None and time.time() - t0 < 120:
             if sum(len(list(d.glob("*.png"))) for d in w.glob(f".{out.name}.partial-*")) >= k:
@@ -215,7 +223,7 @@ def signal_cases(c: Cases, w: Path, mid: Path, trials: int, rng: random.Random) 
         d.mkdir()
         out = d / "run"
         p = subprocess.Popen([PY, "-m", "pmdsim.cli", "simulate", "--setup", str(mid), "--out", str(out), "--quiet"],
-                             stderr=subprocess.PIPE, text=True)
+                             stderr=subprocess.PIPE, text=True, preexec_fn=_foreground)
         t0 = time.time()
         while p.poll() is None and not _caught(p.pid) and time.time() - t0 < 60:
             time.sleep(0.002)
@@ -252,7 +260,8 @@ def signal_cases(c: Cases, w: Path, mid: Path, trials: int, rng: random.Random) 
                          "experiment 1")):
         for sig in (signal.SIGINT, signal.SIGTERM):
             out = Path(args[args.index("--out") + 1])
-            p = subprocess.Popen([PY, "-m", "pmdsim.cli", *map(str, args)], stderr=subprocess.PIPE, text=True)
+            p = subprocess.Popen([PY, "-m", "pmdsim.cli", *map(str, args)], stderr=subprocess.PIPE, text=True,
+                                 preexec_fn=_foreground)
             t0 = time.time()
             while p.poll() is None and not _caught(p.pid) and time.time() - t0 < 60:
                 time.sleep(0.002)

@@ -284,6 +284,14 @@ def _handlers_installed(pid: int) -> bool:
     return False
 
 
+def _foreground() -> None:
+    """In the child, as an interactive shell starts a foreground job: SIGINT and SIGTERM at their
+    defaults (under a background runner SIGINT is inherited ignored, and pmdsim, like Python,
+    keeps an ignored signal ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _interrupt_trial(workdir: Path, setup_file: Path, sig: int, phase: str, rng: random.Random) -> dict:
     """One run of `pmdsim simulate`, sent ``sig`` in ``phase``:
     "compute" (a random time 0–0.6 s after the handlers are in: loading, tracing, rendering),
@@ -292,7 +300,7 @@ def _interrupt_trial(workdir: Path, setup_file: Path, sig: int, phase: str, rng:
     workdir.mkdir()
     out = workdir / "run"
     p = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "simulate", "--setup", str(setup_file), "--out",
-                          str(out), "--quiet"], stderr=subprocess.PIPE, text=True)
+                          str(out), "--quiet"], stderr=subprocess.PIPE, text=True, preexec_fn=_foreground)
     try:
         assert _wait_for(lambda: _handlers_installed(p.pid) or p.poll() is not None)
         if phase == "compute":

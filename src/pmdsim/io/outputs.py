@@ -176,7 +176,8 @@ def check_output_target(target: str | Path, *, force: bool = False, inputs: Iter
     target = Path(target)
     if target.name in ("", ".", "..") or Path.cwd().resolve().is_relative_to(target.resolve()):
         raise OutputExistsError(
-            f"output {str(target)!r} is the current directory or one of its parents; name a new {kind}")
+            f"output {str(target)!r} is the current directory or one of its parents; name a new "
+            f"{'directory' if kind == 'dir' else 'file'}")
     hit = _is_input(target, inputs)
     if hit is not None:
         raise OutputExistsError(f"output {str(target)!r} is {'an' if hit == str(target) else 'a parent of an'} input "
