@@ -534,3 +534,21 @@ def test_simulate_16_bit(tmp_path, small_toml):
     assert max(int(a.max()) for a in imgs) > 4095 and max(int(a.max()) for a in imgs) <= 65535
     r = cli("evaluate", str(tmp_path / "sim"), "--setup", str(setup), "--out", str(tmp_path / "ev"), "--quiet")
     assert r.exit_code == 0, r.output
+
+
+# ============================================================================ study output (reused)
+def test_study_refuses_a_user_directory_and_a_locked_output(tmp_path):
+    """`pmdsim study` adds to its OUT across reruns: a non-empty directory pmdsim did not write is
+    refused, and so is an OUT whose lock another run holds — both before any case is computed."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "study_bulge_focal.toml"
+    user = tmp_path / "data"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine\n", encoding="utf-8")
+    r = cli("study", str(example), "--out", str(user), "--quiet")
+    assert r.exit_code == 2 and str(user) in one_error_line(r.output) and MARKER_NAME in r.output
+    assert sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    out = tmp_path / "out"
+    with output_lock(out, command="pmdsim study (the first run)"):
+        r = run_subprocess("study", str(example), "--out", str(out), "--quiet")
+    assert r.returncode == 2, r.stderr
+    assert f"pid {os.getpid()}" in one_error_line(r.stderr) and not (out / "cases").exists()
