@@ -448,7 +448,8 @@ def _read_only_script(tmp_path: Path, tmp_writable: bool) -> str:
     else:
         home, tmpdir = Path("/tmp/home"), Path("/tmp")
         lines.append("for d in /tmp /var/tmp /dev/shm; do mount -t tmpfs -o ro,size=1m tmpfs $d; done")
-    lines += [f"cd {SRC}", f"export HOME={home} TMPDIR={tmpdir} PYTHONPATH={SRC}", "unset XDG_CACHE_HOME NUMBA_CACHE_DIR",
+    lines += [f"cd {SRC}", f"export HOME={home} TMPDIR={tmpdir} PYTHONPATH={SRC}",
+              "unset XDG_CACHE_HOME NUMBA_CACHE_DIR",
               f"{sys.executable} -m pmdsim.cli --version",
               f"{sys.executable} -c \"from pmdsim.geometry import camera; import numba; "
               "print('cache', numba.config.CACHE_DIR or '-')\""]
