@@ -296,7 +296,7 @@ def _foreground() -> None:
 def _interrupt_trial(workdir: Path, setup_file: Path, sig: int, phase: str, rng: random.Random) -> dict:
     """One run of `pmdsim simulate`, sent ``sig`` in ``phase``:
     "compute" (a random time 0–0.6 s after the handlers are in: loading, tracing, rendering),
-    "write" (when the partial directory holds k random PNGs) or "commit" (when mapping.h5,
+    "write" (when the partial directory holds k random PNGs, k ≤ 30 of 48) or "commit" (when mapping.h5,
     written after all images, appears in the partial directory)."""
     workdir.mkdir()
     out = workdir / "run"
@@ -307,7 +307,7 @@ def _interrupt_trial(workdir: Path, setup_file: Path, sig: int, phase: str, rng:
         if phase == "compute":
             time.sleep(rng.uniform(0.0, 0.6))
         elif phase == "write":
-            k = rng.randint(1, 40)
+            k = rng.randint(1, 30)  # of 48: the signal lands well before the last image
             _wait_for(lambda: _pngs_in_partial(workdir, "run") >= k or p.poll() is not None)
         else:
             _wait_for(lambda: any((d / "mapping.h5").exists() for d in workdir.glob(".run.partial-*"))
