@@ -11,15 +11,16 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "pmdsim"
 #: layer → the layers it may import (besides itself).
 ALLOWED = {
     "errors": set(),
+    "interrupts": set(),  # signal handling: standard library only
     "geometry": {"errors"},
     "setup": {"errors", "geometry"},
     "simulation": {"errors", "geometry", "setup"},
     "evaluation": {"errors", "geometry", "setup"},
     "calibration": {"errors", "geometry", "setup"},
-    "io": {"__init__", "errors", "geometry", "setup", "simulation", "evaluation", "calibration"},
-    "studies": {"__init__", "errors", "geometry", "setup", "simulation", "evaluation", "calibration", "io"},
+    "io": {"__init__", "errors", "interrupts", "geometry", "setup", "simulation", "evaluation", "calibration"},
+    "studies": {"__init__", "errors", "interrupts", "geometry", "setup", "simulation", "evaluation", "calibration", "io"},
     "api": {"errors", "geometry", "setup", "simulation", "evaluation", "calibration", "io"},
-    "cli": {"__init__", "errors", "geometry", "setup", "simulation", "evaluation", "calibration", "io", "studies",
+    "cli": {"__init__", "errors", "interrupts", "geometry", "setup", "simulation", "evaluation", "calibration", "io", "studies",
             "api"},
     "__init__": set(),
 }

@@ -151,8 +151,9 @@ def test_simulate_writes_listed_images(run_a, small_doc):
     assert got == want
     files = [e["file"] for e in entries]
     assert len(set(files)) == 48
-    # exactly the listed images, the manifest and the mapping; nothing else
-    assert sorted(p.name for p in out.iterdir()) == sorted(files + ["manifest.json", "mapping.h5"])
+    # exactly the listed images, the manifest, the mapping and pmdsim's output marker; nothing else
+    assert sorted(p.name for p in out.iterdir()) == sorted(files + ["manifest.json", "mapping.h5",
+                                                                    ".pmdsim-output.json"])
     for f in files:
         with Image.open(out / f) as im:
             assert im.format == "PNG" and im.mode == "L"

@@ -24,8 +24,98 @@ Steps: :func:`simulate`, :func:`decode`, :func:`evaluate`, :func:`reconstruct`,
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 
 __version__ = "0.1.0"
+
+
+def _writable_dir(path: str) -> bool:
+    """Whether ``path`` exists or can be made, and files can be created in it (numba's test)."""
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(path, os.W_OK | os.X_OK)
+
+
+def _numba_cache_fallback() -> str | None:
+    """Make numba's on-disk cache work where the install and the home directory are read-only.
+
+    numba caches compiled kernels next to the sources (``__pycache__``), else in the user's
+    cache directory (``~/.cache/numba``), else fails at import ("cannot cache function … no
+    locator available"). If neither is writable and ``NUMBA_CACHE_DIR`` is not set, the cache
+    goes to a per-user directory in the temporary directory; if that is not writable either,
+    the kernels are compiled without a cache. Nothing is imported or compiled here (only a few
+    file-system checks). Returns the one-line note (also printed to stderr), or None.
+    """
+    if os.environ.get("NUMBA_CACHE_DIR") or os.environ.get("PMDSIM_NO_CACHE_FALLBACK"):
+        return None
+    here = os.path.dirname(os.path.abspath(__file__))
+    packages = [os.path.join(here, d) for d in ("geometry", "simulation", "evaluation", "calibration")]
+    if all(_writable_dir(os.path.join(d, "__pycache__")) for d in packages):
+        return None
+    xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    if _writable_dir(os.path.join(xdg, "numba")):
+        return None  # numba's own fallback (user-wide cache) works
+    import tempfile
+
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    try:
+        bases = [tempfile.gettempdir(), "/dev/shm"]
+    except OSError:  # "No usable temporary directory found"
+        bases = ["/dev/shm"]
+    for base in bases:
+        tmp = os.path.join(base, f"pmdsim-numba-cache-{uid}")
+        if _writable_dir(tmp):
+            _set_numba_cache_dir(tmp)
+            note = (f"pmdsim: note: the install and home directories are read-only; numba's cache is in {tmp} "
+                    "(set NUMBA_CACHE_DIR to choose another)")
+            break
+    else:
+        _uncached_numba()
+        note = ("pmdsim: note: no writable directory for numba's cache (install, home and temporary directory are "
+                "read-only); kernels are compiled at each run (set NUMBA_CACHE_DIR to a writable directory)")
+    print(note, file=sys.stderr)
+    return note
+
+
+def _set_numba_cache_dir(path: str) -> None:
+    os.environ["NUMBA_CACHE_DIR"] = path
+    if "numba" in sys.modules:  # numba read its configuration already
+        sys.modules["numba"].config.CACHE_DIR = path
+
+
+class _UncachedNumba:
+    """Import hook: when numba's dispatcher module is loaded, its ``enable_caching`` (what
+    ``@njit(cache=True)`` calls) becomes a no-op — the kernels compile uncached instead of
+    failing. Imports nothing itself (``pmdsim --version`` stays free of numba)."""
+
+    def find_spec(self, name, path, target=None):
+        if name != "numba.core.dispatcher":
+            return None
+        import importlib.util
+
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            module.Dispatcher.enable_caching = lambda self: None
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+def _uncached_numba() -> None:
+    if "numba.core.dispatcher" in sys.modules:
+        sys.modules["numba.core.dispatcher"].Dispatcher.enable_caching = lambda self: None
+    else:
+        sys.meta_path.insert(0, _UncachedNumba())
+
+
+_numba_cache_fallback()
 
 _LAZY = {
     "Setup": "pmdsim.setup",

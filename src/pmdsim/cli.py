@@ -9,24 +9,34 @@
     pmdsim experiment 1|2|3 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
-Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. The work is done by
+Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT and SIGTERM
+abort cleanly (:mod:`pmdsim.interrupts`): exit code 130 / 143, no output written. Nothing
+heavy (numba, numpy kernels) is imported before a command runs: ``--version`` and ``--help``
+compile nothing. The work is done by
 :mod:`pmdsim.studies.jobs` (one measurement, disk to disk) and :mod:`pmdsim.studies.runs`
 (the experiments); tables and figures live in the studies layer.
 """
 
 from __future__ import annotations
 
+import logging
 import shlex
+import signal
 import sys
+from typing import TYPE_CHECKING
 
 import click
 
-from . import __version__
+from . import __version__, interrupts
 from .errors import ComputationError, PmdsimError
-from .setup import Setup, default_setup, load_setup
+
+if TYPE_CHECKING:
+    from .setup import Setup
 
 
 def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
+    from .setup import default_setup, load_setup
+
     setup = default_setup() if setup_path is None else load_setup(setup_path)
     if bulge_mm is not None:
         setup = setup.with_bulge(bulge_mm)
@@ -43,15 +53,50 @@ class _Group(click.Group):
         ctx.meta["pmdsim.command"] = "pmdsim " + " ".join(shlex.quote(a) for a in args)
         return super().parse_args(ctx, args)
 
+    def main(self, args=None, *a, **k):
+        # SIGINT/SIGTERM → Interrupted (pmdsim.interrupts); notes of the output layer (a stale
+        # partial removed) → "pmdsim: note: …". A call with explicit args (tests, scripts) gets
+        # the previous handlers back; the command-line process keeps them until it exits, so
+        # that a signal during the interpreter's shutdown is not reported as "Exception ignored".
+        interrupts.reset()
+        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        interrupts.install()
+        log = logging.getLogger("pmdsim")
+        note = logging.StreamHandler(sys.stderr)
+        note.setFormatter(logging.Formatter("pmdsim: note: %(message)s"))
+        log.addHandler(note)
+        try:
+            return super().main(args, *a, **k)
+        finally:
+            log.removeHandler(note)
+            interrupts.finish(block=args is None)  # from now on signals are only recorded (or held back)
+            if args is not None and interrupts.installed():
+                for s, h in old.items():
+                    signal.signal(s, h)
+
     def invoke(self, ctx):
         try:
-            return super().invoke(ctx)
+            rv = super().invoke(ctx)
         except ComputationError as e:  # the inputs were fine, the computation failed: exit 1
             click.echo(f"pmdsim: error: {e}", err=True)
             ctx.exit(1)
         except PmdsimError as e:  # bad input: exit 2
             click.echo(f"pmdsim: error: {e}", err=True)
             ctx.exit(2)
+        except KeyboardInterrupt:  # SIGINT or SIGTERM (pmdsim.interrupts): nothing was committed
+            signum = interrupts.received() or signal.SIGINT
+            click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}): no output written, an existing "
+                       "output is unchanged", err=True)
+            ctx.exit(interrupts.exit_code(signum))
+        signum = interrupts.received()
+        if signum is not None:  # a signal Python swallowed (in a finaliser), or one after the commit
+            if interrupts.committed():
+                click.echo(f"pmdsim: note: {interrupts.signal_name(signum)} received after "
+                           f"{interrupts.committed()} was complete; it is kept", err=True)
+            else:
+                click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)})", err=True)
+                ctx.exit(interrupts.exit_code(signum))
+        return rv
 
 
 @click.group(cls=_Group)
@@ -97,7 +142,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
     steps = simulation_steps(setup if calibration_pose is None else setup.with_mirror_pose(calibration_pose))
     with _bar(steps, "simulating", quiet) as bar:
         summary = simulate_to_dir(setup, out_dir, force=force, command=_command(), calibration_pose=calibration_pose,
-                                  progress=lambda msg: bar.update(1))
+                                  progress=lambda msg: bar.update(1), inputs=[setup_path])
     click.echo(summary.as_text(out_dir), err=True)
 
 
@@ -143,8 +188,8 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     with _bar(len(setup.cameras), "evaluating", quiet) as bar:
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
-                                     noise_std=noise_std,
-                                     force=force, command=_command(), progress=lambda msg: bar.update(1))
+                                     noise_std=noise_std, force=force, command=_command(),
+                                     progress=lambda msg: bar.update(1), inputs=[setup_path])
     for line in summary.lines():
         click.echo(line)
     for w in summary.warnings:
@@ -209,7 +254,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     nominal = _load(setup_path, None)
     with _bar(len(image_dirs), "decoding", quiet) as bar:
         run = calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                   command=_command(), progress=lambda msg: bar.update(1))
+                                   command=_command(), progress=lambda msg: bar.update(1), inputs=[setup_path])
     for name, c in run.summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
@@ -255,7 +300,10 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     from .studies.experiment3 import SCREEN_DEFORMATIONS
     from .studies.runs import experiment_steps, write_experiment, write_experiment3
 
+    from .io.outputs import check_output_target
+
     base = _load(setup_path, None)
+    check_output_target(out_dir, force=force, inputs=[setup_path], kind="dir")  # before hours of computing
     if number == "4":
         _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
         return
@@ -319,13 +367,17 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
             note = f"  [case {rec['case_index']} failed: {rec['error']}]" if rec["status"] == "failed" else ""
             click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}{note}", err=True)
 
-    try:
-        run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
-    except KeyboardInterrupt:
-        click.echo(f"pmdsim: interrupted; the finished cases are recorded in {out_dir}: rerun the same command "
-                   "to compute the rest", err=True)
-        sys.exit(130)
-    written = write_study_outputs(study, out_dir)
+    from .io.outputs import reused_output_dir
+
+    with reused_output_dir(out_dir, inputs=[study_file], command=_command()):  # marked, locked
+        try:
+            run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
+        except KeyboardInterrupt:
+            signum = interrupts.received() or signal.SIGINT
+            click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}); the finished cases are recorded in "
+                       f"{out_dir}: rerun the same command to compute the rest", err=True)
+            sys.exit(interrupts.exit_code(signum))
+        written = write_study_outputs(study, out_dir)
     click.echo(f"{run.n_computed} cases computed, {run.n_reused} reused, {run.n_failed} failed, "
                f"{run.n_missing} missing, in {run.elapsed_s:.1f} s → {out_dir} ({', '.join(written)})", err=True)
     if run.n_missing:

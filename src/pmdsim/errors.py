@@ -13,6 +13,8 @@ __all__ = [
     "OutputExistsError",
     "ImageSetError",
     "ComputationError",
+    "OutputPathError",
+    "OutputLockedError",
 ]
 
 
@@ -40,3 +42,12 @@ class ComputationError(PmdsimError, RuntimeError):
 
     The CLI exits with code 1 for these and 2 for bad input.
     """
+
+
+class OutputPathError(PmdsimError, OSError):
+    """An output cannot be written where it was asked for (under a regular file, in a read-only
+    or unwritable directory); raised before the computation."""
+
+
+class OutputLockedError(PmdsimError):
+    """Another pmdsim run is writing the same output (its lock file is held); the message names it."""

@@ -17,12 +17,15 @@ from .outputs import (
     IMAGESET_FORMAT,
     MANIFEST_NAME,
     MAPPING_NAME,
+    MARKER_NAME,
     atomic_file,
     atomic_output_dir,
+    check_output_target,
     provenance,
+    reused_output_dir,
     write_json,
 )
 
 __all__ = ["reconstructions_h5", "write_evaluation_h5", "write_mapping_h5", "write_reconstructions_h5", "read_image",
            "write_png", "IMAGESET_FORMAT", "MANIFEST_NAME", "MAPPING_NAME", "atomic_file", "atomic_output_dir",
-           "provenance", "write_json"]
+           "provenance", "write_json", "MARKER_NAME", "check_output_target", "reused_output_dir"]

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 from ..errors import SetupError
 from ..geometry.camera import DISTORTION_NAMES, Camera
@@ -446,27 +447,40 @@ _COMMENTS = {
 }
 
 
-def _fmt_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            raise ValueError("TOML setup values must be finite")
-        return repr(v)
-    if isinstance(v, str):
-        out = v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
-        # Any other control character as \uXXXX (TOML basic strings allow none of them raw).
-        return '"' + "".join(f"\\u{ord(ch):04x}" if ord(ch) < 0x20 or ord(ch) == 0x7F else ch for ch in out) + '"'
+def _plain(v: Any) -> Any:
+    """numpy scalars and arrays as Python values (a camera from ``Camera.from_opencv`` holds
+    ``np.float64``; its repr ``np.float64(4410.2)`` is not TOML)."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if not isinstance(v, (str, bytes)) and hasattr(v, "tolist"):  # numpy scalar or array
+        return _plain(v.tolist())
+    return v
+
+
+def _key(k: str) -> str:
+    """A key as TOML writes it (bare, or quoted by tomli-w when it needs to be)."""
+    return tomli_w.dumps({k: 0}).removesuffix(" = 0\n")
+
+
+def _fmt_value(v: Any) -> str:
+    """One value: scalars written by tomli-w; arrays on one line, small tables inline."""
+    v = _plain(v)
+    if isinstance(v, float) and not math.isfinite(v):
+        raise ValueError("TOML setup values must be finite")
+    if isinstance(v, list):
         return "[" + ", ".join(_fmt_value(x) for x in v) + "]"
     if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_fmt_value(x)}" for k, x in v.items()) + " }"
+        return "{ " + ", ".join(f"{_key(k)} = {_fmt_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, (bool, int, float, str)):
+        return tomli_w.dumps({"v": v}).removeprefix("v = ").removesuffix("\n")
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
 def dump_toml(doc: dict[str, Any]) -> str:
+    """A setup document as TOML: its tables in order with their comments, every value written by
+    tomli-w (numpy values as Python's); ``tomllib.loads(dump_toml(d))`` gives ``d`` back."""
     lines: list[str] = []
 
     def comment(key: str) -> None:
@@ -477,19 +491,19 @@ def dump_toml(doc: dict[str, Any]) -> str:
         # Plain values, and small tables of plain values inside a table (e.g. distortion).
         return not isinstance(v, dict) or (bool(path) and not any(isinstance(x, dict) for x in v.values()))
 
-    def table(path: str, tbl: dict[str, Any]) -> None:
+    def table(path: str, header: str, tbl: dict[str, Any]) -> None:
         values = {k: v for k, v in tbl.items() if inline(path, v)}
         if path:
             lines.append("")
             comment(path)
             if values:
-                lines.append(f"[{path}]")
+                lines.append(f"[{header}]")
         for k, v in values.items():
-            lines.append(f"{k} = {_fmt_value(v)}")
+            lines.append(f"{_key(k)} = {_fmt_value(v)}")
         for k, v in tbl.items():
             if k not in values:
-                table(f"{path}.{k}" if path else k, v)
+                table(f"{path}.{k}" if path else k, f"{header}.{_key(k)}" if header else _key(k), v)
 
     comment("")
-    table("", doc)
+    table("", "", _plain(doc))
     return "\n".join(lines) + "\n"

@@ -28,6 +28,7 @@ from ..calibration import (
     nominal_state,
     observations_from_mapping,
 )
+from .. import interrupts
 from ..errors import ComputationError, PmdsimError
 from ..io import (
     IMAGESET_FORMAT,
@@ -70,6 +71,7 @@ class CalibrationNotConverged(ComputationError):
 
 
 def _tick(progress: Progress | None, msg: str) -> None:
+    interrupts.check()  # an interrupt Python swallowed (in a finaliser) aborts here
     if progress is not None:
         progress(msg)
 
@@ -95,23 +97,26 @@ class SimulationSummary:
 
 
 def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, command: str | None = None,
-                    calibration_pose: int | None = None, progress: Progress | None = None) -> SimulationSummary:
+                    calibration_pose: int | None = None, progress: Progress | None = None,
+                    inputs: Sequence[str | Path | None] = ()) -> SimulationSummary:
     """Simulate a measurement (paper §2) and write it as an image set.
 
     Writes into ``out_dir``: ``{camera}_{direction}_p{i}_s{k}.png`` fringe images, ``manifest.json``
     (provenance, the setup as TOML, one entry per image) and ``mapping.h5`` (per camera
     ``screen_xy_mm`` (H, W, 2), ``valid`` and ``status``). ``calibration_pose`` K images the
     calibration mirror in pose K (noise stream K + 1, as the in-memory experiments use) instead
-    of the sample.
+    of the sample. ``inputs`` (e.g. the setup file) must not be replaced by ``out_dir``
+    (:func:`pmdsim.io.outputs.atomic_output_dir`).
     """
     if calibration_pose is not None:
         setup = setup.with_mirror_pose(calibration_pose)
     prov = provenance(command, setup.to_toml())
     t0 = time.perf_counter()
-    with atomic_output_dir(out_dir, force=force) as tmp:
+    with atomic_output_dir(out_dir, force=force, inputs=inputs, command=command) as tmp:
         mappings = {}
         entries = []
-        with ThreadPoolExecutor(max_workers=2) as pool:
+        pool = ThreadPoolExecutor(max_workers=2)
+        try:
             for cam in setup.cameras:
                 m = trace_setup_camera(setup, cam, store_points=needs_points(setup))
                 mappings[cam] = m
@@ -124,6 +129,8 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
                 for f in futures:
                     f.result()
                     _tick(progress, "image written")
+        finally:  # on an interrupt: drop the queued writes instead of finishing them
+            pool.shutdown(wait=True, cancel_futures=True)
         write_mapping_h5(tmp / MAPPING_NAME, mappings, dict(prov))
         sx, sy = setup.screen.size_mm
         manifest = {
@@ -209,7 +216,8 @@ def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
 def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str = "stepwise",
                        screen_model: str | None = None, seed_pixel=None, seed_height_mm: float | None = None,
                        anchor=None, noise_std=None, force: bool = False, command: str | None = None,
-                       progress: Progress | None = None) -> EvaluationSummary:
+                       progress: Progress | None = None,
+                       inputs: Sequence[str | Path | None] = ()) -> EvaluationSummary:
     """Decode, register and reconstruct every camera of an image set (paper §2.5).
 
     ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
@@ -222,6 +230,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``slopes``, ``height_detrended_mm``, ``residual_slopes``), ``height_{camera}.png``,
     ``surface_fit.json`` (``focal_length_x_mm``, ``focal_length_y_mm``,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
+    ``out_dir`` must not be ``image_dir`` nor another of ``inputs`` (e.g. the setup file).
     """
     from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
     from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
@@ -244,7 +253,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     t0 = time.perf_counter()
     results = {}
     anchors = {}
-    with atomic_output_dir(out_dir, force=force) as tmp:
+    with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
         for cam in manifest.cameras:
             c = setup.cameras[cam].camera
             decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
@@ -323,7 +332,25 @@ class CalibrationRun:
 
 def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_path: str | Path, *,
                          stride: int | None = None, max_iter: int = 100, force: bool = False,
-                         command: str | None = None, progress: Progress | None = None) -> CalibrationRun:
+                         command: str | None = None, progress: Progress | None = None,
+                         inputs: Sequence[str | Path | None] = ()) -> CalibrationRun:
+    """Holistic calibration with a planar mirror (paper §4); see :func:`_calibrate_image_sets`.
+
+    ``out_path`` is checked (writable, not an input: ``image_dirs`` and ``inputs``) and locked
+    before the computation, so that a bad path or a concurrent run fails at once, not after it.
+    """
+    from ..io.outputs import check_output_target, output_lock
+
+    check_output_target(out_path, force=force, inputs=[*image_dirs, *inputs], kind="file")
+    with output_lock(out_path, command):
+        return _calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
+                                     command=command, progress=progress, inputs=[*image_dirs, *inputs])
+
+
+def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_path: str | Path, *,
+                          stride: int | None = None, max_iter: int = 100, force: bool = False,
+                          command: str | None = None, progress: Progress | None = None,
+                          inputs: Sequence[str | Path | None] = ()) -> CalibrationRun:
     """Holistic calibration with a planar mirror (paper §4) from one image set per mirror pose.
 
     ``image_dirs`` are in the order of ``nominal``'s calibration poses (base, lifts, tilts).
@@ -339,7 +366,6 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
     CalibrationNotConverged
         If the calibration does not converge (nothing is written).
     """
-    from ..io.outputs import check_output_target
     from .. import __version__
 
     nominal = nominal.with_bulge(0.0)
@@ -347,7 +373,6 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
     if len(image_dirs) != len(poses):
         raise JobInputError(f"got {len(image_dirs)} image directories, but the setup lists {len(poses)} calibration "
                             f"poses ({', '.join(label for label, _ in poses)}); give one per pose, in order")
-    check_output_target(out_path, force=force)
     stride = stride or nominal.calibration.observation_stride_px
     obs = []
     for k, d in enumerate(image_dirs):
@@ -376,6 +401,6 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
 
     doc = model.to_dict()
     doc["calibration_report"] = report
-    with atomic_file(out_path, force=force, mode="w") as f:
+    with atomic_file(out_path, force=force, mode="w", inputs=inputs, command=command) as f:
         f.write(dump_toml(doc))
     return CalibrationRun(result, model, summary)

@@ -20,6 +20,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..calibration import calibration_summary
+from .. import interrupts
 from ..errors import ComputationError
 from ..io import atomic_output_dir, provenance, reconstructions_h5, write_json, write_png, write_reconstructions_h5
 from ..setup import Setup
@@ -52,6 +53,7 @@ class ExperimentOutput:
 
 
 def _tick(progress: Progress | None, msg: str) -> None:
+    interrupts.check()  # an interrupt Python swallowed (in a finaliser) aborts here
     if progress is not None:
         progress(msg)
 
@@ -81,7 +83,7 @@ def write_experiment(number: int, out_dir: str | Path, base: Setup, *, bulges: S
     t0 = time.perf_counter()
     cases, calibrations = [], []
     paper = PAPER_TABLE2 if number == 1 else PAPER_TABLE3
-    with atomic_output_dir(out_dir, force=force) as tmp:
+    with atomic_output_dir(out_dir, force=force, command=command) as tmp:
         if number == 1:
             pool = ThreadPoolExecutor(max_workers=2) if write_images else None
             futures = []
@@ -194,7 +196,7 @@ def write_experiment3(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
     if not scenarios:
         raise ValueError("nothing to run: no bulges, deformations or mirror sags given")
     records, calibrations, undetermined = [], [], []
-    with atomic_output_dir(out_dir, force=force) as tmp, reconstructions_h5(tmp / "heights.h5", dict(prov)) as add_case:
+    with atomic_output_dir(out_dir, force=force, command=command) as tmp, reconstructions_h5(tmp / "heights.h5", dict(prov)) as add_case:
         for sc, label, e, recs in run_experiment3(scenarios, list(grids), method=method, progress=progress):
             if isinstance(e, Exception):  # the data cannot determine this model: say so, go on
                 undetermined.append(f"{sc.label}, {label} screen model: {e}")

@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import os
 import socket
-import tempfile
 import time
 import traceback
 import uuid
@@ -35,6 +34,7 @@ import numpy as np
 
 from ..simulation.imaging import decoder_response
 from .. import __version__
+from ..io.outputs import partial_file
 from .experiment1 import CaseResult
 from .study_file import CaseSpec, Study, StudyError
 
@@ -114,7 +114,7 @@ def _write_maps(path: str, maps: dict, spec: CaseSpec) -> None:
 
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.partial-", dir=target.parent)
+    fd, tmp = partial_file(target)  # mode 0o666 & ~umask (mkstemp: 0600)
     os.close(fd)
     try:
         attrs = {"pmdsim_version": __version__, "case_key": spec.key, "params": json.dumps(spec.params),
@@ -192,7 +192,7 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None, m
 
 # ============================================================================ records on disk
 def _write_json_atomic(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.partial-", dir=path.parent)
+    fd, tmp = partial_file(path)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             json.dump(obj, f, indent=1, ensure_ascii=False, allow_nan=False)
@@ -219,7 +219,7 @@ def read_records(out: str | Path, cases: list[CaseSpec]) -> dict[str, dict]:
 
 
 def _atomic_write_via(target: Path, writer: Callable[[str], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.partial-", dir=target.parent)
+    fd, tmp = partial_file(target)  # mode 0o666 & ~umask (mkstemp: 0600)
     os.close(fd)
     try:
         writer(tmp)
