@@ -30,8 +30,8 @@ __version__ = "0.1.0"
 _LAZY = {
     "Setup": "pmdsim.setup",
     "default_setup": "pmdsim.setup",
-    "load_setup": "pmdsim.setup",
-    "parse_setup": "pmdsim.setup",
+    "load_setup": "pmdsim.io.heightmap",  # pmdsim.setup's, with height-map files read (issue 14)
+    "parse_setup": "pmdsim.io.heightmap",
     "Measurement": "pmdsim.api",
     "simulate": "pmdsim.api",
     "decode": "pmdsim.api",

@@ -84,7 +84,7 @@ class SampleShape:
             if name in need:
                 if v is None:
                     raise SetupError(f"sample.shape = {self.kind!r} needs sample.{name}")
-                object.__setattr__(self, name, _num(name, v, nonzero=True, allow_inf=name.startswith("focal")))
+                object.__setattr__(self, name, _num(name, v, nonzero=True))
             elif v is not None:
                 raise SetupError(f"sample.{name} does not apply to sample.shape = {self.kind!r} (it takes {list(need)})")
         object.__setattr__(self, "axis_angle_deg", _num("axis_angle_deg", self.axis_angle_deg))
