@@ -332,3 +332,42 @@ def test_sphere_reconstructed_mono_through_8bit_images(small):
     metrics = surface_error_metrics(p[..., 0], p[..., 1], err_full)
     assert all(np.isfinite(v) for v in metrics.values())
     assert metrics["max_height_diff_um"] == pytest.approx(pv, rel=1e-9)
+
+
+def test_strongly_curved_sphere_grazing_pixels_masked_through_the_pipeline(small):
+    """R = 300 mm over the 400 mm grid: the tracer's SAMPLE_GRAZING pixels are exactly those whose
+    closed-form incidence exceeds MAX_INCIDENCE_DEG; masked pixels end as NOT_DECODED in the
+    registration, are not reconstructed, and leave the metrics finite."""
+    from pmdsim.evaluation.registration import RegistrationStatus
+
+    radius = 300.0
+    setup = small.with_sample_shape("sphere", radius_mm=radius)
+    m = pmdsim.simulate(setup, "left")
+    st = m.mapping.status
+    grazing = st == Status.SAMPLE_GRAZING
+    assert grazing.sum() > 20
+    # Independent incidence: world-frame ray–sphere, angle between −d and the outward normal.
+    o, d, _ = _world_rays(setup, "left")
+    c = setup.sample.T_world_sample.apply(np.array([200.0, 200.0, radius]))
+    oc = o - c
+    b = np.sum(oc * d, axis=-1)
+    disc = b * b - (np.sum(oc * oc, axis=-1) - radius ** 2)
+    hit = st != Status.SAMPLE_OUTSIDE
+    assert np.all(disc[hit] > 0)
+    t = -b - np.sqrt(np.where(hit, disc, 0.0))
+    n_out = (o + t[..., None] * d - c) / radius
+    inc_deg = np.degrees(np.arccos(np.clip(-np.sum(d * n_out, axis=-1), -1, 1)))
+    np.testing.assert_array_equal(grazing[hit], inc_deg[hit] > MAX_INCIDENCE_DEG)
+    decoded = pmdsim.decode(m.images, setup)
+    cam = setup.cameras["left"].camera
+    ok_px = np.argwhere(m.mapping.valid)
+    seed = tuple(int(v) for v in ok_px[np.argmin(np.sum((ok_px - [cam.height_px // 2, cam.width_px // 2]) ** 2, 1))])
+    ev = pmdsim.evaluate(decoded, setup, "left", seed_pixel=seed, seed_height_mm=float(m.mapping.p_sample_mm[seed][2]))
+    masked = ~m.mapping.valid
+    assert np.all(ev.registration.status[masked] == RegistrationStatus.NOT_DECODED)
+    rec = ev.reconstruction
+    assert not rec.reconstructed[masked].any()
+    p = rec.p_sample_mm
+    err = np.where(rec.reconstructed, rec.height_mm - _sphere_height(p[..., 0], p[..., 1], radius), np.nan)
+    metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
+    assert all(np.isfinite(v) for v in metrics.values())
