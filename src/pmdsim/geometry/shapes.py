@@ -86,10 +86,13 @@ class QuadricSurface(_SurfaceBase):
             raise ValueError(
                 f"the shape does not cover the grid [{gx[0]:g}, {gx[1]:g}] × [{gy[0]:g}, {gy[1]:g}] mm around its "
                 f"vertex ({vx:g}, {vy:g}) mm: its radius is too small (a sphere or cylinder must reach every corner)")
-        # Heights of these shapes are monotone along rays from the vertex: the extremes are
-        # among the probed points (padded: they only bound the intersection's fallback search).
+        # Height bounds of the kernel description (the spline fallback's search interval; the
+        # closed-form intersection does not use them): the probed corners, edge points and
+        # vertex, where these shapes take their extremes unless a cylinder's axis crosses the
+        # rectangle away from the vertex (bounds widened to include 0).
         pad = 1e-9 + 1e-9 * float(np.max(np.abs(h)))
-        kernel = KernelSurface(_KIND_QUADRIC, gx, gy, coef, float(np.min(h)) - pad, float(np.max(h)) + pad,
+        kernel = KernelSurface(_KIND_QUADRIC, gx, gy, coef, min(float(np.min(h)), 0.0) - pad,
+                               max(float(np.max(h)), 0.0) + pad,
                                np.zeros(2))
         object.__setattr__(self, "kernel", kernel)
 

@@ -17,7 +17,11 @@ cold starts use the paper's fixed-point iteration (:func:`intersect_solve`); the
 warm starts from neighbouring pixels take one Newton step on the same fixed-point equation,
 accepted by a Taylor error bound (:func:`intersect_kernel`).
 
-See docs/conventions.md, "Surfaces", for frames and the sign of heights.
+The same kernels serve the analytic shapes of :mod:`pmdsim.geometry.shapes` (kind
+``_KIND_QUADRIC``): they dispatch to the closed forms of :mod:`pmdsim.geometry.shape_kernels`
+(height, derivatives, ray–quadric intersection), so a caller never knows which surface it has.
+
+See docs/conventions.md, "Surfaces" and "Curved samples", for frames and the sign of heights.
 """
 
 from __future__ import annotations
