@@ -502,18 +502,23 @@ class Setup:
         return replace(self, sample=smp)
 
     def with_sample_height_map(self, data: "HeightMapData", source: "HeightMapSource | None" = None, *,
-                               grid_x_mm=None, grid_y_mm=None) -> "Setup":
+                               grid_x_mm=None, grid_y_mm=None, max_error_um: float | None = None) -> "Setup":
         """The same setup with the sample's heights resampled from a height map.
 
         ``data`` (:class:`~pmdsim.setup.sample_shape.HeightMapData`, e.g. from
         :func:`pmdsim.io.heightmap.read_height_map`) is resampled onto the sample's spline grid
         (or ``grid_x_mm`` × ``grid_y_mm``); ``sample.interpolation_report`` then holds the
-        error. Raises SetupError for a map that does not cover the grid or is coarser than it.
+        error. Raises SetupError for a map that does not cover the grid or is coarser than it,
+        or that the grid misses by more than ``max_error_um`` (default: the source's
+        ``max_error_um``, 1 µm).
         """
         gx = tuple(float(v) for v in (self.sample.grid_x_mm if grid_x_mm is None else grid_x_mm))
         gy = tuple(float(v) for v in (self.sample.grid_y_mm if grid_y_mm is None else grid_y_mm))
-        heights, report = resample_height_map(data, gx, gy)
-        src = (source if source is not None else HeightMapSource(data.source)).with_report(report)
+        src = source if source is not None else HeightMapSource(data.source)
+        if max_error_um is not None:
+            src = replace(src, max_error_um=max_error_um)
+        heights, report = resample_height_map(data, gx, gy, src.max_error_um)
+        src = src.with_report(report)
         z = tuple(tuple(float(v) for v in row) for row in heights)
         return replace(self, sample=replace(self.sample, grid_x_mm=gx, grid_y_mm=gy, heights_mm=z, shape=src))
 

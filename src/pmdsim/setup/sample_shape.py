@@ -182,6 +182,9 @@ class HeightMapSource:
     x_mm, y_mm : tuple of float or None
         The grid given in the setup (NPY and CSV matrices): one value per column / row, or
         [first, last] for an evenly spaced grid.
+    max_error_um : float
+        Largest interpolation error accepted (``height_map_max_error_um``, default 1 µm): a
+        spline grid that misses the map by more is too coarse for its curvature (refused).
     report : InterpolationReport or None
         Set once the map has been resampled onto the sample's spline grid.
     """
@@ -194,9 +197,13 @@ class HeightMapSource:
     y_key: str = "y_mm"
     x_mm: tuple[float, ...] | None = None
     y_mm: tuple[float, ...] | None = None
+    max_error_um: float = 1.0
     report: InterpolationReport | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "max_error_um", _num("height_map_max_error_um", self.max_error_um))
+        if not self.max_error_um > 0:
+            raise SetupError(f"sample.height_map_max_error_um must be > 0, got {self.max_error_um!r}")
         for name in ("units", "grid_units"):
             if getattr(self, name) not in HEIGHT_MAP_UNITS:
                 raise SetupError(f"sample.height_map_{name} must be one of {list(HEIGHT_MAP_UNITS)}, "
@@ -293,7 +300,8 @@ def _not_a_knot(x, y, z):
     return RectBivariateSpline(y, x, z, kx=3, ky=3, s=0)
 
 
-def resample_height_map(data: HeightMapData, grid_x_mm, grid_y_mm) -> tuple[np.ndarray, InterpolationReport]:
+def resample_height_map(data: HeightMapData, grid_x_mm, grid_y_mm,
+                        max_error_um: float | None = None) -> tuple[np.ndarray, InterpolationReport]:
     """Resample a height map onto the sample's spline grid, with the interpolation error.
 
     The heights at the spline's nodes come from the not-a-knot bicubic spline through the map
@@ -305,7 +313,8 @@ def resample_height_map(data: HeightMapData, grid_x_mm, grid_y_mm) -> tuple[np.n
     SetupError
         If the map does not cover the sample's grid, or is coarser than it (its largest spacing
         along x or y exceeds the spline grid's smallest: the spline would interpolate between the
-        map's points, not follow them).
+        map's points, not follow them), or if the spline misses the map by more than
+        ``max_error_um`` (the spline grid is too coarse for the map's curvature; None: no limit).
     """
     gx = np.asarray(grid_x_mm, dtype=float)
     gy = np.asarray(grid_y_mm, dtype=float)
@@ -333,6 +342,13 @@ def resample_height_map(data: HeightMapData, grid_x_mm, grid_y_mm) -> tuple[np.n
     err = surface.height(X, Y) - data.z_mm[np.ix_(my, mx)]
     report = InterpolationReport(float(np.max(np.abs(err))), float(np.sqrt(np.mean(err ** 2))), int(err.size),
                                  f"grid points of {src} inside the sample's grid")
+    if max_error_um is not None and report.max_error_mm * 1e3 > max_error_um:
+        j, i = np.unravel_index(int(np.argmax(np.abs(err))), err.shape)
+        raise SetupError(
+            f"the sample's spline grid (spacing {float(np.max(np.diff(gx))):g} × {float(np.max(np.diff(gy))):g} mm) "
+            f"is too coarse for height map {src}: it misses the map by up to {report.max_error_mm * 1e3:.3g} µm "
+            f"(at x = {X[j, i]:g} mm, y = {Y[j, i]:g} mm), more than sample.height_map_max_error_um = "
+            f"{max_error_um:g} µm; expected a finer sample.grid_x_mm/grid_y_mm (or a larger tolerance)")
     return heights, report
 
 

@@ -46,7 +46,7 @@ _KNOWN_KEYS = {
     "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "shape", "radius_mm",
                "focal_length_x_mm", "focal_length_y_mm", "axis_angle_deg", "vertex_xy_mm", "height_map",
                "height_map_dataset", "height_map_units", "height_map_grid_units", "height_map_x_dataset",
-               "height_map_y_dataset", "height_map_x_mm", "height_map_y_mm", "height_map_source"),
+               "height_map_y_dataset", "height_map_x_mm", "height_map_y_mm", "height_map_max_error_um", "height_map_source"),
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
                  "seed"),
     "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
@@ -255,12 +255,13 @@ def _sample_shape(m: _Reader, gx, gy, heights, read_height_map, base_dir):
         text("height_map_x_dataset", "x_mm"), text("height_map_y_dataset", "y_mm"),
         m.vector("height_map_x_mm", min_len=2) if m.has("height_map_x_mm") else None,
         m.vector("height_map_y_mm", min_len=2) if m.has("height_map_y_mm") else None,
+        m.number("height_map_max_error_um", 1.0, positive=True),
     )
     if read_height_map is None:
         raise SetupError(f"sample.height_map = {file!r}: reading height-map files needs pmdsim.io; load the setup "
                          f"with pmdsim.load_setup or the pmdsim command (or pass read_height_map)")
     data = read_height_map(src, base_dir)
-    z, report = resample_height_map(data, gx, gy)
+    z, report = resample_height_map(data, gx, gy, src.max_error_um)
     return tuple(tuple(float(v) for v in row) for row in z), src.with_report(report)
 
 
