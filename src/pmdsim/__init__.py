@@ -120,8 +120,8 @@ _numba_cache_fallback()
 _LAZY = {
     "Setup": "pmdsim.setup",
     "default_setup": "pmdsim.setup",
-    "load_setup": "pmdsim.setup",
-    "parse_setup": "pmdsim.setup",
+    "load_setup": "pmdsim.io.heightmap",  # pmdsim.setup's, with height-map files read (issue 14)
+    "parse_setup": "pmdsim.io.heightmap",
     "Measurement": "pmdsim.api",
     "simulate": "pmdsim.api",
     "decode": "pmdsim.api",

@@ -35,7 +35,8 @@ if TYPE_CHECKING:
 
 
 def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
-    from .setup import default_setup, load_setup
+    from .io.heightmap import load_setup  # reads any [sample] height_map file (pmdsim.io.heightmap)
+    from .setup import default_setup
 
     setup = default_setup() if setup_path is None else load_setup(setup_path)
     if bulge_mm is not None:
@@ -116,6 +117,14 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
         click.echo(setup.to_toml(), nl=False)
     else:
         click.echo(f"setup OK: cameras {', '.join(setup.cameras)}; use --show to print it", err=True)
+    shape = setup.sample.shape
+    if shape is not None:  # curved sample (issue 14): what it is, and what resampling cost
+        report = setup.sample.interpolation_report
+        what = (f"height map {shape.file!r} resampled onto the {len(setup.sample.grid_x_mm)} × "
+                f"{len(setup.sample.grid_y_mm)} spline grid, {report.summary()}" if report is not None
+                else f"{shape.kind} (closed form, exact: no interpolation)" if hasattr(shape, "kind")
+                else f"height map {shape.file!r}")
+        click.echo(f"sample: {what}", err=True)
 
 
 def _command() -> str:

@@ -17,7 +17,11 @@ cold starts use the paper's fixed-point iteration (:func:`intersect_solve`); the
 warm starts from neighbouring pixels take one Newton step on the same fixed-point equation,
 accepted by a Taylor error bound (:func:`intersect_kernel`).
 
-See docs/conventions.md, "Surfaces", for frames and the sign of heights.
+The same kernels serve the analytic shapes of :mod:`pmdsim.geometry.shapes` (kind
+``_KIND_QUADRIC``): they dispatch to the closed forms of :mod:`pmdsim.geometry.shape_kernels`
+(height, derivatives, ray–quadric intersection), so a caller never knows which surface it has.
+
+See docs/conventions.md, "Surfaces" and "Curved samples", for frames and the sign of heights.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+
+from .shape_kernels import quadric_eval2, quadric_height, quadric_intersect
 
 __all__ = [
     "cardinal_spline_coefficients",
@@ -48,6 +54,7 @@ _NEWTON_WARM_MAX_ITER = 8
 
 _KIND_PLANE = 0
 _KIND_SPLINE = 1
+_KIND_QUADRIC = 2  # analytic sphere, paraboloid, cylinder (closed forms: pmdsim.geometry.shape_kernels)
 
 
 _HIT = 0
@@ -140,7 +147,8 @@ class KernelSurface(NamedTuple):
     """The plain-array description of a surface that the compiled kernels take.
 
     kind : int
-        0 = the plane z = 0 (fast path), 1 = bicubic patches.
+        0 = the plane z = 0 (fast path), 1 = bicubic patches, 2 = a quadric height field in
+        closed form (:mod:`pmdsim.geometry.shapes`; ``coef`` then holds its vertex and matrix).
     grid_x, grid_y : ndarray (n_x,), (n_y,)
         Grid lines; the first and last are the surface's bounds.
     coef : ndarray ((n_y − 1)·(n_x − 1)·16,)
@@ -199,6 +207,8 @@ def height_kernel(kind, gx, gy, coef, x, y):
     """
     if kind == _KIND_PLANE:
         return 0.0
+    if kind == _KIND_QUADRIC:
+        return quadric_height(coef, x, y)
     b, sx, sy = _patch(gx, gy, x, y)
     r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
     r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
@@ -212,6 +222,8 @@ def eval2_kernel(kind, gx, gy, coef, x, y):
     """Height, gradient and second derivatives (h, h_x, h_y, h_xx, h_xy, h_yy) at (x, y)."""
     if kind == _KIND_PLANE:
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if kind == _KIND_QUADRIC:
+        return quadric_eval2(coef, x, y)
     b, sx, sy = _patch(gx, gy, x, y)
     r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
     r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
@@ -417,6 +429,8 @@ def intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol, z_st
     ay = oy - oz * by
     if kind == _KIND_PLANE:
         return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)  # eqs. (9)–(12)
+    if kind == _KIND_QUADRIC:  # closed form (ray–quadric quadratic)
+        return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)
     if not np.isfinite(z_start):
         return nan, nan, nan, nan, nan, nan, _NEEDS_SOLVE
     # |h_zz| along the ray: Σ ∂²h/∂x_i∂x_j b_i b_j ≤ D₂ (|b_x| + |b_y|)².
@@ -468,6 +482,8 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
     ay = oy - oz * by
     if kind == _KIND_PLANE:
         return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)
+    if kind == _KIND_QUADRIC:
+        return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)
     if np.isfinite(z_start):
         w2 = (abs(bx) + abs(by)) ** 2
         z = z_start

@@ -4,7 +4,9 @@
 * :mod:`.images` — 8/16-bit PNG and TIFF;
 * :mod:`.hdf5` — mapping, evaluation and reconstruction files;
 * :mod:`.imageset` — image-set manifests (simulated or a real camera's images) and their
-  decoding.
+  decoding;
+* :mod:`.heightmap` — height-map files (HDF5, NPY, CSV) of curved samples, and
+  ``load_setup`` with them read.
 
 Setup files are :mod:`pmdsim.setup.toml` (a setup's own serialisation).
 May import: :mod:`pmdsim.errors`, :mod:`pmdsim.geometry`, :mod:`pmdsim.setup`,

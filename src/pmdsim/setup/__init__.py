@@ -22,6 +22,7 @@ from .model import (
     Setup,
     default_setup,
 )
+from .sample_shape import HeightMapData, HeightMapSource, InterpolationReport, SampleShape
 from .toml import load_setup, parse_setup
 
 __all__ = [
@@ -35,6 +36,10 @@ __all__ = [
     "PatternSetup",
     "Pose",
     "SampleSetup",
+    "SampleShape",
+    "HeightMapData",
+    "HeightMapSource",
+    "InterpolationReport",
     "ScreenSetup",
     "Setup",
     "default_setup",

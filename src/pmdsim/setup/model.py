@@ -21,6 +21,7 @@ from ..errors import SetupError
 from .fringes import FringeSequence
 from ..geometry.surface import SplineSurface
 from ..geometry.transform import RigidTransform
+from .sample_shape import HeightMapData, HeightMapSource, InterpolationReport, SampleShape, resample_height_map
 
 __all__ = [
     "Pose",
@@ -110,18 +111,43 @@ class ScreenSetup:
 
 @dataclass(frozen=True)
 class SampleSetup:
-    """The sample: a spline surface (a plane when all heights are 0) and its pose."""
+    """The sample: a spline surface (a plane when all heights are 0) and its pose.
+
+    ``shape`` (issue 14, docs/conventions.md "Curved samples"): a
+    :class:`~pmdsim.setup.sample_shape.SampleShape` makes the sample that analytic shape in
+    closed form over the grid's rectangle (``heights_mm`` must then be None); a
+    :class:`~pmdsim.setup.sample_shape.HeightMapSource` records the file that ``heights_mm``
+    were resampled from, with the interpolation error (:meth:`Setup.with_sample_height_map`).
+    """
 
     pose: Pose
     grid_x_mm: tuple[float, ...]
     grid_y_mm: tuple[float, ...]
     heights_mm: tuple[tuple[float, ...], ...] | None = None
+    shape: SampleShape | HeightMapSource | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.shape, SampleShape) and self.heights_mm is not None:
+            raise SetupError(f"sample: give either shape = {self.shape.kind!r} or heights_mm, not both")
+        if isinstance(self.shape, HeightMapSource) and self.heights_mm is None:
+            raise SetupError(f"sample: the height map {self.shape.file!r} has not been resampled onto the grid "
+                             f"(use Setup.with_sample_height_map)")
 
     @cached_property
     def surface(self) -> SplineSurface:
+        """The sample surface in its frame: a SplineSurface, or a QuadricSurface for a shape."""
+        if isinstance(self.shape, SampleShape):
+            return self.shape.surface(self.grid_x_mm, self.grid_y_mm)
         ny, nx = len(self.grid_y_mm), len(self.grid_x_mm)
         z = np.zeros((ny, nx)) if self.heights_mm is None else np.array(self.heights_mm, dtype=float)
         return SplineSurface(self.grid_x_mm, self.grid_y_mm, z)
+
+    @property
+    def interpolation_report(self) -> InterpolationReport | None:
+        """For a height map: how far the spline is from the file's heights (None otherwise;
+        an analytic shape is exact — :func:`~pmdsim.setup.sample_shape.spline_report` gives
+        what its spline on the grid would miss)."""
+        return self.shape.report if isinstance(self.shape, HeightMapSource) else None
 
     @property
     def T_world_sample(self) -> RigidTransform:
@@ -459,6 +485,44 @@ class Setup:
         scr.surface  # validate the grid now (raises with the problem)
         return replace(self, screen=scr)
 
+    def with_sample_shape(self, shape: "SampleShape | str | None", **params: Any) -> "Setup":
+        """The same setup with an analytic sample shape (docs/conventions.md, "Curved samples").
+
+        ``shape`` is a :class:`~pmdsim.setup.sample_shape.SampleShape`, or its kind with the
+        ``[sample]`` keys as keywords; None makes the sample a plane again. The pose and the
+        grid (the shape's bounds) are kept.
+
+        >>> s = default_setup().with_sample_shape("sphere", radius_mm=1000.0)
+        """
+        if shape is not None and not isinstance(shape, SampleShape):
+            shape = SampleShape(str(shape), **params)
+        elif params:
+            raise SetupError(f"with_sample_shape: keywords {sorted(params)} need a shape name, not a SampleShape")
+        smp = replace(self.sample, heights_mm=None, shape=shape)
+        smp.surface  # validate now (a radius too small for the grid raises here)
+        return replace(self, sample=smp)
+
+    def with_sample_height_map(self, data: "HeightMapData", source: "HeightMapSource | None" = None, *,
+                               grid_x_mm=None, grid_y_mm=None, max_error_um: float | None = None) -> "Setup":
+        """The same setup with the sample's heights resampled from a height map.
+
+        ``data`` (:class:`~pmdsim.setup.sample_shape.HeightMapData`, e.g. from
+        :func:`pmdsim.io.heightmap.read_height_map`) is resampled onto the sample's spline grid
+        (or ``grid_x_mm`` × ``grid_y_mm``); ``sample.interpolation_report`` then holds the
+        error. Raises SetupError for a map that does not cover the grid or is coarser than it,
+        or that the grid misses by more than ``max_error_um`` (default: the source's
+        ``max_error_um``, 1 µm).
+        """
+        gx = tuple(float(v) for v in (self.sample.grid_x_mm if grid_x_mm is None else grid_x_mm))
+        gy = tuple(float(v) for v in (self.sample.grid_y_mm if grid_y_mm is None else grid_y_mm))
+        src = source if source is not None else HeightMapSource(data.source)
+        if max_error_um is not None:
+            src = replace(src, max_error_um=max_error_um)
+        heights, report = resample_height_map(data, gx, gy, src.max_error_um)
+        src = src.with_report(report)
+        z = tuple(tuple(float(v) for v in row) for row in heights)
+        return replace(self, sample=replace(self.sample, grid_x_mm=gx, grid_y_mm=gy, heights_mm=z, shape=src))
+
     def with_mirror_sag(self, sag_um: float) -> "Setup":
         """The same setup with a calibration mirror of sag ``sag_um`` (see :class:`CalibrationSetup`)."""
         return replace(self, calibration=replace(self.calibration, mirror_sag_um=sag_um))  # validated there
@@ -516,6 +580,10 @@ class Setup:
         }
         if self.sample.heights_mm is not None:
             smp["heights_mm"] = [list(r) for r in self.sample.heights_mm]
+        if isinstance(self.sample.shape, SampleShape):
+            smp.update(self.sample.shape.as_dict())
+        elif isinstance(self.sample.shape, HeightMapSource):  # a record: the heights above are used
+            smp["height_map_source"] = self.sample.shape.as_dict()
         seq = self.patterns.sequence
         pat = {
             "n_shifts": seq.n_shifts,

@@ -22,6 +22,7 @@ from ..geometry.camera import DISTORTION_NAMES, Camera
 from ..geometry.camera_checks import check_image_size, warn_if_folds_over
 from ..geometry.transform import RigidTransform, rotvec_to_matrix
 from .fringes import FringeSequence
+from .sample_shape import SHAPES, HeightMapSource, SampleShape, resample_height_map
 from .model import (
     SETUP_FORMAT,
     SETUP_FORMAT_VERSION,
@@ -49,7 +50,10 @@ _KNOWN_KEYS = {
                "rotvec_deg", "rvec", "tvec", "opencv"),
     "distortion": DISTORTION_NAMES,
     "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
-    "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm"),
+    "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "shape", "radius_mm",
+               "focal_length_x_mm", "focal_length_y_mm", "axis_angle_deg", "vertex_xy_mm", "height_map",
+               "height_map_dataset", "height_map_units", "height_map_grid_units", "height_map_x_dataset",
+               "height_map_y_dataset", "height_map_x_mm", "height_map_y_mm", "height_map_max_error_um", "height_map_source"),
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
                  "seed"),
     "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
@@ -274,11 +278,75 @@ def _camera_pose(r: _Reader) -> Pose:
     return pose
 
 
-def parse_setup(doc: dict[str, Any], *, source: str = "setup", base_dir: str | Path | None = None) -> Setup:
+def _sample_shape(m: _Reader, gx, gy, heights, read_height_map, base_dir):
+    """The ``[sample]`` shape keys (docs/conventions.md, "Curved samples"): (heights, shape)."""
+    params = ("radius_mm", "focal_length_x_mm", "focal_length_y_mm", "axis_angle_deg")
+    if m.has("shape"):
+        kind = m.raw("shape")
+        if not isinstance(kind, str):
+            raise SetupError(f"sample.shape must be one of {list(SHAPES)}, got {kind!r}")
+        kw = {k: m.raw(k) for k in params if m.has(k)}
+        if m.has("vertex_xy_mm"):
+            kw["vertex_xy_mm"] = m.vector("vertex_xy_mm", 2)
+        for k in ("height_map", "heights_mm"):
+            if m.has(k):
+                raise SetupError(f"sample: give either sample.shape or sample.{k}, not both")
+        shape = SampleShape(kind, **kw)
+        shape.surface(gx, gy)  # its radius must cover the grid (SetupError otherwise)
+        return None, shape
+    for k in (*params, "vertex_xy_mm"):
+        if m.has(k):
+            raise SetupError(f"sample.{k} needs sample.shape (one of {list(SHAPES)})")
+    hm_keys = [k for k in m.table if k.startswith("height_map") and k != "height_map_source"]
+    if m.has("height_map_source"):
+        if heights is None or hm_keys:
+            raise SetupError("sample.height_map_source is the record pmdsim writes beside the resampled "
+                             "sample.heights_mm; to read a file give sample.height_map (and no heights_mm)")
+        rec = m.raw("height_map_source")
+        if not isinstance(rec, dict):
+            raise SetupError(f"sample.height_map_source must be a table, got {rec!r}")
+        return heights, HeightMapSource.from_dict(rec)
+    if not hm_keys:
+        return heights, None
+    if not m.has("height_map"):
+        raise SetupError(f"sample.{hm_keys[0]} needs sample.height_map (the file)")
+    if heights is not None:
+        raise SetupError("sample: give either sample.height_map or sample.heights_mm, not both")
+    file = m.raw("height_map")
+    if not isinstance(file, str) or not file:
+        raise SetupError(f"sample.height_map must be a file name (HDF5, NPY or CSV), got {file!r}")
+
+    def text(k, default):
+        v = m.raw(k, default)
+        if v is not None and not isinstance(v, str):
+            raise SetupError(f"sample.{k} must be a string, got {v!r}")
+        return v
+
+    src = HeightMapSource(
+        file, text("height_map_dataset", None), text("height_map_units", "mm"), text("height_map_grid_units", "mm"),
+        text("height_map_x_dataset", "x_mm"), text("height_map_y_dataset", "y_mm"),
+        m.vector("height_map_x_mm", min_len=2) if m.has("height_map_x_mm") else None,
+        m.vector("height_map_y_mm", min_len=2) if m.has("height_map_y_mm") else None,
+        m.number("height_map_max_error_um", 1.0, positive=True),
+    )
+    if read_height_map is None:
+        raise SetupError(f"sample.height_map = {file!r}: reading height-map files needs pmdsim.io; load the setup "
+                         f"with pmdsim.load_setup or the pmdsim command (or pass read_height_map)")
+    data = read_height_map(src, base_dir)
+    z, report = resample_height_map(data, gx, gy, src.max_error_um)
+    return tuple(tuple(float(v) for v in row) for row in z), src.with_report(report)
+
+
+def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=None,
+                base_dir: str | Path | None = None) -> Setup:
     """Validate a setup document (parsed TOML) and build the :class:`Setup`.
 
-    ``base_dir`` is the directory that relative file names in the document (``cameras.X.opencv``)
-    are relative to: the setup file's directory (:func:`load_setup`); None = the working directory.
+    A ``[sample] height_map`` file is read by ``read_height_map(source, base_dir)`` →
+    :class:`~pmdsim.setup.sample_shape.HeightMapData` (:func:`pmdsim.io.heightmap.read_height_map`;
+    this layer reads no data files), relative paths against ``base_dir`` (default: the current
+    directory), and resampled onto the sample's grid.
+    ``base_dir`` is also what other relative file names in the document (``cameras.X.opencv``)
+    are relative to: the setup file's directory (:func:`load_setup`).
 
     Raises
     ------
@@ -322,8 +390,9 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", base_dir: str | P
     sgy = m.grid("grid_y_mm")
     sh = m.matrix("heights_mm", (len(sgy), len(sgx))) if m.has("heights_mm") else None
     m.used.add("heights_mm")
+    sh, shape = _sample_shape(m, sgx, sgy, sh, read_height_map, base_dir)
     m.finish()
-    sample = SampleSetup(sample_pose, sgx, sgy, sh)
+    sample = SampleSetup(sample_pose, sgx, sgy, sh, shape)
 
     d = default_setup().patterns
     if r.has("patterns"):
@@ -405,8 +474,10 @@ def _imaging(r: _Reader) -> ImagingSetup:
     return ImagingSetup(**kw)  # cross-field bounds (e.g. fill factor ≤ 1) name the key there
 
 
-def load_setup(path: str | Path) -> Setup:
-    """Read and validate a setup TOML file (see :func:`parse_setup`)."""
+def load_setup(path: str | Path, *, read_height_map=None) -> Setup:
+    """Read and validate a setup TOML file (see :func:`parse_setup`; height-map files are read
+    relative to the setup file's directory — :func:`pmdsim.io.heightmap.load_setup` passes the
+    reader)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -419,7 +490,7 @@ def load_setup(path: str | Path) -> Setup:
     except tomllib.TOMLDecodeError as e:
         raise SetupError(f"{p}: not valid TOML: {e}") from None
     try:
-        return parse_setup(doc, source=str(p), base_dir=p.parent)
+        return parse_setup(doc, source=str(p), read_height_map=read_height_map, base_dir=p.parent)
     except SetupError as e:
         raise SetupError(f"{p}: {e}") from None
 
@@ -433,7 +504,9 @@ _COMMENTS = {
     "screen": "Pattern screen (paper §2.3, §2.5). heights_mm (optional) is (len(grid_y_mm), len(grid_x_mm));\n"
     "bulge_mm sets the central control point (Δh); +z of the screen points away from the sample,\n"
     "so a positive bulge is concave as seen from the sample.",
-    "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given.",
+    "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given, or shape =\n"
+    "\"sphere\" | \"paraboloid\" | \"cylinder\" (radius_mm / focal_length_x_mm, focal_length_y_mm; + = convex as seen\n"
+    "from the cameras; exact over the grid's rectangle), or height_map = \"file\" (HDF5/NPY/CSV, resampled onto the grid).",
     "calibration": "Calibration mirror poses (paper §4): base = the sample's pose; lifts towards the cameras;\n"
     "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.\n"
     "mirror_sag_um: the mirror's flatness error, a paraboloid −s·(1 − r²/ρ²) (ρ = half the smaller side;\n"

@@ -35,6 +35,7 @@ class Status(enum.IntEnum):
     SCREEN_PARALLEL = 5
     SCREEN_OUTSIDE = 6
     SCREEN_NO_CONVERGENCE = 7
+    SAMPLE_GRAZING = 8
 
     @property
     def description(self) -> str:
@@ -50,10 +51,19 @@ _DESCRIPTIONS = {
     Status.SCREEN_PARALLEL: "the reflected ray is parallel to the screen or points away from it",
     Status.SCREEN_OUTSIDE: "the reflected ray meets the screen outside its grid bounds",
     Status.SCREEN_NO_CONVERGENCE: "no intersection with the screen surface was found",
+    Status.SAMPLE_GRAZING: "the view ray meets the sample at grazing incidence (more than MAX_INCIDENCE_DEG from "
+                           "its normal) or from behind",
 }
 
+#: Largest angle of incidence on the sample (between the view ray and the surface normal) that
+#: the tracer accepts; beyond it the pixel is SAMPLE_GRAZING (docs/conventions.md, "Curved samples").
+MAX_INCIDENCE_DEG = 85.0
+_COS_MAX_INCIDENCE = float(np.cos(np.radians(MAX_INCIDENCE_DEG)))
+
 # Map intersection codes to tracer codes, per surface.
-_SAMPLE_CODES = np.array([Status.VALID, Status.SAMPLE_PARALLEL, Status.SAMPLE_OUTSIDE, Status.SAMPLE_NO_CONVERGENCE], dtype=np.uint8)
+# (index 4 is the surface kernels' internal _NEEDS_SOLVE, never mapped; 5 is the tracer's grazing check)
+_SAMPLE_CODES = np.array([Status.VALID, Status.SAMPLE_PARALLEL, Status.SAMPLE_OUTSIDE, Status.SAMPLE_NO_CONVERGENCE,
+                          Status.SAMPLE_NO_CONVERGENCE, Status.SAMPLE_GRAZING], dtype=np.uint8)
 _SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OUTSIDE, Status.SCREEN_NO_CONVERGENCE], dtype=np.uint8)
 
 
@@ -124,6 +134,11 @@ def _trace_run(
                 t, px, py, pz, hx, hy, st = intersect_solve(
                     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
                 )
+            # Grazing or back-side incidence: v·n ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1).
+            vn = vz - hx * vx - hy * vy
+            if st == 0 and not (vn > 0.0 and vn * vn > (_COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE) * (
+                    (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))):
+                st = 5  # -> SAMPLE_GRAZING
             if st != 0:
                 status[k] = sample_codes[st]
                 zs_prev = nan
