@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .model import _NB, _NJ
+from .model import _NB, _NC, _NJ, _NM
 
 
 # ============================================================================ kernels
@@ -296,27 +296,31 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
     nf = fi.shape[0]
     jac = np.zeros((2, _NJ))
     dummy = np.zeros((2, _NJ))
+    acc = np.zeros(_NB + nf)
     nbad = 0
     dc = d_cam[cam]
     dm = d_mir[pose]
+    intr_c, rot_c, cen_c, mir_k, e1_k, e2_k = intr[cam], rot[cam], cen[cam], mir[pose], e1[pose], e2[pose]
+    intr_tc, rot_tc, cen_tc = intr_t[cam], rot_t[cam], cen_t[cam]
+    mir_tk, e1_tk, e2_tk = mir_t[pose], e1_t[pose], e2_t[pose]
     inv_h = 1.0 / h
     for k in range(start, end):
-        ru, rv, ok = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr[cam], rot[cam], cen[cam],
-                                mir[pose], e1[pose], e2[pose], True, jac)
-        rut, rvt, ok_t = _model_row(uv[k, 0], uv[k, 1], q_t[k, 0], q_t[k, 1], q_t[k, 2], intr_t[cam], rot_t[cam],
-                                    cen_t[cam], mir_t[pose], e1_t[pose], e2_t[pose], False, dummy)
+        ru, rv, ok = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr_c, rot_c, cen_c, mir_k, e1_k,
+                                e2_k, True, jac)
+        rut, rvt, ok_t = _model_row(uv[k, 0], uv[k, 1], q_t[k, 0], q_t[k, 1], q_t[k, 2], intr_tc, rot_tc, cen_tc,
+                                    mir_tk, e1_tk, e2_tk, False, dummy)
         if not (ok and ok_t):
             nbad += 1
             continue
         # J·δ (natural units).
         jd0 = 0.0
         jd1 = 0.0
-        for j in range(14):
+        for j in range(_NC):
             jd0 += jac[0, j] * dc[j]
             jd1 += jac[1, j] * dc[j]
-        for j in range(3):
-            jd0 += jac[0, 14 + j] * dm[j]
-            jd1 += jac[1, 14 + j] * dm[j]
+        for j in range(_NM):
+            jd0 += jac[0, _NC + j] * dm[j]
+            jd1 += jac[1, _NC + j] * dm[j]
         dz_h = 0.0
         for f in range(nf):
             dz_h += wy[k, fj[f]] * wx[k, fi[f]] * d_h[f]
@@ -326,11 +330,15 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
         a0 = 2.0 * inv_h * ((rut - ru) * inv_h - jd0)
         a1 = 2.0 * inv_h * ((rvt - rv) * inv_h - jd1)
         for j in range(_NB):
-            out[j] += (jac[0, j] * a0 + jac[1, j] * a1) * units[j]
+            acc[j] += jac[0, j] * a0 + jac[1, j] * a1
         if nf > 0:
             gz = (jac[0, _NB] * a0 + jac[1, _NB] * a1) * h_unit
             for f in range(nf):
-                out[_NB + f] += gz * wy[k, fj[f]] * wx[k, fi[f]]
+                acc[_NB + f] += gz * wy[k, fj[f]] * wx[k, fi[f]]
+    for j in range(_NB):
+        out[j] = acc[j] * units[j]
+    for f in range(nf):
+        out[_NB + f] = acc[_NB + f]
     return nbad
 
 
@@ -346,8 +354,6 @@ def _avv_kernel(c_start, c_end, c_cam, c_pose, uv, q, q_t, intr, rot, cen, mir, 
     (F,). ``out`` (chunks, 17 + F) receives Jᵀ·r_vv in internal units (block parameters, then
     the free screen heights), ``nbad`` (chunks,) the skipped correspondences."""
     for c in numba.prange(c_start.shape[0]):
-        for j in range(out.shape[1]):
-            out[c, j] = 0.0
         nbad[c] = _avv_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, q_t, intr, rot, cen, mir, e1, e2,
                            intr_t, rot_t, cen_t, mir_t, e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit,
                            h, out[c])
