@@ -67,6 +67,11 @@ _SAMPLE_CODES = np.array([Status.VALID, Status.SAMPLE_PARALLEL, Status.SAMPLE_OU
 _SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OUTSIDE, Status.SCREEN_NO_CONVERGENCE], dtype=np.uint8)
 
 
+#: Image rows per band of the tracer (bands are traced in parallel; each row of a band after the
+#: first is warm started from the rows above). Fixed: the results depend on it, not on threads.
+_BAND_ROWS = 16
+
+
 # _nrt=False: the function allocates nothing, and without numba's reference counting the
 # arrays handed to the inlined surface kernels are not incref'd and decref'd on every pixel
 # (atomic calls that also force register spills: ~40 % of the time). fastmath={"contract"}
@@ -74,18 +79,25 @@ _SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OU
 # about NaN or infinity, so the validity checks are unaffected.
 @numba.njit(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 def _trace_run(
-    run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+    band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
     screen_xy, status, p_sample, q_screen, store,
 ):
-    """Trace one run of ``run_length`` rays (an image row).
+    """Trace one band of ``band_rows`` runs of ``run_length`` rays (image rows).
 
-    Each intersection is warm started from the previous pixels' heights (one Newton step,
-    :func:`pmdsim.geometry.surface.intersect_kernel`); the first pixel of a run, and any pixel whose
-    fast path does not converge, is solved by :func:`pmdsim.geometry.surface.intersect_solve`. Runs
-    are independent, so results do not depend on the thread count.
+    Each intersection is warm started from neighbouring pixels' heights (one Newton step,
+    :func:`pmdsim.geometry.surface.intersect_kernel`); any pixel whose fast path does not
+    converge is solved by :func:`pmdsim.geometry.surface.intersect_solve`.
+
+    Warm starts: in the first row of a band from the pixels to the left (the first pixel of
+    the row has none); in every further row from the **rows above**, extrapolated linearly
+    (2·z[row − 1] − z[row − 2], else z[row − 1]), read from ``z_rows[band]`` (4, run_length):
+    sample and screen heights of the previous two rows. Within such a row the pixels do not
+    depend on each other, so the processor overlaps their computations instead of waiting for
+    the left neighbour's result. Bands are independent and fixed by ``band_rows`` (not by the
+    number of threads), so results do not depend on the thread count.
     """
     n = d_cam.shape[0]
     nan = np.nan
@@ -102,109 +114,127 @@ def _trace_run(
     b10, b11, b12 = r_ps[1, 0], r_ps[1, 1], r_ps[1, 2]
     b20, b21, b22 = r_ps[2, 0], r_ps[2, 1], r_ps[2, 2]
     c0, c1, c2 = t_ps[0], t_ps[1], t_ps[2]
-    zs_prev = nan  # sample height of the previous pixel
-    # Screen heights of the previous three pixels (NaN where not valid).
-    zp1 = nan
-    zp2 = nan
-    zp3 = nan
-    k_end = min(n, (run + 1) * run_length)
-    for k in range(np.uint64(run * run_length), np.uint64(k_end)):  # unsigned: no negative-index wrap-around
-        qx = nan
-        qy = nan
-        qz = nan
-        if store:
-            for c in range(3):
-                p_sample[k, c] = nan
-                q_screen[k, c] = nan
-        if not ok[k]:
-            status[k] = 1  # UNDISTORT_FAILED
-            zs_prev = nan
-        else:
-            a = d_cam[k, 0]
-            b = d_cam[k, 1]
-            c = d_cam[k, 2]
-            # Direction in the sample frame.
-            vx = a00 * a + a01 * b + a02 * c
-            vy = a10 * a + a11 * b + a12 * c
-            vz = a20 * a + a21 * b + a22 * c
-            t, px, py, pz, hx, hy, st = intersect_kernel(
-                s_kind, s_gx, s_gy, s_coef, s_dmax, ox, oy, oz, vx, vy, vz, tol, zs_prev, True
-            )
-            if st == _NEEDS_SOLVE:
-                t, px, py, pz, hx, hy, st = intersect_solve(
-                    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
-                )
-            # Grazing or back-side incidence: v·n ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1).
-            vn = vz - hx * vx - hy * vy
-            if st == 0 and not (vn > 0.0 and vn * vn > (_COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE) * (
-                    (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))):
-                st = 5  # -> SAMPLE_GRAZING
-            if st != 0:
-                status[k] = sample_codes[st]
+    zr = z_rows[band]
+    row0 = band * band_rows
+    row_end = min(row0 + band_rows, (n + run_length - 1) // run_length)
+    for row in range(row0, row_end):
+        kb = np.uint64(row * run_length)
+        above = row > row0  # not the first row of the band
+        zs_prev = nan  # sample height of the previous pixel
+        # Screen heights of the previous three pixels (NaN where not valid).
+        zp1 = nan
+        zp2 = nan
+        zp3 = nan
+        for col in range(np.uint64(min(run_length, n - row * run_length))):  # unsigned: no wrap-around
+            k = kb + col
+            if above:
+                zs_guess = 2.0 * zr[0, col] - zr[1, col]
+                if not np.isfinite(zs_guess):
+                    zs_guess = zr[0, col]
+                zq_guess = 2.0 * zr[2, col] - zr[3, col]
+                if not np.isfinite(zq_guess):
+                    zq_guess = zr[2, col]
+            else:
+                zs_guess = zs_prev
+                # The screen height extrapolated linearly from the pixels two and three back (not
+                # from the previous one: two independent chains of dependent computations, which
+                # the processor overlaps), else the previous one's.
+                zq_guess = 3.0 * zp2 - 2.0 * zp3
+                if not np.isfinite(zq_guess):
+                    zq_guess = zp1
+            qx = nan
+            qy = nan
+            qz = nan
+            if store:
+                for c in range(3):
+                    p_sample[k, c] = nan
+                    q_screen[k, c] = nan
+            if not ok[k]:
+                status[k] = 1  # UNDISTORT_FAILED
                 zs_prev = nan
             else:
-                zs_prev = pz
-                # Reflection, eq. (17), with n = (−h_x, −h_y, 1).
-                nx = -hx
-                ny = -hy
-                f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
-                rx = vx - f * nx
-                ry = vy - f * ny
-                rz = vz - f
-                # Origin and direction of the reflected ray in the screen frame.
-                qox = b00 * px + b01 * py + b02 * pz + c0
-                qoy = b10 * px + b11 * py + b12 * pz + c1
-                qoz = b20 * px + b21 * py + b22 * pz + c2
-                wx = b00 * rx + b01 * ry + b02 * rz
-                wy = b10 * rx + b11 * ry + b12 * rz
-                wz = b20 * rx + b21 * ry + b22 * rz
-                # Warm start: the screen height extrapolated linearly from the pixels two and three
-                # back (not from the previous one: two independent chains of dependent
-                # computations, which the processor overlaps), else the previous one's.
-                z_guess = 3.0 * zp2 - 2.0 * zp3
-                if not np.isfinite(z_guess):
-                    z_guess = zp1
-                t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
-                    p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, z_guess, False
+                a = d_cam[k, 0]
+                b = d_cam[k, 1]
+                c = d_cam[k, 2]
+                # Direction in the sample frame.
+                vx = a00 * a + a01 * b + a02 * c
+                vy = a10 * a + a11 * b + a12 * c
+                vz = a20 * a + a21 * b + a22 * c
+                t, px, py, pz, hx, hy, st = intersect_kernel(
+                    s_kind, s_gx, s_gy, s_coef, s_dmax, ox, oy, oz, vx, vy, vz, tol, zs_guess, True
                 )
-                if st2 == _NEEDS_SOLVE:
-                    t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
-                        p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, qz
+                if st == _NEEDS_SOLVE:
+                    t, px, py, pz, hx, hy, st = intersect_solve(
+                        s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
                     )
-                if store:
-                    p_sample[k, 0] = px
-                    p_sample[k, 1] = py
-                    p_sample[k, 2] = pz
-                if st2 != 0:
-                    status[k] = screen_codes[st2]
-                    qx = nan
-                    qy = nan
-                    qz = nan
+                # Grazing or back-side incidence: v·n ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1).
+                vn = vz - hx * vx - hy * vy
+                if st == 0 and not (vn > 0.0 and vn * vn > (_COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE) * (
+                        (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))):
+                    st = 5  # -> SAMPLE_GRAZING
+                if st != 0:
+                    status[k] = sample_codes[st]
+                    zs_prev = nan
                 else:
-                    status[k] = 0
+                    zs_prev = pz
+                    # Reflection, eq. (17), with n = (−h_x, −h_y, 1).
+                    nx = -hx
+                    ny = -hy
+                    f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
+                    rx = vx - f * nx
+                    ry = vy - f * ny
+                    rz = vz - f
+                    # Origin and direction of the reflected ray in the screen frame.
+                    qox = b00 * px + b01 * py + b02 * pz + c0
+                    qoy = b10 * px + b11 * py + b12 * pz + c1
+                    qoz = b20 * px + b21 * py + b22 * pz + c2
+                    wx = b00 * rx + b01 * ry + b02 * rz
+                    wy = b10 * rx + b11 * ry + b12 * rz
+                    wz = b20 * rx + b21 * ry + b22 * rz
+                    t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
+                        p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, zq_guess, False
+                    )
+                    if st2 == _NEEDS_SOLVE:
+                        t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
+                            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, qz
+                        )
                     if store:
-                        q_screen[k, 0] = qx
-                        q_screen[k, 1] = qy
-                        q_screen[k, 2] = qz
-        screen_xy[k, 0] = qx
-        screen_xy[k, 1] = qy
-        zp3 = zp2
-        zp2 = zp1
-        zp1 = qz
+                        p_sample[k, 0] = px
+                        p_sample[k, 1] = py
+                        p_sample[k, 2] = pz
+                    if st2 != 0:
+                        status[k] = screen_codes[st2]
+                        qx = nan
+                        qy = nan
+                        qz = nan
+                    else:
+                        status[k] = 0
+                        if store:
+                            q_screen[k, 0] = qx
+                            q_screen[k, 1] = qy
+                            q_screen[k, 2] = qz
+            screen_xy[k, 0] = qx
+            screen_xy[k, 1] = qy
+            zp3 = zp2
+            zp2 = zp1
+            zp1 = qz
+            zr[1, col] = zr[0, col]  # row − 1 becomes row − 2
+            zr[0, col] = zs_prev
+            zr[3, col] = zr[2, col]
+            zr[2, col] = qz
 
 
 @numba.njit(cache=True, parallel=True)
 def _trace_kernel(
-    d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+    d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
     screen_xy, status, p_sample, q_screen, store,
 ):
-    n_runs = (d_cam.shape[0] + run_length - 1) // run_length
-    for run in numba.prange(n_runs):
+    for band in numba.prange(z_rows.shape[0]):
         _trace_run(
-            run, d_cam, ok, run_length, r_sc, t_sc, r_ps, t_ps,
+            band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
             p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
@@ -297,13 +327,18 @@ def trace_rays(
         q_p = np.empty((0, 3))
     s = sample.kernel
     p = screen.kernel
-    run_length = shape[-1] if len(shape) >= 2 else min(max(n, 1), 1024)
-    # Rows are handed to the threads 8 at a time rather than in one block per thread: on a
-    # shared machine a thread that is descheduled for a while does not hold up the others.
-    old_chunksize = numba.set_parallel_chunksize(8)
+    run_length = max(int(shape[-1] if len(shape) >= 2 else min(max(n, 1), 1024)), 1)
+    # Image rows are traced in bands of _BAND_ROWS, each row warm started from the rows above;
+    # runs of a flat list of rays are not neighbours: one run per band (left neighbours only).
+    band_rows = _BAND_ROWS if len(shape) >= 2 else 1
+    n_runs = (n + run_length - 1) // run_length
+    z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 4, run_length), np.nan)
+    # Bands are handed to the threads one at a time: on a shared machine a thread that is
+    # descheduled for a while does not hold up the others.
+    old_chunksize = numba.set_parallel_chunksize(1)
     try:
         _trace_kernel(
-            df, okf, max(int(run_length), 1),
+            df, okf, run_length, band_rows, z_rows,
             np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
             np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
             s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
