@@ -9,6 +9,7 @@ differences — never with pmdsim's own output.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -642,3 +643,18 @@ def test_byte_order_mark_and_crlf(tmp_path):
     bom = tmp_path / "bom.yml"
     bom.write_bytes(b"\xef\xbb\xbf" + src.read_bytes().replace(b"\n", b"\r\n"))
     assert read_opencv_camera(bom) == read_opencv_camera(src)
+
+
+def test_calibration_refuses_terms_it_does_not_estimate():
+    """The calibration fits only Brown's terms (paper eq. (3)); a camera with OpenCV's rational or
+    thin-prism terms is refused by name instead of being calibrated as if they were 0."""
+    from pmdsim.calibration.model import CalibrationState, CameraParams
+    from pmdsim.errors import SetupError
+    from pmdsim.geometry.camera import Camera
+    from pmdsim.geometry.transform import RigidTransform
+
+    brown = Camera(fx_px=1000.0, fy_px=1000.0, ppx_px=320.0, ppy_px=240.0, width_px=640, height_px=480, k1=-0.1)
+    CalibrationState({"left": CameraParams(brown, RigidTransform(np.eye(3), [0.0, 0.0, 500.0]))}, ())
+    rational = replace(brown, k4=0.01)
+    with pytest.raises(SetupError, match="'left'.*k4"):
+        CalibrationState({"left": CameraParams(rational, RigidTransform(np.eye(3), [0.0, 0.0, 500.0]))}, ())

@@ -54,6 +54,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import SetupError
 from ..geometry.camera import Camera
 from ..geometry.transform import RigidTransform, rotvec_to_matrix
 from .errors import CalibrationDataError
@@ -329,6 +330,10 @@ class CalibrationState:
         for name, cp in cams.items():
             if not isinstance(name, str) or not isinstance(cp, CameraParams):
                 raise TypeError(f"CalibrationState.cameras must map names (str) to CameraParams, got {name!r}: {type(cp).__name__}")
+            if not cp.camera.is_brown:
+                raise SetupError(f"camera {name!r} has OpenCV distortion terms beyond Brown's (k4–k6, s1–s4): the "
+                                 f"calibration estimates only fx, fy, the principal point and k1, k2, p1, p2, k3 "
+                                 f"(paper eq. (3)); set the other terms to 0 to calibrate this camera")
         for k, mp in enumerate(mirrors):
             if not isinstance(mp, MirrorPlane):
                 raise TypeError(f"CalibrationState.mirrors[{k}] must be a MirrorPlane, got {type(mp).__name__}")
