@@ -228,7 +228,7 @@ def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, 
             if f[i] < left and f[i] <= right:
                 ok, zz, rr = _refine(oA, dx, dy, dz, qx, qy, qz, z_lo + i * step, oB, qB, okB, RB, tB, camB,
                                      buf, r0, r1, r2, step)
-                if ok:
+                if ok and z_lo <= zz <= z_lo + (n_steps - 1) * step:  # roots outside the range do not count
                     if m < 8:
                         zs[m] = zz
                         rs[m] = rr
