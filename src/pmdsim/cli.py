@@ -111,19 +111,36 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--seed-height-mm", type=float, default=0.0, show_default=True,
               help="Height of the initial point in the sample frame.")
 @click.option("--noise-std", type=float, default=None, help="Intensity noise σ_I in grey levels for the σ model (default: quantisation).")
+@click.option("--stereo", is_flag=True,
+              help="Stereo: absolute heights from all cameras without a seed (docs/stereo.md); no --seed-pixel.")
+@click.option("--search-range-mm", type=(float, float), default=None,
+              help="--stereo: heights searched along the view rays, sample frame (default: -20 20).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, noise_std, force,
-                 quiet) -> None:
+def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, noise_std, stereo,
+                 search_range_mm, force, quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
     camera's images described by such a manifest). Writes OUT/evaluation.h5 and
     OUT/height_{camera}.png.
     """
-    from .studies.jobs import evaluate_image_set
+    from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
 
     setup = _load(setup_path, None)
+    if stereo:
+        if seed_pixel is not None:
+            raise JobInputError("--stereo needs no seed: drop --seed-pixel (and --seed-height-mm)")
+        with _bar(len(setup.cameras), "evaluating (stereo)", quiet) as bar:
+            summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
+                                                search_range_mm=search_range_mm, noise_std=noise_std, force=force,
+                                                command=_command(), progress=lambda msg: bar.update(1))
+        for line in summary.lines():
+            click.echo(line)
+        click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+        return
+    if search_range_mm is not None:
+        raise JobInputError("--search-range-mm is an option of --stereo")
     with _bar(len(setup.cameras), "evaluating", quiet) as bar:
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, noise_std=noise_std,
