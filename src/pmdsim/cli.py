@@ -4,7 +4,7 @@
     pmdsim simulate [--setup FILE] [--bulge-mm H] --out DIR [--force]
     pmdsim evaluate IMAGE_DIR [--setup FILE] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
-    pmdsim experiment 1|2|3 --out DIR
+    pmdsim experiment 1|2|3|4|5 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
 Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. The work is done by
@@ -184,14 +184,15 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1", "2", "3", "4"]))
+@click.argument("number", type=click.Choice(["1", "2", "3", "4", "5"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
               help="Bin the cameras K×K (same field of view) for a quick look.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True,
               help="Surface integration (paper: stepwise).")
-@click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
+@click.option("--bulges-mm", default="0,1,2,3", show_default=True,
+              help="Comma-separated screen bulge heights Δh (Experiment 5: default 0,3).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Experiment 2: seed of the start values' errors.")
 @click.option("--write-images", is_flag=True, help="Experiment 1: also write the rendered fringe images under OUT/images.")
@@ -215,12 +216,26 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5);
     3 = beyond the paper (§5): calibrate free-form screen models of increasing flexibility, with
     the paper's bulges, mismatching deformations and a non-planar calibration mirror;
-    4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen).
+    4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen);
+    5 = a warped printed foil (the paper's application): mono with a seed and stereo without,
+    each with the planar-screen and the free 3×3 screen calibration (docs/stereo.md).
     """
     from .studies.experiment3 import SCREEN_DEFORMATIONS
     from .studies.runs import experiment_steps, write_experiment, write_experiment3
 
     base = _load(setup_path, None)
+    if number == "5":
+        from .studies.experiment5 import experiment5_steps, write_experiment5
+
+        ctx = click.get_current_context()
+        default = ctx.get_parameter_source("bulges_mm") == click.core.ParameterSource.DEFAULT
+        bulges = [0.0, 3.0] if default else _parse_list(bulges_mm, float, "--bulges-mm")
+        with _bar(experiment5_steps(bulges), "experiment 5", quiet) as bar:
+            out = write_experiment5(out_dir, base, bulges=bulges, downsample=downsample, method=method, seed=seed,
+                                    force=force, command=_command(), progress=lambda msg: bar.update(1))
+        click.echo(out.table)
+        click.echo(out.summary(out_dir), err=True)
+        return
     if number == "4":
         _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
         return
