@@ -297,8 +297,9 @@ def write_experiment5(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
                 if c.case.camera == next(iter(base.cameras)):
                     p = c.case.p_sample_mm
                     row.append((p[..., 0], p[..., 1], c.case.height_error_mm * 1e3,
-                                f"Δh = {dh:g} mm, {c.method} ({c.case.camera}): max |e| "
+                                f"Δh = {dh:g} mm, {c.method} ({c.case.camera}) max |e| "
                                 f"{c.record['max_abs_error_um']:.3g} µm"))
+            row.sort(key=lambda panel: [m in panel[3] for m in METHODS].index(True))
             panels.append(row)
         write_json(tmp / "results.json", json_ready(records))
         write_json(tmp / "calibration.json", json_ready(calibrations + refs))
