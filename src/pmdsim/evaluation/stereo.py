@@ -40,6 +40,7 @@ Assumptions and limits: docs/stereo.md.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numba
@@ -80,6 +81,8 @@ DEFAULT_SEARCH_STEP_MM = 0.25
 DEFAULT_ANCHORS = 4000
 
 _GN_TOL_MM = 1e-9
+_REPORT_TOL_MM = 1e-7
+_REPORT_MAX_ITER = 6
 _GN_MAX_ITER = 30
 _FD_STEP_MM = 1e-3
 
@@ -284,20 +287,21 @@ def _report_kernel(oA, d, q, zA, oB, qB, okB, zB, okzB, RB, tB, camB, ang_out, d
             cy = az * bx - ax * bz
             cz = ax * by - ay * bx
             ang_out[v, u] = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
-            # B's surface along A's ray: z ← z_B(projection of p(z)), a contraction for slopes ≪ 1.
+            # B's surface along A's ray: z ← z_B(projection of p(z)), a contraction for slopes ≪ 1
+            # (the first projection is the one of the residual above); to 1e-7 mm.
             zz = z
             good = False
-            for _ in range(8):
+            for _ in range(_REPORT_MAX_ITER):
                 t = (zz - oA[2]) / d[v, u, 2]
                 ok, uu, vv = _project(RB, tB, camB, oA[0] + t * d[v, u, 0], oA[1] + t * d[v, u, 1], zz)
                 if not ok or not _interp(zB, okzB, uu, vv, hb):
                     good = False
                     break
                 good = True
-                if abs(hb[0] - zz) < 1e-10:
-                    zz = hb[0]
-                    break
+                change = hb[0] - zz
                 zz = hb[0]
+                if abs(change) < _REPORT_TOL_MM:
+                    break
             if good:
                 dz_out[v, u] = z - zz
 
@@ -371,6 +375,7 @@ class StereoReconstruction:
     search_range_mm: tuple[float, float]
     search_step_mm: float
     stride_px: int
+    timings_s: dict = None  # wall seconds of the stages: "search", "integration", "report"
 
     def summary(self) -> dict:
         """Per camera: anchors, overlap pixels, median/max normal disagreement (µrad) and
@@ -517,6 +522,8 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
         raise ReconstructionError(f"stride_px must be an integer ≥ 1, got {stride_px!r}")
 
     # 1. anchors along each camera's rays, each partner in turn
+    timings = {}
+    t0 = time.perf_counter()
     anchors = {}
     for name, (o, d, q, valid) in arrays.items():
         H, W = valid.shape
@@ -548,6 +555,8 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
                          int(amb.sum()))
 
     # 2. anchored integration of each camera's slopes
+    t1 = time.perf_counter()
+    timings["search"] = t1 - t0
     recs = {}
     for name, (o, d, q, valid) in arrays.items():
         vu, az, ar, _, _ = anchors[name]
@@ -558,6 +567,8 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
         recs[name] = Reconstruction(z, pts, nrm, recon, "stereo", int(it), bool(conv), seed, float(change))
 
     # 3. agreement report
+    t2 = time.perf_counter()
+    timings["integration"] = t2 - t1
     out = {}
     for name, (o, d, q, valid) in arrays.items():
         zA = recs[name].height_mm
@@ -579,7 +590,8 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
         fit = (zA[vu[:, 0], vu[:, 1]] - az) * 1e3
         out[name] = StereoCamera(recs[name], np.isfinite(ang), ang * 1e6, dzm * 1e3, vu, az, ar * 1e6, fit,
                                  searched, n_amb)
-    return StereoReconstruction(out, (lo, hi), step, stride)
+    timings["report"] = time.perf_counter() - t2
+    return StereoReconstruction(out, (lo, hi), step, stride, timings)
 
 
 def evaluate_stereo_decoded(model, decoded: dict, *, screen_model=None, **options) -> tuple[dict, StereoReconstruction]:
