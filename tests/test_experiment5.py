@@ -47,6 +47,9 @@ def test_outputs_and_keys(run):
         assert x["sample"].startswith("foil")
         assert np.isfinite(x["max_abs_error_um"]) and x["printable_pixels"] > 0
     assert "stereo_free3x3" in r.stdout and "flat assumed" in r.stdout
+    run_info = json.loads((out / "run.json").read_text())
+    # the spline grid resolves the foil's warps: the interpolation error is reported, and small
+    assert 0 < run_info["foil_interpolation_error_um"] < 0.1
 
 
 def test_max_abs_error_is_the_largest_error_of_the_stored_map(run):

@@ -51,7 +51,7 @@ from .experiment2 import INITIAL_ERRORS
 from .figures import height_grid_figure
 from .report import json_ready
 
-__all__ = ["METHODS", "PRINTABLE_AREA_MM", "NOMINAL_STANDOFF_MM", "foil_setup", "Experiment5Case",
+__all__ = ["METHODS", "PRINTABLE_AREA_MM", "NOMINAL_STANDOFF_MM", "foil_setup", "default_warpage", "Experiment5Case",
            "run_experiment5_bulge", "experiment5_steps", "experiment5_table", "write_experiment5"]
 
 Progress = Callable[[str], None]
@@ -77,12 +77,17 @@ def foil_setup(setup: Setup, warpage: FoilWarpage | None = None, spacing_mm: flo
     shrinkage warps of σ = 12 mm."""
     smp = setup.sample
     if warpage is None:
-        warpage = FoilWarpage(x_range_mm=(smp.grid_x_mm[0], smp.grid_x_mm[-1]),
-                              y_range_mm=(smp.grid_y_mm[0], smp.grid_y_mm[-1]))
+        warpage = default_warpage(setup)
     gx, gy = warpage.grid(spacing_mm)
     z = warpage.on_grid(gx, gy)
     return replace(setup, sample=SampleSetup(smp.pose, tuple(float(v) for v in gx), tuple(float(v) for v in gy),
                                              tuple(tuple(float(v) for v in r) for r in z)))
+
+
+def default_warpage(setup: Setup) -> FoilWarpage:
+    """The default foil (``FoilWarpage()``'s parameters) over ``setup``'s sample extent."""
+    smp = setup.sample
+    return FoilWarpage(x_range_mm=(smp.grid_x_mm[0], smp.grid_x_mm[-1]), y_range_mm=(smp.grid_y_mm[0], smp.grid_y_mm[-1]))
 
 
 def _sample_label(w: FoilWarpage) -> str:
@@ -151,9 +156,7 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
             progress(msg)
 
     b = base.binned(downsample)
-    smp = b.sample
-    w = warpage if warpage is not None else FoilWarpage(x_range_mm=(smp.grid_x_mm[0], smp.grid_x_mm[-1]),
-                                                        y_range_mm=(smp.grid_y_mm[0], smp.grid_y_mm[-1]))
+    w = warpage if warpage is not None else default_warpage(b)
     truth = foil_setup(b, w).with_bulge(bulge_mm)
     label = _sample_label(w)
     obs = simulate_calibration_observations(truth)
@@ -283,10 +286,12 @@ def write_experiment5(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
         raise ValueError("Experiment 5 needs at least one bulge height")
     prov = provenance(command, base.to_toml())
     t0 = time.perf_counter()
+    w = warpage if warpage is not None else default_warpage(base)
+    interp_um = w.interpolation_error_mm(*w.grid(FOIL_GRID_MM)) * 1e3
     records, calibrations, refs, panels = [], [], [], []
     with atomic_output_dir(out_dir, force=force) as tmp, reconstructions_h5(tmp / "heights.h5", dict(prov)) as add:
         for dh in bulges:
-            cases, cal = run_experiment5_bulge(dh, base, warpage=warpage, downsample=downsample, method=method,
+            cases, cal = run_experiment5_bulge(dh, base, warpage=w, downsample=downsample, method=method,
                                                seed=seed, progress=progress)
             calibrations.extend(c for c in cal if "screen_model" in c)
             refs.extend(c for c in cal if "screen_model" not in c)
@@ -308,13 +313,16 @@ def write_experiment5(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
                                       "bulges_mm": bulges, "methods": list(METHODS),
                                       "image_size_px": [cam0.width_px, cam0.height_px],
                                       "printable_area_mm": list(PRINTABLE_AREA_MM),
-                                      "nominal_standoff_mm": NOMINAL_STANDOFF_MM})
+                                      "nominal_standoff_mm": NOMINAL_STANDOFF_MM, "sample": _sample_label(w),
+                                      "foil_grid_mm": FOIL_GRID_MM, "foil_interpolation_error_um": interp_um})
         height_grid_figure(panels, path=tmp / "height_error.png",
                            suptitle="Experiment 5: warped foil, absolute height error z − z_true (calibrated table "
                                     "frame, nothing removed)")
         standoff_figure(records, refs, path=tmp / "standoff_error.png")
         table = experiment5_table(records, refs, f"Experiment 5 — warped foil; {method} mono integration, "
-                                                 f"{cam0.width_px}×{cam0.height_px} px per camera")
+                                                 f"{cam0.width_px}×{cam0.height_px} px per camera\n{_sample_label(w)}; "
+                                                 f"{FOIL_GRID_MM:g} mm spline grid, interpolation error "
+                                                 f"{interp_um:.3g} µm")
         (tmp / "table.txt").write_text(table + "\n", encoding="utf-8")
     return Experiment5Output(table, ("results.json", "calibration.json", "heights.h5", "table.txt",
                                      "height_error.png", "standoff_error.png"), time.perf_counter() - t0)
