@@ -271,3 +271,44 @@ def test_cli_evaluate_stereo_writes_the_report(tmp_path, base):
     r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev2"), "--stereo",
             "--seed-pixel", "5", "5", "--quiet")
     assert r.returncode == 2 and "pmdsim: error: --stereo needs no seed" in r.stderr
+
+
+# ----------------------------------------------------------------------------- kernels
+def test_projection_kernel_matches_the_camera_model_and_opencv():
+    """The search's compiled projection against Camera.project (eqs. 2–4) and OpenCV."""
+    from pmdsim.evaluation.stereo import StereoView, _camera_arrays, _project
+    from pmdsim.geometry.camera import Camera
+    from pmdsim.geometry.transform import RigidTransform
+
+    cam = Camera(640, 480, 800.0, 780.0, 330.0, 250.0, k1=-0.2, k2=0.05, p1=0.001, p2=-0.002, k3=0.01)
+    T_ref_cam = RigidTransform.from_origin_angles([10.0, -20.0, -300.0], [40.0, 5.0, -8.0])
+    R, t, c = _camera_arrays(StereoView(cam, T_ref_cam, None))
+    rng = np.random.default_rng(1)
+    p_ref = rng.uniform([-60, -60, -5], [60, 60, 5], size=(50, 3))
+    p_cam = T_ref_cam.inv().apply(p_ref)
+    expected = cam.project(p_cam)
+    got = np.array([_project(R, t, c, *p)[1:] for p in p_ref])
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    cv2 = pytest.importorskip("cv2")
+    K, dist = cam.as_opencv()
+    uv, _ = cv2.projectPoints(p_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    np.testing.assert_allclose(got, uv.reshape(-1, 2), rtol=0, atol=1e-6)
+
+
+def test_cubic_convolution_is_exact_for_quadratics_and_needs_16_valid_pixels():
+    from pmdsim.evaluation.stereo import _interp
+
+    H, W = 12, 15
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    f = lambda u, v: 0.3 * u * u - 0.2 * u * v + 0.05 * v * v + 2.0 * u - v + 7.0
+    arr = np.ascontiguousarray(np.stack([f(u, v), -f(u, v)], axis=-1))
+    ok = np.ones((H, W), dtype=bool)
+    out = np.empty(2)
+    rng = np.random.default_rng(2)
+    for uu, vv in rng.uniform([1.0, 1.0], [W - 2.001, H - 2.001], size=(40, 2)):
+        assert _interp(arr, ok, uu, vv, out)
+        assert out[0] == pytest.approx(f(uu, vv), abs=1e-9) and out[1] == pytest.approx(-f(uu, vv), abs=1e-9)
+    ok[5, 7] = False  # one invalid pixel spoils the 4 × 4 neighbourhoods that contain it
+    assert not _interp(arr, ok, 6.5, 4.5, out) and not _interp(arr, ok, 8.9, 6.9, out)
+    assert _interp(arr, ok, 9.1, 4.5, out)
+    assert not _interp(arr, np.ones((H, W), bool), 0.5, 5.0, out)  # too close to the border
