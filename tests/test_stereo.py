@@ -193,6 +193,9 @@ def test_refuses_one_camera_and_a_range_without_the_surface(base, flat_decoded):
         evaluate_stereo_decoded(base, flat_decoded, search_range_mm=(5.0, 15.0))
     with pytest.raises(ReconstructionError, match="search_range_mm"):
         evaluate_stereo_decoded(base, flat_decoded, search_range_mm=(1.0, -1.0))
+    dark = replace(flat_decoded["right"], valid=np.zeros_like(flat_decoded["right"].valid))
+    with pytest.raises(ReconstructionError, match="camera 'right': valid has no True pixel"):
+        evaluate_stereo_decoded(base, {"left": flat_decoded["left"], "right": dark})
 
 
 # ----------------------------------------------------------------------------- foil warpage

@@ -512,7 +512,17 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
     if not (np.isfinite(step) and 0 < step <= hi - lo):
         raise ReconstructionError(f"search_step_mm must be in (0, {hi - lo:g}] mm, got {search_step_mm!r}")
     n_steps = int(np.floor((hi - lo) / step)) + 1
-    arrays = {n: _view_arrays(v) for n, v in views.items()}
+    if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter or max_iter < 1:
+        raise ReconstructionError(f"max_iter must be an integer ≥ 1, got {max_iter!r}")
+    if not (np.isfinite(tol_mm) and tol_mm > 0):
+        raise ReconstructionError(f"tol_mm must be a positive, finite number of mm, got {tol_mm!r}")
+    max_iter, tol_mm = int(max_iter), float(tol_mm)
+    arrays = {}
+    for n, v in views.items():
+        try:
+            arrays[n] = _view_arrays(v)
+        except ReconstructionError as e:
+            raise ReconstructionError(f"camera {n!r}: {e}") from None
     cams = {n: _camera_arrays(v) for n, v in views.items()}
     if stride_px is None:
         n_valid = min(int(a[3].sum()) for a in arrays.values())
