@@ -127,6 +127,7 @@ _LAZY = {
     "decode": "pmdsim.api",
     "Evaluation": "pmdsim.api",
     "evaluate": "pmdsim.api",
+    "evaluate_stereo": "pmdsim.api",
     "calibrate": "pmdsim.api",
     "calibrated_setup": "pmdsim.api",
     "reconstruct": "pmdsim.api",

@@ -182,5 +182,44 @@ def calibrate(observations: list[Observations], nominal: Setup | CalibrationStat
     return _calibrate(observations, start, screen_model=screen_model, **options)
 
 
+def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
+                    search_range_mm=(-20.0, 20.0), **options):
+    """Stereo evaluation (issue 14, docs/stereo.md): absolute heights from two or more
+    calibrated cameras without a seed — normal consistency on sparse pixels, then each camera's
+    slopes integrated from those absolute points, with a per-pixel agreement report.
+
+    Parameters
+    ----------
+    decoded : dict camera → ScreenCoordinates
+        Every camera's decoded screen coordinates (from :func:`decode`), at least two.
+    setup : Setup
+        What the evaluation knows (cameras, screen); heights in its sample frame.
+    screen : {"planar", "setup"}
+        As :func:`evaluate`.
+    search_range_mm : (float, float)
+        Heights searched along the view rays (sample frame, mm).
+    **options
+        ``search_step_mm``, ``stride_px``, ``max_iter``, ``tol_mm`` of
+        :func:`pmdsim.evaluation.stereo.reconstruct_stereo`.
+
+    Returns
+    -------
+    StereoReconstruction
+        ``cameras[name]``: ``height_mm`` (H, W), ``reconstruction``, ``overlap``,
+        ``normal_disagreement_urad``, ``height_discrepancy_um``, the anchors; ``summary()``.
+    """
+    from .evaluation.stereo import evaluate_stereo_decoded
+
+    if screen not in ("planar", "setup"):
+        raise ValueError(f"screen must be 'planar' or 'setup', got {screen!r}")
+    decoded = {c: (decode(d, setup) if isinstance(d, Measurement) else d) for c, d in decoded.items()}
+    _, result = evaluate_stereo_decoded(setup, decoded, screen_model=None if screen == "planar" else setup.screen.surface,
+                                        search_range_mm=search_range_mm, **options)
+    return result
+
+
+__all__.append("evaluate_stereo")
+
+
 # calibrated_setup is part of the notebook API too (result → Setup).
 __all__.append("calibrated_setup")

@@ -6,7 +6,7 @@
     pmdsim import sofast --measurement M.h5 --camera C.h5 --display D.h5 --orientation O.h5
                          --calibration CAL.h5 [--facet F.json] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
-    pmdsim experiment 1|2|3 --out DIR
+    pmdsim experiment 1|2|3|4|5 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
 Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT and SIGTERM
@@ -175,10 +175,14 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--anchor-point-mm", type=(float, float, float), default=None,
               help="Anchor point (world, mm) of --anchor-distance-mm.")
 @click.option("--noise-std", type=float, default=None, help="Intensity noise σ_I in grey levels for the σ model (default: quantisation).")
+@click.option("--stereo", is_flag=True,
+              help="Stereo: absolute heights from all cameras without a seed (docs/stereo.md); no --seed-pixel.")
+@click.option("--search-range-mm", type=(float, float), default=None,
+              help="--stereo: heights searched along the view rays, sample frame (default: -20 20).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
-                 anchor_pixel, anchor_point_mm, noise_std, force, quiet) -> None:
+                 anchor_pixel, anchor_point_mm, noise_std, stereo, search_range_mm, force, quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
@@ -187,13 +191,27 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     an anchor (--anchor-*, --seed-*, or the manifest's); without one the heights are relative.
     """
     from .evaluation.anchor import DistanceAnchor
-    from .studies.jobs import evaluate_image_set
+    from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
 
     given = [anchor_distance_mm is not None, anchor_pixel is not None, anchor_point_mm is not None]
     if any(given) and not all(given):
         raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
     anchor = DistanceAnchor(anchor_pixel, anchor_distance_mm, anchor_point_mm) if all(given) else None
     setup = _load(setup_path, None)
+    if stereo:
+        if seed_pixel is not None or seed_height_mm is not None or anchor is not None:
+            raise JobInputError("--stereo needs no seed or anchor: drop --seed-pixel/--seed-height-mm/--anchor-*")
+        with _bar(len(setup.cameras), "evaluating (stereo)", quiet) as bar:
+            summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
+                                                search_range_mm=search_range_mm, noise_std=noise_std, force=force,
+                                                command=_command(), progress=lambda msg: bar.update(1),
+                                                inputs=[setup_path])
+        for line in summary.lines():
+            click.echo(line)
+        click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+        return
+    if search_range_mm is not None:
+        raise JobInputError("--search-range-mm is an option of --stereo")
     with _bar(len(setup.cameras), "evaluating", quiet) as bar:
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
@@ -273,14 +291,15 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1", "2", "3", "4"]))
+@click.argument("number", type=click.Choice(["1", "2", "3", "4", "5"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
               help="Bin the cameras K×K (same field of view) for a quick look.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True,
               help="Surface integration (paper: stepwise).")
-@click.option("--bulges-mm", default="0,1,2,3", show_default=True, help="Comma-separated screen bulge heights Δh.")
+@click.option("--bulges-mm", default="0,1,2,3", show_default=True,
+              help="Comma-separated screen bulge heights Δh (Experiment 5: default 0,3).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Experiment 2: seed of the start values' errors.")
 @click.option("--write-images", is_flag=True, help="Experiment 1: also write the rendered fringe images under OUT/images.")
@@ -304,7 +323,9 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     2 = simulated holistic calibration with a planar mirror, then reconstruction (Table 3, Fig. 5);
     3 = beyond the paper (§5): calibrate free-form screen models of increasing flexibility, with
     the paper's bulges, mismatching deformations and a non-planar calibration mirror;
-    4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen).
+    4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen);
+    5 = a warped printed foil (the paper's application): mono with a seed and stereo without,
+    each with the planar-screen and the free 3×3 screen calibration (docs/stereo.md).
     """
     from .studies.experiment3 import SCREEN_DEFORMATIONS
     from .studies.runs import experiment_steps, write_experiment, write_experiment3
@@ -313,6 +334,18 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 
     base = _load(setup_path, None)
     check_output_target(out_dir, force=force, inputs=[setup_path], kind="dir")  # before hours of computing
+    if number == "5":
+        from .studies.experiment5 import experiment5_steps, write_experiment5
+
+        ctx = click.get_current_context()
+        default = ctx.get_parameter_source("bulges_mm") == click.core.ParameterSource.DEFAULT
+        bulges = [0.0, 3.0] if default else _parse_list(bulges_mm, float, "--bulges-mm")
+        with _bar(experiment5_steps(bulges), "experiment 5", quiet) as bar:
+            out = write_experiment5(out_dir, base, bulges=bulges, downsample=downsample, method=method, seed=seed,
+                                    force=force, command=_command(), progress=lambda msg: bar.update(1))
+        click.echo(out.table)
+        click.echo(out.summary(out_dir), err=True)
+        return
     if number == "4":
         _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
         return

@@ -124,3 +124,32 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any], 
             for name, arr in ((extras or {}).get(cam) or {}).items():
                 d = g.create_dataset(name, data=np.asarray(arr), **kw)
                 d.attrs["frame"] = "sample"
+
+
+def append_stereo_h5(path: str | Path, stereo, attrs: dict[str, Any]) -> None:
+    """Add a stereo evaluation's agreement report to an ``evaluation.h5`` written by
+    :func:`write_evaluation_h5` (issue 14). Per camera group: ``overlap`` (bool, pixels a
+    partner camera sees), ``normal_disagreement_urad`` (H×W, angle between the cameras' implied
+    normals, NaN outside the overlap), ``height_discrepancy_um`` (H×W, z_this − z_partner along
+    this camera's ray), ``anchor_pixels`` (n×2 row, column), ``anchor_height_mm``,
+    ``anchor_residual_urad`` and ``anchor_fit_um``; file attributes ``stereo`` = True and
+    ``attrs``."""
+    import h5py
+
+    with h5py.File(path, "a") as f:
+        f.attrs["stereo"] = True
+        for k, v in attrs.items():
+            f.attrs[k] = json.dumps(v) if isinstance(v, (list, dict, tuple)) else v
+        for cam, c in stereo.cameras.items():
+            g = f.require_group(cam)
+            g.create_dataset("overlap", data=c.overlap, compression="gzip", compression_opts=1)
+            d = g.create_dataset("normal_disagreement_urad", data=c.normal_disagreement_urad.astype(np.float32),
+                                 **_GZIP_FLOAT)
+            d.attrs["description"] = "angle between this camera's and the partner's implied normals, µrad"
+            d = g.create_dataset("height_discrepancy_um", data=c.height_discrepancy_um.astype(np.float32),
+                                 **_GZIP_FLOAT)
+            d.attrs["description"] = "z_this - z_partner along this camera's view ray, µm (sample frame)"
+            g.create_dataset("anchor_pixels", data=c.anchor_pixels.astype(np.int32))
+            g.create_dataset("anchor_height_mm", data=c.anchor_height_mm)
+            g.create_dataset("anchor_residual_urad", data=c.anchor_residual_urad)
+            g.create_dataset("anchor_fit_um", data=c.anchor_fit_um)

@@ -55,6 +55,7 @@ __all__ = [
     "simulation_steps",
     "simulate_to_dir",
     "evaluate_image_set",
+    "evaluate_image_set_stereo",
     "calibrate_image_sets",
     "CalibrationNotConverged",
 ]
@@ -194,6 +195,13 @@ class EvaluationSummary:
             out.append(f"paraboloid over the slopes: focal length x {fmt(f['focal_length_x_mm'], '.6g')} mm, "
                        f"y {fmt(f['focal_length_y_mm'], '.6g')} mm; slope residual RMS "
                        f"{fmt(f['slope_residual_rms_mrad'], '.4g')} mrad")
+            if "stereo" in c:  # evaluate_image_set_stereo
+                st = c["stereo"]
+                out.append(f"{cam}: stereo: {st['anchors']} anchors of {st['searched']} searched pixels, overlap "
+                           f"{st['overlap']} pixels; normal disagreement median "
+                           f"{st['normal_disagreement_median_urad']:.3g} µrad (max {st['normal_disagreement_max_urad']:.3g}), "
+                           f"height discrepancy median {st['height_discrepancy_median_um']:.3g} µm "
+                           f"(max {st['height_discrepancy_max_um']:.3g})")
         return out
 
 
@@ -318,6 +326,70 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "converged": bool(rec.converged), "anchor": anchors[cam]}
     return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
                              manifest.instrument.response_info)
+
+
+def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str | Path, *,
+                              screen_model: str | None = None, search_range_mm=None, noise_std=None, force: bool = False,
+                              command: str | None = None, progress: Progress | None = None,
+                              inputs: Sequence[str | Path | None] = ()) -> EvaluationSummary:
+    """Stereo evaluation of an image set (issue 14, docs/stereo.md): decode and register every
+    camera, then :func:`pmdsim.evaluation.stereo.reconstruct_stereo` — absolute heights without
+    a seed. Writes ``evaluation.h5`` (the per-camera datasets of :func:`evaluate_image_set`
+    plus the agreement report, :func:`pmdsim.io.hdf5.append_stereo_h5`) and
+    ``height_{camera}.png``; the summary adds per camera the anchors and the median/max
+    normal disagreement (µrad) and height discrepancy (µm) over the overlap. ``screen_model``
+    None: the manifest's, else "planar"; ``out_dir`` must not be ``image_dir`` nor one of ``inputs``."""
+    from ..evaluation.integration import ReconstructionError
+    from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, evaluate_stereo_decoded
+    from ..io.hdf5 import append_stereo_h5
+
+    manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
+    if screen_model is None:
+        screen_model = manifest.instrument.screen_model or "planar"
+    if screen_model not in ("planar", "setup"):
+        raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
+    unknown = [c for c in manifest.cameras if c not in setup.cameras]
+    if unknown:
+        raise JobInputError(f"camera(s) {unknown} of {image_dir}/manifest.json are not in the setup "
+                            f"(setup cameras: {list(setup.cameras)})")
+    if len(manifest.cameras) < 2:
+        raise JobInputError(f"--stereo needs images of at least two cameras; {image_dir}/manifest.json has "
+                            f"{list(manifest.cameras)}")
+    search = DEFAULT_SEARCH_RANGE_MM if search_range_mm is None else tuple(search_range_mm)
+    prov = provenance(command, setup.to_toml())
+    t0 = time.perf_counter()
+    decoded = {}
+    for cam in manifest.cameras:
+        c = setup.cameras[cam].camera
+        decoded[cam] = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
+                                     expected_size_px=(c.width_px, c.height_px))
+        _tick(progress, f"decoded {cam}")
+    try:
+        views, st = evaluate_stereo_decoded(setup, decoded, search_range_mm=search,
+                                            screen_model=None if screen_model == "planar" else setup.screen.surface)
+    except ReconstructionError as e:
+        raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
+    results = {cam: (decoded[cam], views[cam].registration, st.cameras[cam].reconstruction) for cam in decoded}
+    summary = st.summary()
+    with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
+        for cam, (_, _, rec) in results.items():
+            p = rec.p_sample_mm
+            height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                              title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
+                              label="height (µm)", path=tmp / f"height_{cam}.png")
+        write_evaluation_h5(tmp / "evaluation.h5", results,
+                            {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir)})
+        append_stereo_h5(tmp / "evaluation.h5", st, {"search_range_mm": list(st.search_range_mm),
+                                                      "search_step_mm": st.search_step_mm, "stride_px": st.stride_px})
+    cams = {}
+    for cam, (dec, _, rec) in results.items():
+        h = rec.height_mm[rec.reconstructed] * 1e3
+        cams[cam] = {"pixels": int(dec.valid.size), "decoded": int(dec.valid.sum()),
+                     "reconstructed": int(rec.reconstructed.sum()),
+                     "height_min_um": float(np.min(h)) if h.size else float("nan"),
+                     "height_max_um": float(np.max(h)) if h.size else float("nan"),
+                     "converged": bool(rec.converged), "stereo": summary[cam]}
+    return EvaluationSummary(cams, time.perf_counter() - t0)
 
 
 # ============================================================================ calibrate

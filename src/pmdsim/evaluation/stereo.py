@@ -1,0 +1,630 @@
+"""Stereo deflectometry: the absolute surface without a known point (issue 14).
+
+One camera's deflectometric data fix the surface normal at every point of a view ray, but not
+where along the ray the surface is: the mono reconstruction needs a seed of known height
+(:mod:`pmdsim.evaluation.reconstruction`). A second calibrated camera removes that ambiguity
+(Knauer, Kaminski and Häusler 2004, "Phase measuring deflectometry: a new approach to measure
+specular free-form surfaces", Proc. SPIE 5457; the paper's "requirement to conform to the
+measurement of a second camera", §1): only at the true surface do the normals that the two
+cameras imply agree.
+
+Method (all in one reconstruction frame, e.g. the sample frame; heights along its +z):
+
+1. **Normal consistency on sparse pixels.** For a pixel of camera A and a candidate height z,
+   the point p(z) = o_A + t·d_A lies on A's view ray; A's registered screen point q_A implies the
+   normal n_A(z) = bisector(o_A − p, q_A − p) (law of reflection, paper §2.5). p(z) is projected
+   into camera B (its calibrated pinhole + distortion model, §2.2); B's registered screen
+   points are interpolated there (cubic convolution, Keys 1981, over a 4 × 4 neighbourhood of
+   registered pixels) to q_B, which implies n_B(z) = bisector(o_B − p, q_B − p). The residual
+   r(z) = g_A(z) − g_B(z) of the slopes g = (−n_x/n_z, −n_y/n_z) vanishes at the true height.
+   It is scanned over the search range (``search_range_mm``, in steps of ``search_step_mm``),
+   every local minimum of |r| is refined by Gauss–Newton on the 2-vector r (one unknown),
+   and the refined minimum with the smallest |r| is the pixel's absolute height (an *anchor*).
+   Pixels with a second refined minimum of comparable |r| elsewhere in the range are
+   ambiguous and not used.
+2. **Anchored integration of each camera's slopes.** Each camera's slope field is integrated
+   by the zonal least-squares integration of :mod:`pmdsim.evaluation.least_squares` (the same
+   Gauss–Newton assembly and multigrid-preconditioned CG), without a fixed seed: the gauge
+   comes from the anchor equations w·(z_i − a_i) = 0 added to the normal equations (weight
+   :data:`ANCHOR_WEIGHT`: small, so that the anchors set the absolute level, which the slopes
+   cannot, and the slopes set the shape). A camera's anchors are those found along its own
+   rays with the other camera(s) as partner — both cameras' slope fields enter every anchor.
+   Heights outside the overlap follow from the camera's own slopes.
+3. **Agreement report** per pixel of each camera where a partner sees the same point: the
+   angle between the two implied normals at the reconstructed point (µrad) and the height
+   discrepancy z_A − z_B along A's view ray, z_B from the partner's reconstruction
+   (interpolated at the projection, iterated to the intersection with A's ray), in µm.
+
+Assumptions and limits: docs/stereo.md.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from ..geometry.camera import Camera
+from ..geometry.transform import RigidTransform
+from .integration import (
+    Reconstruction,
+    ReconstructionError,
+    _bisector_slopes,
+    _check_inputs,
+    _points_and_normals,
+)
+from .least_squares import _INNER_CAP, _INNER_MAX_ITER, _INNER_RTOL, _apply_update, _assemble_gauss_newton, _start_heights
+from .multigrid import _CGWork, _pcg
+from .registration import Registration
+
+__all__ = ["StereoView", "StereoCamera", "StereoReconstruction", "reconstruct_stereo", "evaluate_stereo_decoded",
+           "stereo_residual",
+           "ANCHOR_WEIGHT", "DEFAULT_SEARCH_RANGE_MM", "DEFAULT_SEARCH_STEP_MM"]
+
+
+#: Weight w of an anchor equation w·(z − a) relative to the slope equations (weight 1). A
+#: slope equation between neighbours is known to about 1 nm (µrad slopes over ≤ 1 mm), an
+#: anchor to about 1 µm; w² = 1e-4 lets the anchors fix the absolute level (which the slopes
+#: leave free) while their noise barely bends the surface locally.
+ANCHOR_WEIGHT = 1e-2
+
+#: Default height range searched along the view rays (reconstruction frame, mm).
+DEFAULT_SEARCH_RANGE_MM = (-20.0, 20.0)
+
+#: Default scan step of the search (mm).
+DEFAULT_SEARCH_STEP_MM = 0.25
+
+#: Default number of anchors aimed at per camera (sets the sparse pixel stride).
+DEFAULT_ANCHORS = 4000
+
+_GN_TOL_MM = 1e-9
+_REPORT_TOL_MM = 1e-7
+_REPORT_MAX_ITER = 6
+_GN_MAX_ITER = 30
+_FD_STEP_MM = 1e-3
+
+
+# ============================================================================ kernels
+@numba.njit(cache=True, inline="always")
+def _project(R, t, cam, px, py, pz):
+    """Reference-frame point → pixel (u, v) of a camera (eqs. 2–4). ``R``, ``t``: T_cam_ref;
+    ``cam`` = (fx, fy, ppx, ppy, k1, k2, k3, p1, p2). Returns (ok, u, v)."""
+    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    if not z > 0.0:
+        return False, 0.0, 0.0
+    xn = x / z
+    yn = y / z
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (cam[4] + r2 * (cam[5] + r2 * cam[6]))
+    xd = xn * radial + 2.0 * cam[7] * xn * yn + cam[8] * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + cam[7] * (r2 + 2.0 * yn * yn) + 2.0 * cam[8] * xn * yn
+    return True, cam[0] * xd + cam[2], cam[1] * yd + cam[3]
+
+
+@numba.njit(cache=True, inline="always")
+def _keys(s):
+    """Cubic-convolution weights (Keys 1981, a = −1/2) of the 4 samples at −1, 0, 1, 2 for
+    the fractional position s ∈ [0, 1): C¹, exact for quadratics."""
+    s2 = s * s
+    s3 = s2 * s
+    return (-0.5 * s3 + s2 - 0.5 * s, 1.5 * s3 - 2.5 * s2 + 1.0, -1.5 * s3 + 2.0 * s2 + 0.5 * s, 0.5 * s3 - 0.5 * s2)
+
+
+@numba.njit(cache=True)
+def _interp(arr, ok, u, v, out):
+    """Cubic convolution of ``arr`` (H, W, C) at pixel (u, v) into ``out`` (C,); False (out
+    untouched) unless all 16 samples of the 4 × 4 neighbourhood are inside and ``ok``."""
+    H = arr.shape[0]
+    W = arr.shape[1]
+    if not (u >= 1.0 and v >= 1.0 and u < W - 2.0 and v < H - 2.0):
+        return False
+    iu = int(np.floor(u))
+    iv = int(np.floor(v))
+    for j in range(iv - 1, iv + 3):
+        for i in range(iu - 1, iu + 3):
+            if not ok[j, i]:
+                return False
+    wu = _keys(u - iu)
+    wv = _keys(v - iv)
+    C = arr.shape[2]
+    for c in range(C):
+        s = 0.0
+        for a in range(4):
+            row = 0.0
+            for b in range(4):
+                row += wu[b] * arr[iv - 1 + a, iu - 1 + b, c]
+            s += wv[a] * row
+        out[c] = s
+    return True
+
+
+@numba.njit(cache=True)
+def _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, out):
+    """r(z) = g_A − g_B at height z on A's view ray (d) with A's screen point q; partner B
+    (centre oB, screen points qB (H, W, 3) registered where okB, T_cam_ref = RB, tB, intrinsics
+    camB). Writes r to out[0:2], g_A to out[2:4], g_B to out[4:6]. Returns ok."""
+    t = (z - oA[2]) / dz
+    px = oA[0] + t * dx
+    py = oA[1] + t * dy
+    ok, u, v = _project(RB, tB, camB, px, py, z)
+    if not ok:
+        return False
+    if not _interp(qB, okB, u, v, buf):
+        return False
+    gax, gay = _bisector_slopes(px, py, z, oA[0], oA[1], oA[2], qx, qy, qz)
+    gbx, gby = _bisector_slopes(px, py, z, oB[0], oB[1], oB[2], buf[0], buf[1], buf[2])
+    out[0] = gax - gbx
+    out[1] = gay - gby
+    out[2] = gax
+    out[3] = gay
+    out[4] = gbx
+    out[5] = gby
+    return np.isfinite(out[0]) and np.isfinite(out[1])
+
+
+@numba.njit(cache=True)
+def _refine(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2, step_max):
+    """Gauss–Newton on the 2-vector r(z) from z (central-difference derivative). Returns
+    (ok, z, |r|)."""
+    for _ in range(_GN_MAX_ITER):
+        if not _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0):
+            return False, z, np.inf
+        h = _FD_STEP_MM
+        if not (_residual(oA, dx, dy, dz, qx, qy, qz, z + h, oB, qB, okB, RB, tB, camB, buf, r1)
+                and _residual(oA, dx, dy, dz, qx, qy, qz, z - h, oB, qB, okB, RB, tB, camB, buf, r2)):
+            return False, z, np.inf
+        jx = (r1[0] - r2[0]) / (2.0 * h)
+        jy = (r1[1] - r2[1]) / (2.0 * h)
+        jj = jx * jx + jy * jy
+        if not jj > 0.0:
+            return False, z, np.inf
+        delta = -(jx * r0[0] + jy * r0[1]) / jj
+        if delta > step_max:
+            delta = step_max
+        elif delta < -step_max:
+            delta = -step_max
+        z += delta
+        if abs(delta) < _GN_TOL_MM:
+            break
+    if not _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0):
+        return False, z, np.inf
+    return True, z, np.sqrt(r0[0] * r0[0] + r0[1] * r0[1])
+
+
+@numba.njit(cache=True, parallel=True)
+def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, n_steps, out_z, out_r, out_n):
+    """Normal-consistency search (module docstring, step 1) for the pixels (rows[k], cols[k]).
+    out_z: height (NaN if none), out_r: |r| at it (rad), out_n: number of distinct refined
+    minima with |r| ≤ max(2·best, best + 20 µrad)."""
+    n = rows.size
+    for k in numba.prange(n):
+        v = rows[k]
+        u = cols[k]
+        dx = d[v, u, 0]
+        dy = d[v, u, 1]
+        dz = d[v, u, 2]
+        qx = q[v, u, 0]
+        qy = q[v, u, 1]
+        qz = q[v, u, 2]
+        buf = np.empty(3)
+        r0 = np.empty(6)
+        r1 = np.empty(6)
+        r2 = np.empty(6)
+        f = np.full(n_steps, np.inf)
+        for i in range(n_steps):
+            if _residual(oA, dx, dy, dz, qx, qy, qz, z_lo + i * step, oB, qB, okB, RB, tB, camB, buf, r0):
+                f[i] = r0[0] * r0[0] + r0[1] * r0[1]
+        # Local minima of |r|² along the scan (a plateau's first sample), refined.
+        zs = np.full(8, np.nan)
+        rs = np.full(8, np.inf)
+        m = 0
+        for i in range(n_steps):
+            if not np.isfinite(f[i]):
+                continue
+            left = f[i - 1] if i > 0 else np.inf
+            right = f[i + 1] if i + 1 < n_steps else np.inf
+            if f[i] < left and f[i] <= right:
+                ok, zz, rr = _refine(oA, dx, dy, dz, qx, qy, qz, z_lo + i * step, oB, qB, okB, RB, tB, camB,
+                                     buf, r0, r1, r2, step)
+                if ok and z_lo <= zz <= z_lo + (n_steps - 1) * step:  # roots outside the range do not count
+                    if m < 8:
+                        zs[m] = zz
+                        rs[m] = rr
+                        m += 1
+                    else:  # keep the 8 best
+                        worst = 0
+                        for j in range(8):
+                            if rs[j] > rs[worst]:
+                                worst = j
+                        if rr < rs[worst]:
+                            zs[worst] = zz
+                            rs[worst] = rr
+        best = -1
+        for j in range(m):
+            if best < 0 or rs[j] < rs[best]:
+                best = j
+        if best < 0:
+            out_z[k] = np.nan
+            out_r[k] = np.nan
+            out_n[k] = 0
+            continue
+        out_z[k] = zs[best]
+        out_r[k] = rs[best]
+        cnt = 1
+        lim = max(2.0 * rs[best], rs[best] + 20e-6)
+        for j in range(m):
+            if j != best and rs[j] <= lim and abs(zs[j] - zs[best]) > 10.0 * step:
+                cnt += 1
+        out_n[k] = cnt
+
+
+@numba.njit(cache=True, parallel=True)
+def _report_kernel(oA, d, q, zA, oB, qB, okB, zB, okzB, RB, tB, camB, ang_out, dz_out):
+    """Per pixel of A with a height: the angle between A's and B's implied normals (rad) and
+    z_A − z_B along A's ray (mm); NaN where B does not see the point."""
+    H, W = zA.shape
+    for v in numba.prange(H):
+        buf = np.empty(3)
+        r0 = np.empty(6)
+        hb = np.empty(1)
+        for u in range(W):
+            ang_out[v, u] = np.nan
+            dz_out[v, u] = np.nan
+            z = zA[v, u]
+            if not np.isfinite(z):
+                continue
+            if not _residual(oA, d[v, u, 0], d[v, u, 1], d[v, u, 2], q[v, u, 0], q[v, u, 1], q[v, u, 2], z, oB,
+                             qB, okB, RB, tB, camB, buf, r0):
+                continue
+            ax, ay, az = -r0[2], -r0[3], 1.0
+            bx, by, bz = -r0[4], -r0[5], 1.0
+            cx = ay * bz - az * by
+            cy = az * bx - ax * bz
+            cz = ax * by - ay * bx
+            ang_out[v, u] = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+            # B's surface along A's ray: z ← z_B(projection of p(z)), a contraction for slopes ≪ 1
+            # (the first projection is the one of the residual above); to 1e-7 mm.
+            zz = z
+            good = False
+            for _ in range(_REPORT_MAX_ITER):
+                t = (zz - oA[2]) / d[v, u, 2]
+                ok, uu, vv = _project(RB, tB, camB, oA[0] + t * d[v, u, 0], oA[1] + t * d[v, u, 1], zz)
+                if not ok or not _interp(zB, okzB, uu, vv, hb):
+                    good = False
+                    break
+                good = True
+                change = hb[0] - zz
+                zz = hb[0]
+                if abs(change) < _REPORT_TOL_MM:
+                    break
+            if good:
+                dz_out[v, u] = z - zz
+
+
+# ============================================================================ data
+@dataclass(frozen=True, eq=False)
+class StereoView:
+    """One calibrated camera's data for stereo: its intrinsic model, its pose in the
+    reconstruction frame and its registration (view rays and screen points in that frame)."""
+
+    camera: Camera
+    T_ref_cam: RigidTransform
+    registration: Registration
+
+
+@dataclass(frozen=True, eq=False)
+class StereoCamera:
+    """One camera's result of :func:`reconstruct_stereo` (reconstruction frame, mm).
+
+    Attributes
+    ----------
+    reconstruction : Reconstruction
+        The anchored least-squares reconstruction (``method`` = ``"stereo"``); ``seed_pixel``
+        is the anchor nearest the anchors' centroid (its height is *not* fixed).
+    overlap : ndarray of bool (H, W)
+        Reconstructed pixels whose point a partner camera sees (the report is defined there).
+    normal_disagreement_urad : ndarray (H, W)
+        Angle between this camera's and the partner's implied normals at the reconstructed
+        point, µrad; NaN outside ``overlap``. With several partners: the largest.
+    height_discrepancy_um : ndarray (H, W)
+        z_this − z_partner along this camera's view ray (partner's reconstruction), µm; NaN
+        where the partner has no height there. With several partners: the largest in magnitude.
+    anchor_pixels : ndarray of int (n, 2)
+        (row, column) of the anchors found along this camera's rays.
+    anchor_height_mm : ndarray (n,)
+        Their absolute heights from normal consistency.
+    anchor_residual_urad : ndarray (n,)
+        |g_this − g_partner| at each anchor (slope units, µrad).
+    anchor_fit_um : ndarray (n,)
+        Reconstructed minus anchor height at the anchors, µm.
+    searched : int
+        Sparse pixels searched; ``ambiguous``: those with more than one consistent height.
+    """
+
+    reconstruction: Reconstruction
+    overlap: np.ndarray
+    normal_disagreement_urad: np.ndarray
+    height_discrepancy_um: np.ndarray
+    anchor_pixels: np.ndarray
+    anchor_height_mm: np.ndarray
+    anchor_residual_urad: np.ndarray
+    anchor_fit_um: np.ndarray
+    searched: int
+    ambiguous: int
+
+    @property
+    def height_mm(self) -> np.ndarray:
+        return self.reconstruction.height_mm
+
+    @property
+    def reconstructed(self) -> np.ndarray:
+        return self.reconstruction.reconstructed
+
+
+@dataclass(frozen=True, eq=False)
+class StereoReconstruction:
+    """Result of :func:`reconstruct_stereo`: per camera a :class:`StereoCamera`, and the
+    search settings used."""
+
+    cameras: dict
+    search_range_mm: tuple[float, float]
+    search_step_mm: float
+    stride_px: int
+    timings_s: dict = None  # seconds of the stages: "search", "integration", "report" (wall), "…_cpu" (CPU, all threads)
+
+    def summary(self) -> dict:
+        """Per camera: anchors, overlap pixels, median/max normal disagreement (µrad) and
+        median/max |height discrepancy| (µm) over the overlap (JSON-ready)."""
+        out = {}
+        for name, c in self.cameras.items():
+            ang = c.normal_disagreement_urad[np.isfinite(c.normal_disagreement_urad)]
+            dz = np.abs(c.height_discrepancy_um[np.isfinite(c.height_discrepancy_um)])
+            out[name] = {
+                "anchors": int(c.anchor_height_mm.size), "searched": int(c.searched), "ambiguous": int(c.ambiguous),
+                "reconstructed": int(c.reconstructed.sum()), "overlap": int(c.overlap.sum()),
+                "normal_disagreement_median_urad": float(np.median(ang)) if ang.size else float("nan"),
+                "normal_disagreement_max_urad": float(np.max(ang)) if ang.size else float("nan"),
+                "height_discrepancy_median_um": float(np.median(dz)) if dz.size else float("nan"),
+                "height_discrepancy_max_um": float(np.max(dz)) if dz.size else float("nan"),
+                "converged": bool(c.reconstruction.converged),
+            }
+        return out
+
+
+def _camera_arrays(view: StereoView):
+    T_cam_ref = view.T_ref_cam.inv()
+    c = view.camera
+    cam = np.array([c.fx_px, c.fy_px, c.ppx_px, c.ppy_px, c.k1, c.k2, c.k3, c.p1, c.p2], dtype=np.float64)
+    return (np.ascontiguousarray(T_cam_ref.rotation, dtype=np.float64),
+            np.ascontiguousarray(T_cam_ref.translation, dtype=np.float64), cam)
+
+
+def _view_arrays(view: StereoView):
+    reg = view.registration
+    o, d, q, valid = _check_inputs(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid)
+    q_filled = np.where(valid[..., None], q, 0.0)
+    return o, d, np.ascontiguousarray(q_filled), valid
+
+
+def stereo_residual(views: dict, camera: str, partner: str, pixel, z_mm):
+    """The normal-consistency residual r(z) = g_camera − g_partner (slopes, 2-vector) at heights
+    ``z_mm`` (array) on ``camera``'s view ray through ``pixel`` (row, column); NaN where the
+    partner does not see the point. For plots and checks of the criterion."""
+    o, d, q, valid = _view_arrays(views[camera])
+    oB, _, qB, okB = _view_arrays(views[partner])
+    RB, tB, camB = _camera_arrays(views[partner])
+    v, u = pixel
+    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
+    out = np.full(z.shape + (2,), np.nan)
+    buf = np.empty(3)
+    r = np.empty(6)
+    for i, zz in enumerate(z.ravel()):
+        if valid[v, u] and _residual(o, d[v, u, 0], d[v, u, 1], d[v, u, 2], q[v, u, 0], q[v, u, 1], q[v, u, 2],
+                                     float(zz), oB, qB, okB, RB, tB, camB, buf, r):
+            out.reshape(-1, 2)[i] = r[:2]
+    return out
+
+
+# ============================================================================ integration
+def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter):
+    """Zonal least-squares integration (:func:`~pmdsim.evaluation.least_squares.reconstruct_least_squares`'s
+    equations) of the valid pixels' components that hold an anchor, gauged by the anchor
+    equations (weight :data:`ANCHOR_WEIGHT`) instead of a fixed seed. Returns
+    (z (H, W), S, seed, iterations, converged, last change)."""
+    labels, _ = ndimage.label(valid)
+    lab = labels[anchors_vu[:, 0], anchors_vu[:, 1]]
+    S = np.ascontiguousarray(np.isin(labels, np.unique(lab[lab > 0])))
+    cv, cu = anchors_vu.mean(axis=0)
+    k = int(np.argmin((anchors_vu[:, 0] - cv) ** 2 + (anchors_vu[:, 1] - cu) ** 2))
+    seed = (int(anchors_vu[k, 0]), int(anchors_vu[k, 1]))
+    z = _start_heights(o, d, q, S, seed, float(anchors_z[k]), tol_mm, max_iter)
+    H, W = S.shape
+    D = np.zeros((H + 2, W + 2))
+    iD = np.zeros_like(D)
+    Ex = np.zeros_like(D)
+    Ey = np.zeros_like(D)
+    rhs = np.zeros_like(D)
+    work = _CGWork(D.shape)
+    av = anchors_vu[:, 0] + 1
+    au = anchors_vu[:, 1] + 1
+    w2 = ANCHOR_WEIGHT ** 2
+    converged, change, it = False, np.inf, 0
+    for it in range(1, max_iter + 1):
+        _assemble_gauss_newton(o, d, q, S, z, -1, -1, D, iD, Ex, Ey, rhs)
+        np.add.at(D, (av, au), w2)
+        np.add.at(rhs, (av, au), w2 * (anchors_z - z[anchors_vu[:, 0], anchors_vu[:, 1]]))
+        iD[av, au] = 1.0 / D[av, au]
+        delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol_mm, _INNER_RTOL, _INNER_MAX_ITER,
+                                cap=_INNER_CAP * tol_mm, work=work)
+        change = _apply_update(z, delta, D)
+        if not np.isfinite(change):
+            raise ReconstructionError("the anchored least-squares integration diverged (non-finite heights); "
+                                      "check that the registrations and camera poses belong together")
+        if change < tol_mm and solved:
+            converged = True
+            break
+    return z, S, seed, it, converged, change
+
+
+# ============================================================================ main
+def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
+                       search_step_mm: float = DEFAULT_SEARCH_STEP_MM, stride_px: int | None = None,
+                       max_iter: int = 20, tol_mm: float = 1e-9) -> StereoReconstruction:
+    """Absolute surface from two or more calibrated cameras, without a seed (module docstring).
+
+    Parameters
+    ----------
+    views : dict name → StereoView
+        At least two cameras, all registered in the same reconstruction frame.
+    search_range_mm : (float, float)
+        Heights (reconstruction frame, mm) searched along the view rays; the surface must lie
+        inside in the overlap.
+    search_step_mm : float
+        Scan step (mm); refined roots closer than 10 steps count as one.
+    stride_px : int, optional
+        Every stride-th pixel (rows and columns) is searched; default so that about
+        :data:`DEFAULT_ANCHORS` pixels of each camera are.
+    max_iter, tol_mm
+        Gauss–Newton iterations and tolerance of the anchored integration
+        (as :func:`~pmdsim.evaluation.least_squares.reconstruct_least_squares`).
+
+    Returns
+    -------
+    StereoReconstruction
+
+    Raises
+    ------
+    ReconstructionError
+        Fewer than two cameras, a bad search range, or a camera with no anchor (no overlap or
+        no consistent height in the range) — the message names the camera.
+    """
+    if len(views) < 2:
+        raise ReconstructionError(f"stereo needs at least two cameras, got {len(views)} ({list(views)})")
+    lo, hi = (float(v) for v in search_range_mm)
+    if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+        raise ReconstructionError(f"search_range_mm must be an increasing pair of finite heights, got {search_range_mm!r}")
+    step = float(search_step_mm)
+    if not (np.isfinite(step) and 0 < step <= hi - lo):
+        raise ReconstructionError(f"search_step_mm must be in (0, {hi - lo:g}] mm, got {search_step_mm!r}")
+    n_steps = int(np.floor((hi - lo) / step)) + 1
+    if isinstance(max_iter, (bool, np.bool_)) or int(max_iter) != max_iter or max_iter < 1:
+        raise ReconstructionError(f"max_iter must be an integer ≥ 1, got {max_iter!r}")
+    if not (np.isfinite(tol_mm) and tol_mm > 0):
+        raise ReconstructionError(f"tol_mm must be a positive, finite number of mm, got {tol_mm!r}")
+    max_iter, tol_mm = int(max_iter), float(tol_mm)
+    arrays = {}
+    for n, v in views.items():
+        try:
+            arrays[n] = _view_arrays(v)
+        except ReconstructionError as e:
+            raise ReconstructionError(f"camera {n!r}: {e}") from None
+    cams = {n: _camera_arrays(v) for n, v in views.items()}
+    if stride_px is None:
+        n_valid = min(int(a[3].sum()) for a in arrays.values())
+        stride_px = max(1, int(round(np.sqrt(max(n_valid, 1) / DEFAULT_ANCHORS))))
+    stride = int(stride_px)
+    if stride < 1:
+        raise ReconstructionError(f"stride_px must be an integer ≥ 1, got {stride_px!r}")
+
+    # 1. anchors along each camera's rays, each partner in turn
+    timings = {}
+    t0, c0 = time.perf_counter(), time.process_time()
+    anchors = {}
+    for name, (o, d, q, valid) in arrays.items():
+        H, W = valid.shape
+        sub = np.zeros_like(valid)
+        sub[stride // 2::stride, stride // 2::stride] = True
+        rows, cols = np.nonzero(valid & sub)
+        best_z = np.full(rows.size, np.nan)
+        best_r = np.full(rows.size, np.inf)
+        amb = np.zeros(rows.size, dtype=bool)
+        for partner, (oB, _, qB, okB) in arrays.items():
+            if partner == name:
+                continue
+            RB, tB, camB = cams[partner]
+            z = np.empty(rows.size)
+            r = np.empty(rows.size)
+            cnt = np.empty(rows.size, dtype=np.int64)
+            _search_kernel(o, d, q, rows.astype(np.int64), cols.astype(np.int64), oB, qB, okB, RB, tB, camB,
+                           lo, step, n_steps, z, r, cnt)
+            better = np.isfinite(z) & (r < best_r)
+            best_z[better], best_r[better] = z[better], r[better]
+            amb |= cnt > 1
+        keep = np.isfinite(best_z) & ~amb
+        if not keep.any():
+            raise ReconstructionError(
+                f"camera {name!r}: no pixel has a unique consistent height in {lo:g} … {hi:g} mm (searched "
+                f"{rows.size} pixels, {int(amb.sum())} ambiguous): the cameras' fields of view do not overlap on the "
+                f"surface, or the surface is outside search_range_mm")
+        anchors[name] = (np.stack([rows[keep], cols[keep]], axis=-1), best_z[keep], best_r[keep], rows.size,
+                         int(amb.sum()))
+
+    # 2. anchored integration of each camera's slopes
+    t1, c1 = time.perf_counter(), time.process_time()
+    timings["search"], timings["search_cpu"] = t1 - t0, c1 - c0
+    recs = {}
+    for name, (o, d, q, valid) in arrays.items():
+        vu, az, ar, _, _ = anchors[name]
+        z, S, seed, it, conv, change = _integrate_anchored(o, d, q, valid, vu, az, tol_mm, max_iter)
+        recon = S & np.isfinite(z)
+        z = np.where(recon, z, np.nan)
+        pts, nrm = _points_and_normals(o, d, q, z)
+        recs[name] = Reconstruction(z, pts, nrm, recon, "stereo", int(it), bool(conv), seed, float(change))
+
+    # 3. agreement report
+    t2, c2 = time.perf_counter(), time.process_time()
+    timings["integration"], timings["integration_cpu"] = t2 - t1, c2 - c1
+    out = {}
+    for name, (o, d, q, valid) in arrays.items():
+        zA = recs[name].height_mm
+        ang = np.full(zA.shape, np.nan)
+        dzm = np.full(zA.shape, np.nan)
+        for partner, (oB, _, qB, okB) in arrays.items():
+            if partner == name:
+                continue
+            RB, tB, camB = cams[partner]
+            zB = recs[partner].height_mm
+            okzB = np.isfinite(zB)
+            a = np.empty(zA.shape)
+            dz = np.empty(zA.shape)
+            _report_kernel(o, d, q, zA, oB, qB, okB, np.ascontiguousarray(np.nan_to_num(zB)[..., None]), okzB,
+                           RB, tB, camB, a, dz)
+            ang = np.fmax(ang, a)
+            dzm = np.where(np.isnan(dzm) | (np.abs(dz) > np.abs(dzm)), dz, dzm)
+        vu, az, ar, searched, n_amb = anchors[name]
+        fit = (zA[vu[:, 0], vu[:, 1]] - az) * 1e3
+        out[name] = StereoCamera(recs[name], np.isfinite(ang), ang * 1e6, dzm * 1e3, vu, az, ar * 1e6, fit,
+                                 searched, n_amb)
+    timings["report"], timings["report_cpu"] = time.perf_counter() - t2, time.process_time() - c2
+    return StereoReconstruction(out, (lo, hi), step, stride, timings)
+
+
+def evaluate_stereo_decoded(model, decoded: dict, *, screen_model=None, **options) -> tuple[dict, StereoReconstruction]:
+    """Register every camera's decoded screen coordinates with ``model`` (a
+    :class:`~pmdsim.setup.Setup`: cameras, screen pose; heights in its sample frame), then
+    :func:`reconstruct_stereo`. ``screen_model`` defaults to the plane z = 0 of the screen frame
+    over the model's screen grid (the paper's planar-screen assumption); pass
+    ``model.screen.surface`` for a calibrated free-form screen. Returns (views, result)."""
+    from ..geometry.surface import SplineSurface
+    from .registration import register
+
+    if screen_model is None:
+        scr = model.screen
+        screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
+    unknown = [c for c in decoded if c not in model.cameras]
+    if unknown:
+        raise ReconstructionError(f"camera(s) {unknown} are not in the setup (cameras: {list(model.cameras)})")
+    T_world_ref = model.sample.T_world_sample
+    T_ref_world = T_world_ref.inv()
+    views = {}
+    for cam, dec in decoded.items():
+        cs = model.cameras[cam]
+        reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen, dec.screen_xy_mm,
+                       dec.valid, T_world_ref)
+        views[cam] = StereoView(cs.camera, T_ref_world @ cs.T_world_cam, reg)
+    return views, reconstruct_stereo(views, **options)
