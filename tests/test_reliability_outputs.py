@@ -380,11 +380,14 @@ def test_outputs_follow_the_umask(small_setup_file):
     base = Path(tempfile.mkdtemp(prefix="pmdsim-umask-"))
     try:
         os.chmod(base, 0o755)  # the test's own directory; the outputs' modes are under test
-        for umask in (0o022, 0o077):
+        procs = {umask: subprocess.Popen(  # both at once: the second import overlaps the first
+            [sys.executable, "-m", "pmdsim.cli", "simulate", "--setup", str(small_setup_file), "--out",
+             str(base / f"run{umask:03o}"), "--quiet"], stderr=subprocess.PIPE, text=True,
+            preexec_fn=lambda umask=umask: os.umask(umask)) for umask in (0o022, 0o077)}
+        for umask, p in procs.items():
+            err = p.communicate(timeout=300)[1]
+            assert p.returncode == 0, err
             out = base / f"run{umask:03o}"
-            r = run_subprocess("simulate", "--setup", str(small_setup_file), "--out", str(out), "--quiet",
-                               umask=umask)
-            assert r.returncode == 0, r.stderr
             paths = [out, *out.rglob("*")]
             modes = {stat.S_IMODE(p.stat().st_mode) for p in paths if p.is_dir()}
             assert modes == {0o777 & ~umask}, (oct(umask), modes)
