@@ -175,7 +175,7 @@ def test_cli_end_to_end_focal_lengths_and_outputs(imported):
 def test_slopes_match_sofast_with_its_measure_point_pixel(imported):
     """Control: anchored at SOFAST's own (refined) measure-point pixel, pmdsim's slopes equal
     SOFAST's to ≤ 0.005 mrad mean and median (measured ≈ 0.001). With pmdsim's own location of
-    the facet centre (0.4 px away) the offset is ≈ 0.026 mrad in x — the issue's target is not
+    the facet centre (0.13 px away) the offset is ≈ 0.008 mrad in x — the issue's target is not
     met there (docs/benchmarks.md); this test pins the algorithms, not the pixel."""
     d, _ = imported
     import cv2
