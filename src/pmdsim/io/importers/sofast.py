@@ -288,16 +288,29 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
     return m
 
 
-def _boundary(mask: np.ndarray) -> np.ndarray:
-    """Edge points (u, v) of the lit region, (K, 2): the midpoints between 4-neighbouring pixel
-    centres of which one is inside the mask and one outside (the region's edge, not its border
-    pixels' centres, which lie half a pixel inside)."""
+def _boundary(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+    """Edge points (u, v) of the lit region, (K, 2), between 4-neighbouring pixel centres of
+    which one is inside the mask and one outside: where the light − dark difference ``delta``
+    crosses the level halfway between the dark and the lit pixels (linear interpolation between
+    the two centres: a sub-pixel edge), or their midpoint without ``delta``."""
     m = np.asarray(mask, bool)
-    v, u = np.nonzero(m[1:, :] != m[:-1, :])
-    pv = np.stack([u.astype(float), v + 0.5], axis=-1)
-    v, u = np.nonzero(m[:, 1:] != m[:, :-1])
-    pu = np.stack([u + 0.5, v.astype(float)], axis=-1)
-    return np.concatenate([pv, pu])
+    level = None
+    if delta is not None:
+        level = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
+    out = []
+    for axis in (0, 1):
+        a_m, b_m = (m[:-1, :], m[1:, :]) if axis == 0 else (m[:, :-1], m[:, 1:])
+        sel = a_m != b_m
+        v, u = np.nonzero(sel)
+        t = np.full(v.shape, 0.5)
+        if delta is not None:
+            a, b = (delta[:-1, :], delta[1:, :]) if axis == 0 else (delta[:, :-1], delta[:, 1:])
+            a, b = a[sel], b[sel]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                tt = (level - a) / (b - a)
+            t = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
+        out.append(np.stack([u.astype(float), v + t], -1) if axis == 0 else np.stack([u + t, v.astype(float)], -1))
+    return np.concatenate(out)
 
 
 def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -308,12 +321,13 @@ def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(n @ c0)
 
 
-def facet_outline_corners(mask: np.ndarray) -> np.ndarray:
+def facet_outline_corners(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
     """The four corners (u, v) px of a quadrilateral mask, in cyclic order: initial corners are
     the boundary points extreme along the diagonals of the frame (rotated in 15° steps, the set
     of largest area kept); each side's boundary points (nearest to it, away from the corners)
-    are fitted by a total-least-squares line, twice, and adjacent lines intersected."""
-    pts = _boundary(mask)
+    are fitted by a total-least-squares line, twice, and adjacent lines intersected. Edge points:
+    :func:`_boundary` (sub-pixel with the light − dark image ``delta``)."""
+    pts = _boundary(mask, delta)
     if len(pts) < 16:
         raise SofastImportError("the lit region is too small to find the facet's outline")
     best, best_area = None, -1.0
@@ -348,12 +362,12 @@ def facet_outline_corners(mask: np.ndarray) -> np.ndarray:
     return corners
 
 
-def facet_centre_pixel(mask: np.ndarray, cam: Camera) -> tuple[float, float]:
+def facet_centre_pixel(mask: np.ndarray, cam: Camera, delta: np.ndarray | None = None) -> tuple[float, float]:
     """Pixel (row, column) of the centre of a parallelogram facet (a rectangle, a square) from
     its outline in ``mask``: the intersection of the diagonals of the outline's corners in
     undistorted normalised coordinates (a pinhole maps the facet's plane projectively, which
     keeps the diagonals' intersection), distorted back to pixels."""
-    corners = facet_outline_corners(mask)
+    corners = facet_outline_corners(mask, delta)
     xy_d = np.stack([(corners[:, 0] - cam.ppx_px) / cam.fx_px, (corners[:, 1] - cam.ppy_px) / cam.fy_px], -1)
     xy, ok = cam.undistort(xy_d)
     if not np.all(ok):
@@ -505,7 +519,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
             warn.append(f"{str(facet)!r}: the facet is not a parallelogram centred on its centroid, or the measure "
                         f"point {mp.tolist()} is not the centroid; the anchor pixel is the mask centroid")
         else:
-            pix = facet_centre_pixel(mask, cam)
+            delta = mask_imgs[..., 1].astype(float) - mask_imgs[..., 0].astype(float)
+            pix = facet_centre_pixel(mask, cam, delta)
             anchor_how = "the facet's centre, located from its outline in the mask (diagonals of the corners)"
     elif np.any(mp != 0):
         warn.append(f"{src_m}: v_measure_point_facet = {mp.tolist()} is not the facet origin; the anchor pixel is the "
