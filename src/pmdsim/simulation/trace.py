@@ -167,9 +167,11 @@ def _trace_run(
                     t, px, py, pz, hx, hy, st = intersect_solve(
                         s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
                     )
-                # Grazing or back-side incidence: v·n ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1).
+                # Grazing or back-side incidence: |v·n| ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1),
+                # or v·n of the other sign than v_z (the ray meets the side of the height field it did not
+                # start on).
                 vn = vz - hx * vx - hy * vy
-                if st == 0 and not (vn > 0.0 and vn * vn > (_COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE) * (
+                if st == 0 and not (vn * vz > 0.0 and vn * vn > (_COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE) * (
                         (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))):
                     st = 5  # -> SAMPLE_GRAZING
                 if st != 0:
