@@ -62,7 +62,8 @@ import numpy as np
 
 from .. import __version__
 from ..errors import PmdsimError, SetupError
-from ..setup import Setup, default_setup, load_setup, parse_setup
+from ..io.heightmap import load_setup, parse_setup  # height-map files of curved samples read (issue 14)
+from ..setup import Setup, default_setup
 
 __all__ = ["StudyError", "Parameter", "Study", "CaseSpec", "parse_study", "load_study", "ACTIONS", "METRICS",
            "STUDY_FORMAT", "OPTION_PATHS"]
