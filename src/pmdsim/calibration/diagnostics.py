@@ -29,7 +29,7 @@ __all__ = ["RATIO_WARN", "OUTLIER_FACTOR", "BlockResidual", "ResidualReport", "r
 #: The residual RMS may exceed the predicted noise by this factor before it is reported.
 RATIO_WARN = 3.0
 #: A block stands out if its ratio exceeds this multiple of the median block's (and RATIO_WARN).
-OUTLIER_FACTOR = 3.0
+OUTLIER_FACTOR = 1.5
 _MAX_SAMPLES = 400
 _EPS_MM = 1e-3
 

@@ -326,6 +326,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     return EvaluationSummary(cams, time.perf_counter() - t0, float(min_valid_fraction))
 
 
+def _ratios_by_camera_pose(residuals) -> dict:
+    out: dict = {}
+    for b in residuals.blocks:
+        out.setdefault(b.camera, {})[f"pose{b.pose_index}"] = float(b.ratio)
+    return out
+
+
 class ConsistencyFailure(ComputationError):
     """The images decode, but no pixel passes the consistency checks (nothing was written)."""
 
@@ -409,7 +416,7 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
                 expected = nominal_screen_xy(cs.camera, cs.T_world_cam, poses[k][1], nominal.screen.T_world_screen)
                 cons = check_consistency(images.x_stacks, images.x_periods_mm, images.y_stacks,
                                          images.y_periods_mm, dec, nominal.screen.size_mm, expected_xy_mm=expected)
-                dec = with_consistency(dec, cons)
+                dec = with_consistency(dec, cons, rescale_std=True)  # σ from the images' own noise
                 if cons.defects:
                     pose_notes.append(f"pose {k} ({poses[k][0]}) camera {cam!r}: " + "; ".join(cons.defects[:2]))
             if not dec.valid.any():
@@ -421,10 +428,13 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
         _tick(progress, f"decoded pose {k}")
     start = nominal_state(nominal, [T for _, T in poses])
     result = calibrate(obs, start, max_iter=max_iter)
-    if not result.converged:
-        raise CalibrationNotConverged(f"the calibration did not converge: {result.reason} (RMS {result.rms_px:.4g} px "
-                                      f"after {result.iterations} iterations); nothing written")
     residuals = residual_report(obs, result)
+    if not result.converged:
+        worst = sorted((b for b in residuals.blocks if b.ratio == b.ratio), key=lambda b: -b.ratio)[:2]
+        where = "; largest residuals (× the predicted noise) in " + ", ".join(
+            f"pose {b.pose_index} ({poses[b.pose_index][0]}) camera {b.camera!r} ({b.ratio:.0f}×)" for b in worst)
+        raise CalibrationNotConverged(f"the calibration did not converge: {result.reason} (RMS {result.rms_px:.4g} px "
+                                      f"after {result.iterations} iterations){where if worst else ''}; nothing written")
     warnings = list(pose_notes)
     w = residuals.warning([label for label, _ in poses])
     if w:
@@ -437,7 +447,7 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
               "condition_number": summary["condition_number"],
               "predicted_noise_rms_px": residuals.predicted_rms_px,
               "residual_to_noise_ratio": residuals.ratio,
-              "residual_ratio_by_camera_pose": {f"{b.camera}/{b.pose_index}": b.ratio for b in residuals.blocks},
+              "residual_ratio_by_camera_pose": _ratios_by_camera_pose(residuals),
               "warnings": warnings,
               "determination": result.determination_report(),
               "std": {name: c["std"] for name, c in summary["cameras"].items()}}
