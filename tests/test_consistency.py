@@ -101,6 +101,13 @@ def _missing_shift(d, man):  # the last shift of a period missing, no n_shifts i
         e.pop("n_shifts")
 
 
+def _three_periods(d, man):  # found by test_properties: every x period corrupted at once
+    a, b = _img(d, "left_x_p0_s0.png"), _img(d, "left_x_p2_s0.png")
+    _put(d, "left_x_p0_s0.png", b)
+    _put(d, "left_x_p2_s0.png", a)
+    _put(d, "left_x_p1_s0.png", np.zeros_like(a))
+
+
 CASES = {
     "dropped frame": (_drop, "sinusoid"),
     "duplicated frame": (_duplicate, "sinusoid"),
@@ -108,6 +115,7 @@ CASES = {
     "wrong period": (_wrong_period, "period 62.5 mm disagrees"),
     "misregistered period": (_misregistered, "period 60 mm disagrees"),
     "missing shift": (_missing_shift, "period 60 mm disagrees"),
+    "all x periods corrupted": (_three_periods, "sinusoid"),
 }
 
 

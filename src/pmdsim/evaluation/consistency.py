@@ -32,9 +32,10 @@ themselves show, and mark the pixels that fail with :class:`~.phase.PhaseFlag` b
 
 The noise σ_I is the larger of the given ``noise_std`` and the noise the images show: the
 per-pixel residual variances RSS/(N − 3) of each stack are binned by the offset A, each bin's
-median corrected to the mean of χ², and the photon-transfer line σ_I² = a + b·A (EMVA 1288:
-read noise + shot noise) fitted by non-negative least squares; σ_I²(A) is the median of the
-stacks' lines, so that a minority of bad stacks does not inflate it.
+mean of the lower 90 % corrected to the mean of χ², and the photon-transfer line σ_I² = a + b·A (EMVA 1288:
+read noise + shot noise) fitted by non-negative least squares; σ_I²(A) is the lowest of the
+stacks' lines (each a median over many pixels, so precise to a few per cent), so that bad stacks
+— up to all but one — do not inflate it.
 
 Only pixels the decoder found photometrically fine (no DARK, SATURATED, LOW_MODULATION,
 NONFINITE) are tested. Everything here is a pure function of arrays; nothing is printed.
@@ -80,6 +81,7 @@ OUTSIDE_SCREEN_FRACTION = 0.01
 CONSISTENCY_BITS = np.uint8(PhaseFlag.FIT_RESIDUAL | PhaseFlag.PERIOD_MISMATCH | PhaseFlag.GEOMETRY)
 _PHOTOMETRIC = np.uint8(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
 _N_BINS = 12
+_TRIM = 0.9
 _MIN_NOISE_PIXELS = 200
 
 
@@ -128,8 +130,8 @@ class ConsistencyResult:
     tested : ndarray (H, W) bool
         Pixels the checks were applied to (photometrically valid).
     noise_model : (float, float)
-        Median over the stacks of the fitted (a, b) of σ_I² = a + b·A (grey levels², grey
-        levels); NaN if not fitted (no stack with N ≥ 4).
+        The (a, b) of σ_I² = a + b·A (grey levels², grey levels) of the stack with the lowest
+        noise at the median offset; NaN if not fitted (no stack with N ≥ 4).
     noise_std_max : float
         Largest σ_I (grey levels) the checks used.
     false_alarm : float
@@ -158,7 +160,7 @@ class ConsistencyResult:
         given2 = np.broadcast_to(np.asarray(self.given_noise_std, dtype=np.float64) ** 2, a.shape)
         if self.noise_lines is None:
             return np.sqrt(given2)
-        est = np.median(self.noise_lines[:, 0, None, None] + self.noise_lines[:, 1, None, None] * a, axis=0)
+        est = np.min(self.noise_lines[:, 0, None, None] + self.noise_lines[:, 1, None, None] * a, axis=0)
         return np.sqrt(np.maximum(est, given2))
 
     def counts(self) -> dict[str, int]:
@@ -218,18 +220,23 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     lines = []
     for a_map, var_map, nu in usable:
         av = a_map[mask]
-        vv = var_map[mask] / (sst.chi2.median(nu) / nu)  # median of χ²(ν)/ν → its mean 1
+        vv = var_map[mask]
+        # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
+        # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
+        # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
+        trim = sst.chi2.cdf(sst.chi2.ppf(_TRIM, nu), nu + 2) / _TRIM
         edges = np.unique(np.quantile(av, np.linspace(0.0, 1.0, _N_BINS + 1)))
         centres, values = [], []
         for i in range(max(edges.size - 1, 1)):
             sel = (av >= edges[i]) & (av <= edges[min(i + 1, edges.size - 1)])
             if np.count_nonzero(sel) >= 20:
+                v = vv[sel]
                 centres.append(float(np.median(av[sel])))
-                values.append(float(np.median(vv[sel])))
+                values.append(float(np.mean(v[v <= np.quantile(v, _TRIM)])) / trim)
         if centres:
             design = np.column_stack([np.ones(len(centres)), np.asarray(centres)])
             coef, _ = nnls(design, np.asarray(values))
-            if np.ptp(centres) < 1e-9 * max(1.0, abs(centres[0])):  # one offset level: a constant
+            if np.ptp(centres) < 0.5 * np.median(centres):  # too narrow a range of A for a slope: a constant
                 coef = np.array([float(np.median(values)), 0.0])
             lines.append(coef)
     if not lines:
@@ -347,7 +354,7 @@ def check_consistency(
         if lines is None:
             return given2
         a = np.clip(np.nan_to_num(a_map), 0.0, None)
-        est = np.median(lines[:, 0, None, None] + lines[:, 1, None, None] * a, axis=0)
+        est = np.min(lines[:, 0, None, None] + lines[:, 1, None, None] * a, axis=0)
         return np.maximum(est, given2)
 
     flags = np.zeros((h, w), np.uint8)
@@ -440,7 +447,7 @@ def check_consistency(
         flags=flags, fit_residual_ratio=fit_ratio, period_mismatch_ratio=mis_ratio, worst_image=worst_image,
         images=tuple(labels), image_counts=image_counts, period_counts=period_counts,
         geometry_counts=geometry_counts, defects=tuple(defects), tested=tested,
-        noise_model=(math.nan, math.nan) if lines is None else tuple(float(v) for v in np.median(lines, axis=0)),
+        noise_model=(math.nan, math.nan) if lines is None else tuple(float(v) for v in lines[np.argmin(lines[:, 0] + lines[:, 1] * np.nanmedian(all_items[0]["A"][mask]) if mask.any() else lines[:, 0])]),
         noise_std_max=noise_max,
         false_alarm=float(false_alarm), noise_lines=lines, given_noise_std=noise_std,
     )
