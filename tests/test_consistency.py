@@ -260,3 +260,19 @@ def test_orientation_check_closed_form():
     cons = check_consistency(sx, px, sy, py, dec, (100.0, 80.0), 1.0, expected_xy_mm=truth)
     assert np.all(cons.flags[cons.tested] & PhaseFlag.GEOMETRY)
     assert cons.geometry_counts["orientation"] == cons.tested.sum()
+
+
+def test_five_shifts_name_the_dropped_frame(tmp_path, small_toml):
+    """With N = 5 the residual has 2 degrees of freedom and points at the bad frame: the error
+    names its file."""
+    setup = tmp_path / "n5.toml"
+    t = replace_exactly(small_toml, "n_shifts = 4", "n_shifts = 5", 1)
+    setup.write_text(replace_exactly(t, "noise_std = 0.0", f"noise_std = {NOISE}", 1))
+    d = tmp_path / "set"
+    r = _run(["simulate", "--setup", str(setup), "--out", str(d), "--quiet"])
+    assert r.exit_code == 0, r.output
+    _put(d, "left_y_p2_s3.png", np.zeros_like(_img(d, "left_y_p2_s3.png")))
+    r = _run(["evaluate", str(d), "--setup", str(setup), "--out", str(tmp_path / "ev"), "--quiet"])
+    assert r.exit_code == 1, r.output
+    (err,) = [line for line in r.output.splitlines() if line.startswith("pmdsim: error:")]
+    assert "image left_y_p2_s3.png deviates from its period's sinusoid" in err

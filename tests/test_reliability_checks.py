@@ -97,6 +97,57 @@ def test_huge_camera_refused_before_allocation(tmp_path, default_toml):
     assert r.exit_code == 2 and "GiB" in _errors(r)[0]
 
 
+def _huge_png(path: Path, width: int, height: int) -> None:
+    """A valid PNG header claiming width × height px (the pixel data are not there)."""
+    import struct
+    import zlib
+
+    from PIL import Image
+
+    Image.new("L", (2, 2)).save(path)
+    b = bytearray(path.read_bytes())
+    assert b[12:16] == b"IHDR"
+    b[16:24] = struct.pack(">II", width, height)
+    b[29:33] = struct.pack(">I", zlib.crc32(bytes(b[12:29])))
+    path.write_bytes(bytes(b))
+
+
+def test_huge_image_file_refused(tmp_path, small_set, small_setup_file, default_toml):
+    """An image set whose first image claims 100000×100000 px: refused from its header (no
+    cameras block in the manifest), or when read (PIL's decompression-bomb limit), or — when the
+    setup and manifest agree on that size — by the memory estimate; never a 149 GiB allocation."""
+    import json
+    import shutil
+
+    d = tmp_path / "set"
+    shutil.copytree(small_set, d)
+    _huge_png(d / "left_x_p0_s0.png", 100000, 100000)
+    r = _run(["evaluate", str(d), "--setup", str(small_setup_file), "--out", str(tmp_path / "ev"), "--quiet"])
+    assert r.exit_code == 2, r.output
+    (err,) = _errors(r)
+    assert "left_x_p0_s0.png" in err and "10000000000 pixels" in err
+    doc = json.loads((d / "manifest.json").read_text())
+    del doc["cameras"]
+    (d / "manifest.json").write_text(json.dumps(doc))
+    r = _run(["evaluate", str(d), "--out", str(tmp_path / "ev"), "--quiet"])
+    assert r.exit_code == 2, r.output
+    (err,) = _errors(r)
+    assert "left_x_p0_s0.png" in err
+    # The same size in the setup: the size check passes, the memory estimate refuses.
+    huge = tmp_path / "huge.toml"
+    huge.write_text(replace_exactly(default_toml, "image_size_px = [1920, 1200]", "image_size_px = [100000, 100000]", 2))
+    d2 = tmp_path / "set2"
+    shutil.copytree(small_set, d2)
+    man = d2 / "manifest.json"
+    doc = json.loads(man.read_text())
+    doc["cameras"] = {c: {"image_size_px": [100000, 100000]} for c in doc["cameras"]}
+    man.write_text(json.dumps(doc))
+    r = _run(["evaluate", str(d2), "--setup", str(huge), "--out", str(tmp_path / "ev2"), "--quiet"])
+    assert r.exit_code == 2, r.output
+    (err,) = _errors(r)
+    assert "GiB" in err and "100000×100000" in err
+
+
 def test_memory_estimate_scales_with_pixels(default_toml, tmp_path):
     from pmdsim.setup import default_setup
 

@@ -294,7 +294,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                 if not decoded.valid.any() and cons.tested.any():
                     raise ConsistencyFailure(
                         f"{cam}: no pixel of {image_dir} passed the consistency checks; "
-                        + "; ".join(cons.reasons(2)) + "; nothing written")
+                        + "; ".join(_name_files(r, manifest, cam, cons.images) for r in cons.reasons(2))
+                        + "; nothing written")
             reg, rec = evaluate_decoded(setup, cam, decoded, screen_model=model_surface, method=method,
                                         seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
             results[cam] = (decoded, reg, rec)
@@ -322,7 +323,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "converged": bool(rec.converged), "usable": usable,
                      "valid_fraction": n_rec / usable if usable else 0.0,
                      "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam) for r in c.reasons()] if c is not None else []}
+                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
     return EvaluationSummary(cams, time.perf_counter() - t0, float(min_valid_fraction))
 
 
@@ -346,8 +347,14 @@ def _image_files(manifest, cam: str, labels) -> list[str]:
     return out
 
 
-def _name_files(reason: str, manifest, cam: str) -> str:
-    return reason  # the labels name direction, period and shift; the files are in evaluation.h5
+def _name_files(reason: str, manifest, cam: str, labels) -> str:
+    """The reason with each image label replaced by its file name(s)."""
+    for lab, f in zip(labels, _image_files(manifest, cam, labels)):
+        text = f"image ({lab})"
+        if text in reason:
+            name = f if lab.shift_index is not None else f"one of {f.replace('|', ', ')} (N = 4 cannot tell which)"
+            reason = reason.replace(text, f"image {name}")
+    return reason
 
 
 # ============================================================================ calibrate
