@@ -21,7 +21,6 @@ from click.testing import CliRunner
 
 from pmdsim.cli import main
 from pmdsim.studies.checks import InsufficientMemoryError, check_memory, estimate_bytes
-from pmdsim.setup import load_setup
 
 from conftest import SMALL_H, SMALL_W, replace_exactly
 

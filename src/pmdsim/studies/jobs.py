@@ -43,7 +43,10 @@ from ..io import (
     write_png,
 )
 from ..io.hdf5 import write_consistency_h5
-from ..io.imageset import decode_camera, load_manifest
+from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
+from ..calibration.diagnostics import residual_report
+from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
+from .checks import check_memory
 from ..setup import Setup
 from ..simulation.imaging import needs_points
 from ..setup.sensor import SensorModel
@@ -109,8 +112,6 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
     calibration mirror in pose K (noise stream K + 1, as the in-memory experiments use) instead
     of the sample.
     """
-    from .checks import check_memory
-
     if calibration_pose is not None:
         setup = setup.with_mirror_pose(calibration_pose)
     check_memory(setup, "simulate")
@@ -259,10 +260,6 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ConsistencyFailure
         If no pixel of a camera passes decoding and the consistency checks (nothing written).
     """
-    from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
-    from ..io.imageset import decode_camera_images, load_camera_stacks
-    from .checks import check_memory
-
     if screen_model not in ("planar", "setup"):
         raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
     if not 0.0 <= float(min_valid_fraction) <= 1.0:
@@ -390,10 +387,6 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
     """
     from ..io.outputs import check_output_target
     from .. import __version__
-    from ..calibration.diagnostics import residual_report
-    from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
-    from ..io.imageset import decode_camera_images, load_camera_stacks
-    from .checks import check_memory
 
     nominal = nominal.with_bulge(0.0)
     poses = nominal.calibration.mirror_poses(nominal.sample)
