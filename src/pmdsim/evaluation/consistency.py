@@ -47,6 +47,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+import numba
 import numpy as np
 
 from ..geometry.camera import Camera
@@ -82,6 +83,7 @@ CONSISTENCY_BITS = np.uint8(PhaseFlag.FIT_RESIDUAL | PhaseFlag.PERIOD_MISMATCH |
 _PHOTOMETRIC = np.uint8(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
 _N_BINS = 12
 _TRIM = 0.9
+_MAX_NOISE_SAMPLES = 60_000
 _MIN_NOISE_PIXELS = 200
 
 
@@ -188,25 +190,58 @@ class ConsistencyResult:
         return out
 
 
-def _stack_stats(stack: np.ndarray):
-    """A, B, φ, RSS and argmax_k |r_k| of one (N, H, W) stack (equal shifts)."""
-    arr = np.asarray(stack, dtype=np.float64)
-    n = arr.shape[0]
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
+    """Per pixel of one (N, H, W) stack with equal shifts: A, B, φ ∈ [0, 2π), RSS of the N-step
+    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns")."""
+    n, h, w = images.shape
+    two_pi = 2.0 * math.pi
+    for v in numba.prange(h):
+        for u in range(w):
+            sa = 0.0
+            sc = 0.0
+            ss = 0.0
+            for k in range(n):
+                x = np.float64(images[k, v, u])
+                sa += x
+                sc += x * cos_d[k]
+                ss += x * sin_d[k]
+            a = sa / n
+            c = 2.0 * sc / n
+            s = 2.0 * ss / n
+            phi = math.atan2(s, c)
+            if phi < 0.0:
+                phi += two_pi
+            rss = 0.0
+            best = -1.0
+            worst = 0
+            for k in range(n):
+                r = np.float64(images[k, v, u]) - a - c * cos_d[k] - s * sin_d[k]
+                rss += r * r
+                if abs(r) > best:
+                    best = abs(r)
+                    worst = k
+            a_out[v, u] = a
+            b_out[v, u] = math.sqrt(c * c + s * s)
+            phi_out[v, u] = phi
+            rss_out[v, u] = rss
+            worst_out[v, u] = worst
+
+
+def _stack_stats(stack):
+    """A, B, φ, RSS and argmax_k |r_k| of one (N, H, W) stack (equal shifts), each (H, W)."""
+    arr = np.asarray(stack)
+    if arr.dtype.kind not in "uif" or not arr.dtype.isnative:
+        arr = arr.astype(np.float64)
+    arr = np.ascontiguousarray(arr)
+    n, h, w = arr.shape
     d = equal_shifts(n)
-    cos_d, sin_d = np.cos(d), np.sin(d)
-    a = arr.mean(axis=0)
-    c = np.tensordot(2.0 / n * cos_d, arr, axes=1)
-    s = np.tensordot(2.0 / n * sin_d, arr, axes=1)
-    b = np.hypot(c, s)
-    phi = np.mod(np.arctan2(s, c), 2.0 * math.pi)
-    if n > 3:
-        r = arr - a - c * cos_d[:, None, None] - s * sin_d[:, None, None]
-        rss = np.einsum("kij,kij->ij", r, r)
-        worst = np.argmax(np.abs(r), axis=0).astype(np.int16)
-    else:
-        rss = np.zeros_like(a)
-        worst = np.zeros(a.shape, np.int16)
-    return a, b, phi, rss, worst
+    out = [np.empty((h, w)) for _ in range(4)]
+    worst = np.empty((h, w), np.int16)
+    _stack_kernel(arr, np.cos(d), np.sin(d), *out, worst)
+    if n <= 3:
+        out[3][:] = 0.0  # an exact fit: no residual
+    return (*out, worst)
 
 
 def _noise_model(stats_list, mask, given2: np.ndarray):
@@ -218,9 +253,12 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
         return None
     lines = []
+    idx = np.flatnonzero(mask)
+    if idx.size > _MAX_NOISE_SAMPLES:  # a seeded subsample: the medians/means need no more
+        idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
     for a_map, var_map, nu in usable:
-        av = a_map[mask]
-        vv = var_map[mask]
+        av = a_map.ravel()[idx]
+        vv = var_map.ravel()[idx]
         # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
         # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
         # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
