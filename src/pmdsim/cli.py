@@ -115,8 +115,7 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
     setup = _load(setup_path, bulge_mm)
     if show:
         click.echo(setup.to_toml(), nl=False)
-    else:
-        click.echo(f"setup OK: cameras {', '.join(setup.cameras)}; use --show to print it", err=True)
+        return
     shape = setup.sample.shape
     if shape is not None:  # curved sample (issue 14): what it is, and what resampling cost
         report = setup.sample.interpolation_report
@@ -125,6 +124,23 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
                 else f"{shape.kind} (closed form, exact: no interpolation)" if hasattr(shape, "kind")
                 else f"height map {shape.file!r}")
         click.echo(f"sample: {what}", err=True)
+    from .studies.checks import setup_findings  # coverage, clipping, periods (issue 11)
+
+    findings = setup_findings(setup)
+    for f in findings:
+        prefix = {"fatal": "pmdsim: error: ", "warning": "pmdsim: warning: ", "info": "  "}[f.level]
+        click.echo(prefix + f.message, err=True)
+    if any(f.level == "fatal" for f in findings):
+        sys.exit(2)
+    n_warn = sum(f.level == "warning" for f in findings)
+    click.echo(f"setup OK: cameras {', '.join(setup.cameras)}"
+               + (f" ({n_warn} warning{'s' if n_warn > 1 else ''} above)" if n_warn else "")
+               + "; use --show to print it", err=True)
+
+
+def _setup_source(setup_path: str | None) -> str:
+    """How error messages name the setup: its file, or the built-in one when --setup is missing."""
+    return f"setup {setup_path}" if setup_path else "the built-in Table 1 setup (no --setup given)"
 
 
 def _command() -> str:
@@ -179,10 +195,14 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
               help="Stereo: absolute heights from all cameras without a seed (docs/stereo.md); no --seed-pixel.")
 @click.option("--search-range-mm", type=(float, float), default=None,
               help="--stereo: heights searched along the view rays, sample frame (default: -20 20).")
+@click.option("--min-valid-fraction", type=click.FloatRange(0.0, 1.0), default=0.5, show_default=True,
+              help="Fail (exit 1, outputs kept for inspection) when fewer of the pixels that see fringes are "
+                   "reconstructed (consistency checks: docs/reliability.md).")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
-                 anchor_pixel, anchor_point_mm, noise_std, stereo, search_range_mm, force, quiet) -> None:
+                 anchor_pixel, anchor_point_mm, noise_std, stereo, search_range_mm, min_valid_fraction, force,
+                 quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
@@ -216,13 +236,19 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
                                      noise_std=noise_std, force=force, command=_command(),
-                                     progress=lambda msg: bar.update(1), inputs=[setup_path])
+                                     progress=lambda msg: bar.update(1), inputs=[setup_path],
+                                     min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path))
     for line in summary.lines():
         click.echo(line)
-    for w in summary.warnings:
+    for w in (*summary.warnings, *summary.data_warnings()):
         click.echo(f"pmdsim: warning: {w}", err=True)
     click.echo(f"wrote evaluation.h5, height_*.png, surface_fit.json and slope_error.png to {out_dir} in "
                f"{summary.seconds:.1f} s", err=True)
+    failures = summary.failures()
+    if failures:
+        click.echo(f"pmdsim: error: {' | '.join(failures)} (outputs kept in {out_dir} for inspection; "
+                   f"--min-valid-fraction sets the limit)", err=True)
+        sys.exit(1)
 
 
 @main.group("import")
@@ -281,11 +307,14 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     nominal = _load(setup_path, None)
     with _bar(len(image_dirs), "decoding", quiet) as bar:
         run = calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                   command=_command(), progress=lambda msg: bar.update(1), inputs=[setup_path])
+                                   command=_command(), progress=lambda msg: bar.update(1), inputs=[setup_path],
+                                   setup_source=_setup_source(setup_path))
     for name, c in run.summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
     click.echo(run.result.determination_report(), err=True)
+    for line in run.warnings:
+        click.echo(f"pmdsim: warning: {line}", err=True)
     click.echo(f"calibration converged ({run.result.reason}); RMS {run.result.rms_px:.4f} px over "
                f"{run.result.n_residuals} residuals; wrote {out_path}", err=True)
 
@@ -334,6 +363,9 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 
     base = _load(setup_path, None)
     check_output_target(out_dir, force=force, inputs=[setup_path], kind="dir")  # before hours of computing
+    from .studies.checks import check_memory
+
+    check_memory(base.binned(downsample), "evaluate")
     if number == "5":
         from .studies.experiment5 import experiment5_steps, write_experiment5
 

@@ -98,7 +98,23 @@ class PhaseFlag(enum.IntFlag):
                                        coordinate disagrees with the finer one by more than
                                        ``tolerance ·`` (finer period)
     ``NONFINITE``               16     a sample or phase is NaN or infinite
+    ``FIT_RESIDUAL``            32     an image deviates from the sinusoid fitted to its
+                                       period's N images by more than the noise allows
+                                       (a dropped, duplicated or foreign frame; set by
+                                       :mod:`pmdsim.evaluation.consistency`)
+    ``PERIOD_MISMATCH``         64     a period's coordinate disagrees with the next coarser
+                                       one by more than the predicted noise of both (a wrong
+                                       period, misregistered images, a missing shift; set
+                                       by :mod:`pmdsim.evaluation.consistency`)
+    ``GEOMETRY``                128    the decoded coordinate lies outside the screen, or the
+                                       local orientation of the pixel → screen mapping is
+                                       flipped against the nominal sample's (a reversed shift
+                                       order or swapped directions; set by
+                                       :mod:`pmdsim.evaluation.consistency`)
     ==========================  =====  ======================================================
+
+    The decoder itself (:func:`decode_screen_coordinates`) sets bits 1–16; the consistency
+    bits 32–128 are OR-ed in by :func:`pmdsim.evaluation.consistency.check_consistency`.
     """
 
     VALID = 0
@@ -107,6 +123,9 @@ class PhaseFlag(enum.IntFlag):
     LOW_MODULATION = 4
     UNWRAP_INCONSISTENT = 8
     NONFINITE = 16
+    FIT_RESIDUAL = 32
+    PERIOD_MISMATCH = 64
+    GEOMETRY = 128
 
 
 _DARK = np.uint8(PhaseFlag.DARK)

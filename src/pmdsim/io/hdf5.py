@@ -153,3 +153,28 @@ def append_stereo_h5(path: str | Path, stereo, attrs: dict[str, Any]) -> None:
             g.create_dataset("anchor_height_mm", data=c.anchor_height_mm)
             g.create_dataset("anchor_residual_urad", data=c.anchor_residual_urad)
             g.create_dataset("anchor_fit_um", data=c.anchor_fit_um)
+
+
+def write_consistency_h5(path: str | Path, checks: dict, image_files: dict[str, list[str]]) -> None:
+    """Add the consistency maps of :func:`pmdsim.evaluation.consistency.check_consistency` to an
+    evaluation file (per camera group; the existing datasets are unchanged).
+
+    Datasets per camera: ``consistency_flags`` (uint8, the FIT_RESIDUAL / PERIOD_MISMATCH /
+    GEOMETRY bits of :class:`pmdsim.evaluation.phase.PhaseFlag`, also OR-ed into ``phase_flags``),
+    ``fit_residual_ratio`` and ``period_mismatch_ratio`` (float32, test statistic / threshold:
+    > 1 is flagged, NaN where not tested) and ``worst_image`` (int16, index into the group
+    attribute ``consistency_images`` — the file name(s) of the image with the largest residual,
+    ``a|b|c|d`` when a 4-shift period cannot tell which — or −1).
+    """
+    kw = _GZIP_FLOAT
+    with h5py.File(path, "a") as f:
+        for cam, c in checks.items():
+            g = f[cam]
+            g.create_dataset("consistency_flags", data=c.flags, **kw)
+            g.create_dataset("fit_residual_ratio", data=c.fit_residual_ratio, **kw)
+            g.create_dataset("period_mismatch_ratio", data=c.period_mismatch_ratio, **kw)
+            g.create_dataset("worst_image", data=c.worst_image, **kw)
+            g.attrs["consistency_images"] = json.dumps(image_files[cam])
+            g.attrs["consistency_false_alarm"] = c.false_alarm
+            g.attrs["consistency_noise_model"] = json.dumps(list(c.noise_model))
+            g.attrs["consistency_reasons"] = json.dumps(c.reasons())

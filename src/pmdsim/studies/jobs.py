@@ -30,6 +30,7 @@ from ..calibration import (
 )
 from .. import interrupts
 from ..errors import ComputationError, PmdsimError
+from ..evaluation.phase import PhaseFlag
 from ..io import (
     IMAGESET_FORMAT,
     MANIFEST_NAME,
@@ -42,7 +43,12 @@ from ..io import (
     write_mapping_h5,
     write_png,
 )
-from ..io.imageset import decode_camera, load_manifest
+from ..io.hdf5 import write_consistency_h5
+from ..io.imageset import decode_camera, decode_camera_images, load_camera_stacks, load_manifest
+from ..io.imageset_instrument import apply_mask_and_map
+from ..calibration.diagnostics import residual_report
+from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
+from .checks import check_memory
 from ..setup import Setup
 from ..simulation.imaging import needs_points
 from ..setup.sensor import SensorModel
@@ -58,6 +64,9 @@ __all__ = [
     "evaluate_image_set_stereo",
     "calibrate_image_sets",
     "CalibrationNotConverged",
+    "ConsistencyFailure",
+    "check_image_sizes",
+    "DEFAULT_MIN_VALID_FRACTION",
 ]
 
 Progress = Callable[[str], None]
@@ -111,6 +120,7 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
     """
     if calibration_pose is not None:
         setup = setup.with_mirror_pose(calibration_pose)
+    check_memory(setup, "simulate")
     prov = provenance(command, setup.to_toml())
     t0 = time.perf_counter()
     with atomic_output_dir(out_dir, force=force, inputs=inputs, command=command) as tmp:
@@ -150,16 +160,28 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
 
 
 # ============================================================================ evaluate
+#: Default ``min_valid_fraction`` of :func:`evaluate_image_set`: below this fraction of the pixels
+#: that see fringes being reconstructed, the evaluation fails (exit 1 in the CLI).
+DEFAULT_MIN_VALID_FRACTION = 0.5
+#: Below this fraction (or with more than :data:`WARN_FLAGGED_FRACTION` of the pixels flagged by the
+#: consistency checks) the evaluation warns.
+WARN_VALID_FRACTION = 0.9
+WARN_FLAGGED_FRACTION = 0.001
+
+
 @dataclass(frozen=True)
 class EvaluationSummary:
-    """Per camera: decoded, reconstructed pixels, height range (µm) and convergence; seconds;
-    the anchor (or that heights are relative), the surface fit and the plausibility warnings."""
+    """Per camera: decoded, reconstructed pixels, height range (µm), convergence, the pixels that
+    see fringes (``usable``), consistency flag counts and reasons; seconds; the anchor (or that
+    heights are relative), the surface fit and the plausibility warnings (``warnings``; the data
+    warnings of the consistency checks: :meth:`data_warnings`)."""
 
     cameras: dict[str, dict]
     seconds: float
     surface_fit: dict | None = None
     warnings: tuple[str, ...] = ()
     response: dict | None = None
+    min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION
 
     def lines(self) -> list[str]:
         out = []
@@ -204,6 +226,66 @@ class EvaluationSummary:
                            f"(max {st['height_discrepancy_max_um']:.3g})")
         return out
 
+    def data_warnings(self) -> list[str]:
+        """One line per camera whose data look wrong (few valid pixels, consistency flags)."""
+        out = []
+        for cam, c in self.cameras.items():
+            if "valid_fraction" not in c:  # a stereo summary: its report is in lines()
+                continue
+            flagged = sum(c.get("consistency_counts", {}).values())
+            if c["valid_fraction"] < WARN_VALID_FRACTION or flagged > max(10, WARN_FLAGGED_FRACTION * c["usable"]):
+                why = "; ".join(c.get("reasons", [])[:3]) or "see phase_flags in evaluation.h5"
+                out.append(f"{cam}: {c['reconstructed']} of {c['usable']} pixels that see fringes reconstructed "
+                           f"({c['valid_fraction']:.1%}); {why}")
+        return out
+
+    def failures(self) -> list[str]:
+        """One line per camera whose valid fraction is below ``min_valid_fraction``."""
+        return [f"{cam}: only {c['valid_fraction']:.1%} of the {c['usable']} pixels that see fringes were "
+                f"reconstructed (minimum {self.min_valid_fraction:.0%}); "
+                + ("; ".join(c.get("reasons", [])[:2]) or "see phase_flags in evaluation.h5")
+                for cam, c in self.cameras.items()
+                if "valid_fraction" in c and not c["valid_fraction"] >= self.min_valid_fraction]
+
+
+def check_image_sizes(manifest, setup: Setup, where: str = "the setup") -> None:
+    """Refuse an image set whose images differ in size from the setup's cameras (before any work).
+
+    The size is the manifest's ``cameras.<name>.image_size_px`` if given, else read from the
+    header of the camera's first image (nothing else is loaded).
+
+    Raises
+    ------
+    JobInputError
+        One line naming both sizes.
+    """
+    for cam in manifest.cameras:
+        if cam not in setup.cameras:
+            continue
+        c = setup.cameras[cam].camera
+        want = (c.width_px, c.height_px)
+        got = manifest.image_size_px.get(cam)
+        src = f"{manifest.path}: cameras.{cam}.image_size_px"
+        if got is None:
+            first = manifest.layout[cam]["x"][0].entries[0]
+            got = _image_size_px(first.path)
+            src = f"{first.path}"
+        if tuple(got) != want:
+            raise JobInputError(f"images of camera {cam!r} are {got[0]}×{got[1]} px (W×H, {src}) but {where}'s camera "
+                                f"{cam!r} is {want[0]}×{want[1]} px (image_size_px); give the setup of these images "
+                                f"with --setup")
+
+
+def _image_size_px(path: Path) -> tuple[int, int]:
+    """(W, H) from an image file's header (PNG/TIFF; the pixels are not decoded)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except Exception as e:  # PIL raises several types for broken files
+        raise JobInputError(f"cannot read image {str(path)!r}: {e}") from None
+
 
 def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
     """The anchor of an evaluation: explicit > seed options > the manifest's > none."""
@@ -224,8 +306,9 @@ def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
 def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str = "stepwise",
                        screen_model: str | None = None, seed_pixel=None, seed_height_mm: float | None = None,
                        anchor=None, noise_std=None, force: bool = False, command: str | None = None,
-                       progress: Progress | None = None,
-                       inputs: Sequence[str | Path | None] = ()) -> EvaluationSummary:
+                       progress: Progress | None = None, inputs: Sequence[str | Path | None] = (),
+                       min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION, consistency: bool = True,
+                       setup_source: str = "the setup") -> EvaluationSummary:
     """Decode, register and reconstruct every camera of an image set (paper §2.5).
 
     ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
@@ -239,6 +322,22 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``surface_fit.json`` (``focal_length_x_mm``, ``focal_length_y_mm``,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
     ``out_dir`` must not be ``image_dir`` nor another of ``inputs`` (e.g. the setup file).
+
+    The decoded images are checked for consistency (:mod:`pmdsim.evaluation.consistency`:
+    per-image fit residuals, agreement of the periods, geometry) unless ``consistency`` is False
+    or the manifest declares a response or a screen map (the checks model the raw images as
+    sinusoids of the pattern coordinates; skipped with a warning); flagged pixels are not
+    reconstructed and ``evaluation.h5`` gets the maps ``consistency_flags``,
+    ``fit_residual_ratio``, ``period_mismatch_ratio``, ``worst_image``. The returned summary's
+    :meth:`EvaluationSummary.data_warnings` and :meth:`EvaluationSummary.failures` (valid
+    fraction below ``min_valid_fraction``) are for the caller to report.
+
+    Raises
+    ------
+    JobInputError
+        Unknown camera, images of another size than the setup's cameras, too little memory.
+    ConsistencyFailure
+        If no pixel of a camera passes decoding and the consistency checks (nothing written).
     """
     from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
     from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
@@ -250,22 +349,48 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
         screen_model = manifest.instrument.screen_model or "planar"
     if screen_model not in ("planar", "setup"):
         raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
+    if not 0.0 <= float(min_valid_fraction) <= 1.0:
+        raise JobInputError(f"min_valid_fraction must be in [0, 1], got {min_valid_fraction!r}")
     unknown = [c for c in manifest.cameras if c not in setup.cameras]
     if unknown:
         raise JobInputError(f"camera(s) {unknown} of {image_dir}/manifest.json are not in the setup "
                             f"(setup cameras: {list(setup.cameras)})")
     anchor = _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor)
+    check_image_sizes(manifest, setup, setup_source)
+    check_memory(setup, "evaluate", cameras=manifest.cameras, n_images=len(manifest.entries))
     prov = provenance(command, setup.to_toml())
     model_surface = None if screen_model == "planar" else setup.screen.surface
     warnings = list(check_scale(setup))
     t0 = time.perf_counter()
     results = {}
     anchors = {}
+    checks = {}
+    inst = manifest.instrument
+    run_checks = consistency and inst.response is None and inst.screen_map is None
+    if consistency and not run_checks:
+        warnings.append("consistency checks skipped: the manifest declares a response or a screen map, which the "
+                        "checks do not model yet (docs/reliability.md)")
     with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
         for cam in manifest.cameras:
             c = setup.cameras[cam].camera
-            decoded = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
-                                    expected_size_px=(c.width_px, c.height_px))
+            images = load_camera_stacks(manifest, cam, expected_size_px=(c.width_px, c.height_px))
+            decoded = decode_camera_images(images, setup.screen.size_mm, noise_std, response=inst.response)
+            if inst.mask is not None or inst.screen_map is not None:
+                decoded = apply_mask_and_map(decoded, mask=inst.mask, screen_map=inst.screen_map,
+                                             source=str(manifest.path))
+            if run_checks:
+                cs = setup.cameras[cam]
+                expected = nominal_screen_xy(cs.camera, cs.T_world_cam, setup.sample.T_world_sample,
+                                             setup.screen.T_world_screen)
+                cons = check_consistency(images.x_stacks, images.x_periods_mm, images.y_stacks, images.y_periods_mm,
+                                         decoded, setup.screen.size_mm, noise_std, expected_xy_mm=expected)
+                decoded = with_consistency(decoded, cons)
+                checks[cam] = cons
+                if not decoded.valid.any() and cons.tested.any():
+                    raise ConsistencyFailure(
+                        f"{cam}: no pixel of {image_dir} passed the consistency checks; "
+                        + "; ".join(_name_files(r, manifest, cam, cons.images) for r in cons.reasons(2))
+                        + "; nothing written")
             warnings += check_orientation(setup, cam, decoded.screen_xy_mm, decoded.valid)
             reg = register_model(setup, cam, decoded, screen_model=model_surface)
             bounds = (model_surface.bounds_mm if model_surface is not None else
@@ -316,16 +441,56 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                              "heights_relative": any(a["kind"] == "none" for a in anchors.values()),
                              "warnings": json.dumps(warnings)},
                             extras=dict(zip(manifest.cameras, extras)))
+        if checks:
+            write_consistency_h5(tmp / "evaluation.h5", checks,
+                                 {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
     cams = {}
+    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
     for cam, (decoded, reg, rec) in results.items():
         h = rec.height_mm[rec.reconstructed] * 1e3
+        usable = int(np.count_nonzero((decoded.flags & photometric) == 0))
+        n_rec = int(rec.reconstructed.sum())
+        c = checks.get(cam)
         cams[cam] = {"pixels": int(decoded.valid.size), "decoded": int(decoded.valid.sum()),
-                     "reconstructed": int(rec.reconstructed.sum()),
+                     "reconstructed": n_rec,
                      "height_min_um": float(np.min(h)) if h.size else float("nan"),
                      "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged), "anchor": anchors[cam]}
+                     "converged": bool(rec.converged), "anchor": anchors[cam], "usable": usable,
+                     "valid_fraction": n_rec / usable if usable else 0.0,
+                     "consistency_counts": c.counts() if c is not None else {},
+                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
     return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
-                             manifest.instrument.response_info)
+                             manifest.instrument.response_info, float(min_valid_fraction))
+
+
+def _ratios_by_camera_pose(residuals) -> dict:
+    out: dict = {}
+    for b in residuals.blocks:
+        out.setdefault(b.camera, {})[f"pose{b.pose_index}"] = float(b.ratio)
+    return out
+
+
+class ConsistencyFailure(ComputationError):
+    """The images decode, but no pixel passes the consistency checks (nothing was written)."""
+
+
+def _image_files(manifest, cam: str, labels) -> list[str]:
+    """File name of each consistency image label (``"a|b|c|d"`` for a period's unidentified frame)."""
+    out = []
+    for lab in labels:
+        files = [p.name for p in manifest.files(cam, lab.direction, lab.period_mm)]
+        out.append("|".join(files) if lab.shift_index is None else files[lab.shift_index])
+    return out
+
+
+def _name_files(reason: str, manifest, cam: str, labels) -> str:
+    """The reason with each image label replaced by its file name(s)."""
+    for lab, f in zip(labels, _image_files(manifest, cam, labels)):
+        text = f"image ({lab})"
+        if text in reason:
+            name = f if lab.shift_index is not None else f"one of {f.replace('|', ', ')} (N = 4 cannot tell which)"
+            reason = reason.replace(text, f"image {name}")
+    return reason
 
 
 def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str | Path, *,
@@ -400,12 +565,15 @@ class CalibrationRun:
     result: CalibrationResult
     model: Setup
     summary: dict
+    warnings: tuple = ()  # one line each: inconsistent images, residuals above the predicted noise
+    residuals: object = None  # pmdsim.calibration.diagnostics.ResidualReport
 
 
 def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_path: str | Path, *,
                          stride: int | None = None, max_iter: int = 100, force: bool = False,
                          command: str | None = None, progress: Progress | None = None,
-                         inputs: Sequence[str | Path | None] = ()) -> CalibrationRun:
+                         inputs: Sequence[str | Path | None] = (), setup_source: str = "the setup",
+                         consistency: bool = True) -> CalibrationRun:
     """Holistic calibration with a planar mirror (paper §4); see :func:`_calibrate_image_sets`.
 
     ``out_path`` is checked (writable, not an input: ``image_dirs`` and ``inputs``) and locked
@@ -416,13 +584,15 @@ def calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_p
     check_output_target(out_path, force=force, inputs=[*image_dirs, *inputs], kind="file")
     with output_lock(out_path, command):
         return _calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                     command=command, progress=progress, inputs=[*image_dirs, *inputs])
+                                     command=command, progress=progress, inputs=[*image_dirs, *inputs],
+                                     setup_source=setup_source, consistency=consistency)
 
 
 def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_path: str | Path, *,
                           stride: int | None = None, max_iter: int = 100, force: bool = False,
                           command: str | None = None, progress: Progress | None = None,
-                          inputs: Sequence[str | Path | None] = ()) -> CalibrationRun:
+                          inputs: Sequence[str | Path | None] = (), setup_source: str = "the setup",
+                          consistency: bool = True) -> CalibrationRun:
     """Holistic calibration with a planar mirror (paper §4) from one image set per mirror pose.
 
     ``image_dirs`` are in the order of ``nominal``'s calibration poses (base, lifts, tilts).
@@ -446,27 +616,60 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
         raise JobInputError(f"got {len(image_dirs)} image directories, but the setup lists {len(poses)} calibration "
                             f"poses ({', '.join(label for label, _ in poses)}); give one per pose, in order")
     stride = stride or nominal.calibration.observation_stride_px
-    obs = []
-    for k, d in enumerate(image_dirs):
+    manifests = []
+    for d in image_dirs:  # every input checked before any decoding
         manifest = load_manifest(d, screen_size_mm=nominal.screen.size_mm)
         for cam in manifest.cameras:
             if cam not in nominal.cameras:
                 raise JobInputError(f"camera {cam!r} of {d} is not in the setup ({list(nominal.cameras)})")
-            dec = decode_camera(manifest, cam, screen_size_mm=nominal.screen.size_mm)
+        check_image_sizes(manifest, nominal, setup_source)
+        manifests.append(manifest)
+    check_memory(nominal, "calibrate", cameras=manifests[0].cameras if manifests else None,
+                 n_images=len(manifests[0].entries) if manifests else 0)
+    obs = []
+    pose_notes = []
+    for k, manifest in enumerate(manifests):
+        for cam in manifest.cameras:
+            images = load_camera_stacks(manifest, cam)
+            dec = decode_camera_images(images, nominal.screen.size_mm)
+            if consistency:
+                cs = nominal.cameras[cam]
+                expected = nominal_screen_xy(cs.camera, cs.T_world_cam, poses[k][1], nominal.screen.T_world_screen)
+                cons = check_consistency(images.x_stacks, images.x_periods_mm, images.y_stacks,
+                                         images.y_periods_mm, dec, nominal.screen.size_mm, expected_xy_mm=expected)
+                dec = with_consistency(dec, cons, rescale_std=True)  # σ from the images' own noise
+                if cons.defects:
+                    pose_notes.append(f"pose {k} ({poses[k][0]}) camera {cam!r}: " + "; ".join(cons.defects[:2]))
+            if not dec.valid.any():
+                raise ConsistencyFailure(f"pose {k} ({image_dirs[k]}), camera {cam!r}: no pixel was decoded and passed "
+                                         f"the consistency checks" + (f" ({pose_notes[-1]})" if pose_notes else "")
+                                         + "; nothing written")
             obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=stride,
                                                  screen_std_xy_mm=dec.std_xy_mm))
         _tick(progress, f"decoded pose {k}")
     start = nominal_state(nominal, [T for _, T in poses])
     result = calibrate(obs, start, max_iter=max_iter)
+    residuals = residual_report(obs, result)
     if not result.converged:
+        worst = sorted((b for b in residuals.blocks if b.ratio == b.ratio), key=lambda b: -b.ratio)[:2]
+        where = "; largest residuals (× the predicted noise) in " + ", ".join(
+            f"pose {b.pose_index} ({poses[b.pose_index][0]}) camera {b.camera!r} ({b.ratio:.0f}×)" for b in worst)
         raise CalibrationNotConverged(f"the calibration did not converge: {result.reason} (RMS {result.rms_px:.4g} px "
-                                      f"after {result.iterations} iterations); nothing written")
+                                      f"after {result.iterations} iterations){where if worst else ''}; nothing written")
+    warnings = list(pose_notes)
+    w = residuals.warning([label for label, _ in poses])
+    if w:
+        warnings.append(w)
     model = calibrated_setup(nominal, result)
     summary = json_ready(calibration_summary(result, model))
     report = {"pmdsim_version": __version__, "command": command or "",
               "converged": summary["converged"], "reason": summary["reason"], "iterations": summary["iterations"],
               "rms_px": summary["rms_px"], "n_residuals": summary["n_residuals"],
               "condition_number": summary["condition_number"],
+              "predicted_noise_rms_px": residuals.predicted_rms_px,
+              "residual_to_noise_ratio": residuals.ratio,
+              "residual_ratio_by_camera_pose": _ratios_by_camera_pose(residuals),
+              "warnings": warnings,
               "determination": result.determination_report(),
               "std": {name: c["std"] for name, c in summary["cameras"].items()}}
     from ..setup.toml import dump_toml
@@ -475,4 +678,4 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
     doc["calibration_report"] = report
     with atomic_file(out_path, force=force, mode="w", inputs=inputs, command=command) as f:
         f.write(dump_toml(doc))
-    return CalibrationRun(result, model, summary)
+    return CalibrationRun(result, model, summary, tuple(warnings), residuals)

@@ -1,0 +1,573 @@
+"""Consistency checks of decoded fringe images: per image, per period and per pixel (issue 11).
+
+The N-step decoder (:mod:`.phase`) turns any N ≥ 3 images into a phase; it cannot tell a good
+measurement from a dropped frame or a mis-stated period. These checks test what the data must
+satisfy if the fringe model of docs/conventions.md holds, each against the noise the images
+themselves show, and mark the pixels that fail with :class:`~.phase.PhaseFlag` bits:
+
+``FIT_RESIDUAL`` — per image.
+    For N ≥ 4 equally spaced shifts the least-squares fit of I_k = A + B·cos(φ − δ_k) leaves
+    N − 3 residual degrees of freedom; with Gaussian intensity noise σ_I the residual sum of
+    squares is σ_I²·χ²(N − 3) (the hat matrix of the design [1, cos δ_k, sin δ_k] is
+    3/N·I on its diagonal). A pixel is flagged if RSS/σ_I² exceeds the χ²(N − 3) quantile of
+    the false-alarm probability α. A black, duplicated or foreign frame adds a residual of the
+    order of A or B (≫ σ_I). The image with the largest |residual| is recorded (which frame).
+``PERIOD_MISMATCH`` — per period.
+    Hierarchical unwrapping refines the coordinate c_{k−1} of the coarser period with the finer
+    period's phase, c_k = p_k·(φ_k/2π + round((c_{k−1} − p_k·φ_k/2π)/p_k)). If both are right,
+    c_{k−1} − c_k is noise with σ² = σ_{k−1}² + σ_k², σ_j = p_j/(2π)·√(2/N_j)·σ_I/B_j (the
+    decoder's σ model). A pixel is flagged if |c_{k−1} − c_k| > z_{α/2}·σ. A wrong period, a
+    period's images shifted against the others, a missing shift (N taken as 3 for 4 displayed)
+    make the periods disagree by far more than their noise.
+``GEOMETRY`` — per pixel.
+    The coordinate lies outside the screen by more than 1 % of its extent, or the local
+    orientation of the pixel → screen mapping disagrees with the nominal one: with J the
+    Jacobian ∂(x_q, y_q)/∂(u, v) of the decoded map and J₀ that of the map predicted for the
+    nominal sample plane (:func:`nominal_screen_xy`), M = J₀⁻¹·J is close to a positive
+    multiple of the identity for any gently curved sample; det M < 0 (one direction mirrored: a
+    reversed shift order, x and y swapped) or trace M < 0 (both mirrored) is flagged. A rough
+    or strongly concave sample seen beyond a caustic folds the mapping locally: those pixels are
+    flagged too (their coordinates are right, but the surface cannot be integrated across a
+    fold); only more than 90 % flipped pixels are taken as a direction mirrored as a whole.
+
+The noise σ_I is the larger of the given ``noise_std`` and the noise the images show: the
+per-pixel residual variances RSS/(N − 3) of each stack are binned by the offset A, each bin's
+mean of the lower 90 % corrected to the mean of χ², and the photon-transfer line σ_I² = a + b·A (EMVA 1288:
+read noise + shot noise) fitted by non-negative least squares; σ_I²(A) is the lowest of the
+stacks' lines (each a median over many pixels, so precise to a few per cent), so that bad stacks
+— up to all but one — do not inflate it.
+
+Only pixels the decoder found photometrically fine (no DARK, SATURATED, LOW_MODULATION,
+NONFINITE) are tested. Everything here is a pure function of arrays; nothing is printed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numba
+import numpy as np
+
+from ..geometry.camera import Camera
+from ..geometry.transform import RigidTransform
+from .phase import (
+    QUANTISATION_NOISE_STD,
+    PhaseDecodingError,
+    PhaseFlag,
+    ScreenCoordinates,
+    equal_shifts,
+)
+
+__all__ = [
+    "DEFAULT_FALSE_ALARM",
+    "DEFAULT_DEFECT_FRACTION",
+    "OUTSIDE_SCREEN_FRACTION",
+    "ImageLabel",
+    "ConsistencyResult",
+    "check_consistency",
+    "with_consistency",
+    "nominal_screen_xy",
+]
+
+#: Default per-test false-alarm probability α of the residual and period checks (per pixel and
+#: stack): at α = 1e-6 a clean 1920×1200 image set with 6 stacks expects ≈ 14 flagged pixels.
+DEFAULT_FALSE_ALARM = 1e-6
+#: Default ``defect_fraction`` of :func:`check_consistency`.
+DEFAULT_DEFECT_FRACTION = 0.2
+#: A coordinate more than this fraction of the screen extent outside the screen is GEOMETRY.
+OUTSIDE_SCREEN_FRACTION = 0.01
+#: Bits set by this module.
+CONSISTENCY_BITS = np.uint8(PhaseFlag.FIT_RESIDUAL | PhaseFlag.PERIOD_MISMATCH | PhaseFlag.GEOMETRY)
+_PHOTOMETRIC = np.uint8(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
+_N_BINS = 12
+_TRIM = 0.9
+_MAX_NOISE_SAMPLES = 60_000
+_MIN_NOISE_PIXELS = 200
+
+
+@dataclass(frozen=True)
+class ImageLabel:
+    """One image of a camera's set: fringe direction, period (mm), shift index k."""
+
+    direction: str
+    period_mm: float
+    shift_index: int | None  # None: one of the period's images, not identifiable (N = 4)
+
+    def __str__(self) -> str:
+        if self.shift_index is None:
+            return f"direction {self.direction}, period {self.period_mm:g} mm, one of the 4 shifts (N = 4 cannot tell which)"
+        return f"direction {self.direction}, period {self.period_mm:g} mm, shift {self.shift_index}"
+
+
+@dataclass(frozen=True)
+class ConsistencyResult:
+    """Result of :func:`check_consistency` for one camera.
+
+    Attributes
+    ----------
+    flags : ndarray (H, W) uint8
+        :class:`~.phase.PhaseFlag` bits FIT_RESIDUAL, PERIOD_MISMATCH, GEOMETRY (0: consistent
+        or not tested).
+    fit_residual_ratio : ndarray (H, W) float32
+        max over stacks of (RSS/σ_I²) / χ²-threshold; > 1 is FIT_RESIDUAL. NaN: not tested.
+    period_mismatch_ratio : ndarray (H, W) float32
+        max over period pairs of |c_{k−1} − c_k| / (z·σ); > 1 is PERIOD_MISMATCH. NaN: not tested.
+    worst_image : ndarray (H, W) int16
+        Index into :attr:`images` of the image with the largest standardised residual, where
+        FIT_RESIDUAL is set; −1 elsewhere.
+    images : tuple[ImageLabel, ...]
+        x stacks then y stacks in the order given, shifts 0 … N−1 (for N = 4 followed by a label
+        with ``shift_index`` None: with 4 shifts the residual ∝ (1, −1, 1, −1) does not tell
+        which frame is bad).
+    image_counts : dict[ImageLabel, int]
+        FIT_RESIDUAL pixels per worst image (only images with a count > 0).
+    period_counts : dict[(str, float), int]
+        PERIOD_MISMATCH pixels per (direction, finer period mm) of the worst-disagreeing pair.
+    geometry_counts : dict[str, int]
+        GEOMETRY pixels by reason: "outside_screen", "orientation".
+    defects : tuple[str, ...]
+        Images, periods or directions found defective as a whole (all their pixels flagged).
+    tested : ndarray (H, W) bool
+        Pixels the checks were applied to (photometrically valid).
+    noise_model : (float, float)
+        The (a, b) of σ_I² = a + b·A (grey levels², grey levels) of the stack with the lowest
+        noise at the median offset; NaN if not fitted (no stack with N ≥ 4).
+    noise_std_max : float
+        Largest σ_I (grey levels) the checks used.
+    false_alarm : float
+        α of the checks.
+    """
+
+    flags: np.ndarray
+    fit_residual_ratio: np.ndarray
+    period_mismatch_ratio: np.ndarray
+    worst_image: np.ndarray
+    images: tuple
+    image_counts: dict
+    period_counts: dict
+    geometry_counts: dict
+    defects: tuple
+    tested: np.ndarray
+    noise_model: tuple
+    noise_std_max: float
+    false_alarm: float
+    noise_lines: np.ndarray | None = None
+    given_noise_std: object = QUANTISATION_NOISE_STD
+
+    def noise_std_at(self, offset) -> np.ndarray:
+        """σ_I (grey levels) the checks use at offset A (array): max(given, estimated)."""
+        a = np.clip(np.nan_to_num(np.asarray(offset, dtype=np.float64)), 0.0, None)
+        given2 = np.broadcast_to(np.asarray(self.given_noise_std, dtype=np.float64) ** 2, a.shape)
+        if self.noise_lines is None:
+            return np.sqrt(given2)
+        est = np.min(self.noise_lines[:, 0, None, None] + self.noise_lines[:, 1, None, None] * a, axis=0)
+        return np.sqrt(np.maximum(est, given2))
+
+    def counts(self) -> dict[str, int]:
+        """Pixels per consistency flag (a pixel may count under several)."""
+        return {f.name: int(np.count_nonzero(self.flags & np.uint8(f)))
+                for f in (PhaseFlag.FIT_RESIDUAL, PhaseFlag.PERIOD_MISMATCH, PhaseFlag.GEOMETRY)}
+
+    def reasons(self, limit: int = 3) -> list[str]:
+        """Short, human-readable reasons (e.g. for a warning): the whole-stack/period/direction
+        defects if any, else the largest per-pixel counts."""
+        out = list(self.defects)
+        if out:
+            return out[:limit]
+        for lab, n in sorted(self.image_counts.items(), key=lambda kv: -kv[1])[:limit]:
+            out.append(f"FIT_RESIDUAL: image ({lab}) deviates from its period's sinusoid in {n} px")
+        for (d, p), n in sorted(self.period_counts.items(), key=lambda kv: -kv[1])[:limit]:
+            out.append(f"PERIOD_MISMATCH: direction {d}, period {p:g} mm disagrees with the next coarser "
+                       f"period in {n} px")
+        for why, n in self.geometry_counts.items():
+            if n:
+                text = ("decoded coordinate outside the screen" if why == "outside_screen" else
+                        "the pixel → screen mapping folds (orientation flipped against the nominal sample: "
+                        "beyond a caustic of a rough or strongly curved sample)")
+                out.append(f"GEOMETRY: {text} in {n} px")
+        return out
+
+
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
+    """Per pixel of one (N, H, W) stack with equal shifts: A, B, φ ∈ [0, 2π), RSS of the N-step
+    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns")."""
+    n, h, w = images.shape
+    two_pi = 2.0 * math.pi
+    for v in numba.prange(h):
+        for u in range(w):
+            sa = 0.0
+            sc = 0.0
+            ss = 0.0
+            for k in range(n):
+                x = np.float64(images[k, v, u])
+                sa += x
+                sc += x * cos_d[k]
+                ss += x * sin_d[k]
+            a = sa / n
+            c = 2.0 * sc / n
+            s = 2.0 * ss / n
+            phi = math.atan2(s, c)
+            if phi < 0.0:
+                phi += two_pi
+            rss = 0.0
+            best = -1.0
+            worst = 0
+            for k in range(n):
+                r = np.float64(images[k, v, u]) - a - c * cos_d[k] - s * sin_d[k]
+                rss += r * r
+                if abs(r) > best:
+                    best = abs(r)
+                    worst = k
+            a_out[v, u] = a
+            b_out[v, u] = math.sqrt(c * c + s * s)
+            phi_out[v, u] = phi
+            rss_out[v, u] = rss
+            worst_out[v, u] = worst
+
+
+def _stack_stats(stack):
+    """A, B, φ, RSS and argmax_k |r_k| of one (N, H, W) stack (equal shifts), each (H, W)."""
+    arr = np.asarray(stack)
+    if arr.dtype.kind not in "uif" or not arr.dtype.isnative:
+        arr = arr.astype(np.float64)
+    arr = np.ascontiguousarray(arr)
+    n, h, w = arr.shape
+    d = equal_shifts(n)
+    out = [np.empty((h, w)) for _ in range(4)]
+    worst = np.empty((h, w), np.int16)
+    _stack_kernel(arr, np.cos(d), np.sin(d), *out, worst)
+    if n <= 3:
+        out[3][:] = 0.0  # an exact fit: no residual
+    return (*out, worst)
+
+
+def _noise_model(stats_list, mask, given2: np.ndarray):
+    """Fit σ_I² = a + b·A to the residual variances (see the module docstring)."""
+    from scipy import stats as sst
+    from scipy.optimize import nnls
+
+    usable = [(st["A"], st["rss"] / (st["n"] - 3), st["n"] - 3) for st in stats_list if st["n"] > 3]
+    if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
+        return None
+    lines = []
+    idx = np.flatnonzero(mask)
+    if idx.size > _MAX_NOISE_SAMPLES:  # a seeded subsample: the medians/means need no more
+        idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
+    for a_map, var_map, nu in usable:
+        av = a_map.ravel()[idx]
+        vv = var_map.ravel()[idx]
+        # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
+        # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
+        # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
+        trim = sst.chi2.cdf(sst.chi2.ppf(_TRIM, nu), nu + 2) / _TRIM
+        edges = np.unique(np.quantile(av, np.linspace(0.0, 1.0, _N_BINS + 1)))
+        centres, values = [], []
+        for i in range(max(edges.size - 1, 1)):
+            sel = (av >= edges[i]) & (av <= edges[min(i + 1, edges.size - 1)])
+            if np.count_nonzero(sel) >= 20:
+                v = vv[sel]
+                centres.append(float(np.median(av[sel])))
+                values.append(float(np.mean(v[v <= np.quantile(v, _TRIM)])) / trim)
+        if centres:
+            design = np.column_stack([np.ones(len(centres)), np.asarray(centres)])
+            coef, _ = nnls(design, np.asarray(values))
+            if np.ptp(centres) < 0.5 * np.median(centres):  # too narrow a range of A for a slope: a constant
+                coef = np.array([float(np.median(values)), 0.0])
+            lines.append(coef)
+    if not lines:
+        return None
+    return np.asarray(lines)  # (S, 2): one (a, b) per stack
+
+
+def _coarse(phi, p0, origin, upper):
+    r = p0 * (phi / (2.0 * math.pi)) - origin
+    c = origin + (r - p0 * np.floor(r / p0))
+    return np.where(c > upper, c - p0, c)
+
+
+def check_consistency(
+    x_stacks: Sequence,
+    x_periods_mm,
+    y_stacks: Sequence,
+    y_periods_mm,
+    decoded: ScreenCoordinates,
+    screen_size_mm,
+    noise_std=None,
+    *,
+    screen_origin_mm=(0.0, 0.0),
+    margin_mm: float | None = None,
+    expected_xy_mm: np.ndarray | None = None,
+    false_alarm: float = DEFAULT_FALSE_ALARM,
+    defect_fraction: float = DEFAULT_DEFECT_FRACTION,
+) -> ConsistencyResult:
+    """Per-image, per-period and geometric consistency of one camera's decoded fringe images.
+
+    Parameters
+    ----------
+    x_stacks, y_stacks : sequence of array_like, each (N_i, H, W)
+        The image stacks the decoder was given (equally spaced shifts δ_k = 2πk/N), grey levels.
+    x_periods_mm, y_periods_mm : array_like (P_x,), (P_y,)
+        Their periods in mm (as stated: a wrong period is what is tested).
+    decoded : ScreenCoordinates
+        The decoder's result for these stacks (its photometric flags select the tested pixels).
+    screen_size_mm : (float, float)
+        Screen width and height (mm): the unwrapping extent.
+    noise_std : float or array_like broadcastable to (H, W), optional
+        Intensity noise σ_I (grey levels) the decoder was given; default quantisation 1/√12.
+        The checks use the larger of it and the noise estimated from the images.
+    screen_origin_mm : (float, float)
+        Lowest (x_q, y_q) on the screen (mm), as for the decoder.
+    margin_mm : float, optional
+        The decoder's unwrapping margin (default half the unused part of the coarsest period).
+    expected_xy_mm : ndarray (H, W, 2), optional
+        Screen coordinates predicted for the nominal sample (:func:`nominal_screen_xy`); enables
+        the orientation check.
+    false_alarm : float
+        Per-test false-alarm probability α in (0, 0.5) of the residual and period checks.
+    defect_fraction : float
+        A stack, period or direction that fails a check in more than this fraction of the tested
+        pixels is taken as defective as a whole and all its tested pixels are flagged (its other
+        pixels pass by chance: e.g. a wrong period agrees wherever the error happens to be near
+        a multiple of the finer period).
+
+    Returns
+    -------
+    ConsistencyResult
+
+    Raises
+    ------
+    PhaseDecodingError
+        If the stacks, periods or ``decoded`` do not fit together.
+    """
+    from scipy import stats as sst
+
+    if not (0.0 < float(false_alarm) < 0.5):
+        raise PhaseDecodingError(f"false_alarm must be in (0, 0.5), got {false_alarm!r}")
+    if not (0.0 < float(defect_fraction) <= 1.0):
+        raise PhaseDecodingError(f"defect_fraction must be in (0, 1], got {defect_fraction!r}")
+    h, w = decoded.flags.shape
+    size = np.asarray(screen_size_mm, dtype=np.float64).reshape(2)
+    origin = np.asarray(screen_origin_mm, dtype=np.float64).reshape(2)
+    tested = (decoded.flags & _PHOTOMETRIC) == 0
+    if noise_std is None:
+        noise_std = QUANTISATION_NOISE_STD
+    if np.any(np.asarray(noise_std) <= 0):
+        raise PhaseDecodingError(f"noise_std must be > 0 grey levels, got {noise_std!r}")
+    given2 = np.broadcast_to(np.asarray(noise_std, dtype=np.float64) ** 2, (h, w))
+
+    # Per stack statistics, directions in order, stacks sorted coarse → fine within a direction.
+    labels: list[ImageLabel] = []
+    per_dir = []
+    for direction, stacks, periods in (("x", x_stacks, x_periods_mm), ("y", y_stacks, y_periods_mm)):
+        periods = np.asarray(periods, dtype=np.float64).reshape(-1)
+        stacks = list(stacks)
+        if len(stacks) != periods.size:
+            raise PhaseDecodingError(f"direction {direction!r}: {len(stacks)} stacks but {periods.size} periods")
+        items = []
+        for stack, p in zip(stacks, periods):
+            st_a, st_b, st_phi, st_rss, st_worst = _stack_stats(stack)
+            if st_a.shape != (h, w):
+                raise PhaseDecodingError(f"direction {direction!r}, period {p:g} mm: image size {st_a.shape} "
+                                         f"differs from the decoded map's {(h, w)}")
+            n = np.asarray(stack).shape[0]
+            if n == 4:  # r ∝ (1, −1, 1, −1): every frame has the same |residual|
+                st_worst = np.full(st_worst.shape, n, np.int16)
+            items.append(dict(p=float(p), n=n, A=st_a, B=st_b, phi=st_phi, rss=st_rss, worst=st_worst,
+                              first=len(labels)))
+            labels.extend(ImageLabel(direction, float(p), k) for k in range(n))
+            if n == 4:
+                labels.append(ImageLabel(direction, float(p), None))
+        items.sort(key=lambda it: -it["p"])
+        per_dir.append((direction, items))
+
+    all_items = [it for _, items in per_dir for it in items]
+    mask = tested & np.all([np.isfinite(it["rss"]) for it in all_items], axis=0)
+    lines = _noise_model(all_items, mask, given2)
+
+    def sigma2(a_map):
+        """σ_I² at offset A: the median over the stacks' lines (robust to a bad stack)."""
+        if lines is None:
+            return given2
+        a = np.clip(np.nan_to_num(a_map), 0.0, None)
+        est = np.min(lines[:, 0, None, None] + lines[:, 1, None, None] * a, axis=0)
+        return np.maximum(est, given2)
+
+    flags = np.zeros((h, w), np.uint8)
+    fit_ratio = np.full((h, w), np.nan, np.float32)
+    mis_ratio = np.full((h, w), np.nan, np.float32)
+    worst_image = np.full((h, w), -1, np.int16)
+    fit_bad = np.zeros((h, w), bool)
+    escalated = np.full((h, w), -1, np.int16)  # the defective stack's label, where only it flags
+    period_counts: dict = {}
+    geometry_counts = {"outside_screen": 0, "orientation": 0}
+    defects: list[str] = []
+    z = float(sst.norm.isf(float(false_alarm) / 2.0))
+    noise_max = 0.0
+    final = np.empty((h, w, 2))
+    n_tested = int(np.count_nonzero(tested))
+    limit = float(defect_fraction) * n_tested
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for axis, (direction, items) in enumerate(per_dir):
+            p0 = items[0]["p"]
+            ext = float(size[axis])
+            margin = 0.5 * (p0 - ext) if margin_mm is None else float(margin_mm)
+            c = None
+            sig_prev = None
+            dir_bad = np.zeros((h, w), bool)
+            for level, it in enumerate(items):
+                s2 = sigma2(it["A"])
+                noise_max = max(noise_max, float(np.sqrt(np.nanmax(np.where(tested, s2, 0.0)))))
+                if it["n"] > 3:
+                    thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3))
+                    ratio = it["rss"] / s2 / thr
+                    better = tested & (np.isnan(fit_ratio) | (ratio > fit_ratio))
+                    fit_ratio[better] = ratio[better]
+                    worst_image[better] = it["first"] + it["worst"][better]
+                    bad = tested & (ratio > 1.0)
+                    if n_tested and np.count_nonzero(bad) > limit:
+                        # A frame of this stack is bad as a whole: its other pixels agree by chance.
+                        k = int(np.bincount(it["worst"][bad], minlength=it["n"] + 1).argmax())
+                        defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
+                                       f"sinusoid in {np.count_nonzero(bad) / n_tested:.0%} of the pixels")
+                        escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
+                        bad = tested
+                    fit_bad |= bad
+                sig = it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]) * np.sqrt(s2) / it["B"]
+                if level == 0:
+                    c = _coarse(it["phi"], p0, origin[axis], origin[axis] + ext + margin)
+                else:
+                    fine = it["p"] * it["phi"] / (2.0 * math.pi)
+                    ck = fine + it["p"] * np.floor((c - fine) / it["p"] + 0.5)
+                    ratio = np.abs(c - ck) / (z * np.hypot(sig_prev, sig))
+                    better = tested & ~(ratio <= mis_ratio)
+                    mis_ratio[better] = ratio[better]
+                    bad = tested & (ratio > 1.0)
+                    if n_tested and np.count_nonzero(bad) > limit:
+                        # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
+                        # where it agrees, it does so by chance.
+                        defects.append(f"direction {direction}, period {it['p']:g} mm disagrees with the "
+                                       f"{items[level - 1]['p']:g} mm period in "
+                                       f"{np.count_nonzero(bad) / n_tested:.0%} of the pixels")
+                        bad = tested
+                    new = bad & ~dir_bad
+                    if np.any(new):
+                        period_counts[(direction, it["p"])] = int(np.count_nonzero(new))
+                    dir_bad |= bad
+                    c = ck
+                sig_prev = sig
+            final[..., axis] = c
+            flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
+            tol = OUTSIDE_SCREEN_FRACTION * ext
+            out = tested & ((c < origin[axis] - tol) | (c > origin[axis] + ext + tol))
+            flags[out] |= np.uint8(PhaseFlag.GEOMETRY)
+            geometry_counts["outside_screen"] += int(np.count_nonzero(out))
+
+        flags[fit_bad] |= np.uint8(PhaseFlag.FIT_RESIDUAL)
+        worst_image = np.where(fit_ratio > 1.0, worst_image, escalated).astype(np.int16)
+        worst_image[~fit_bad] = -1
+        if expected_xy_mm is not None:
+            flipped = tested & _orientation_flipped(final, np.asarray(expected_xy_mm, dtype=np.float64))
+            if n_tested and np.count_nonzero(flipped) > 0.9 * n_tested:  # mirrored as a whole
+                defects.append(f"the mapping's orientation is flipped against the nominal sample in "
+                               f"{np.count_nonzero(flipped) / n_tested:.0%} of the pixels (a reversed shift "
+                               f"order or swapped x/y directions?)")
+                flipped = tested
+            flags[flipped] |= np.uint8(PhaseFlag.GEOMETRY)
+            geometry_counts["orientation"] = int(np.count_nonzero(flipped))
+
+    idx, cnt = np.unique(worst_image[worst_image >= 0], return_counts=True)
+    image_counts = {labels[int(i)]: int(n) for i, n in zip(idx, cnt)}
+    return ConsistencyResult(
+        flags=flags, fit_residual_ratio=fit_ratio, period_mismatch_ratio=mis_ratio, worst_image=worst_image,
+        images=tuple(labels), image_counts=image_counts, period_counts=period_counts,
+        geometry_counts=geometry_counts, defects=tuple(defects), tested=tested,
+        noise_model=(math.nan, math.nan) if lines is None else tuple(float(v) for v in lines[np.argmin(lines[:, 0] + lines[:, 1] * np.nanmedian(all_items[0]["A"][mask]) if mask.any() else lines[:, 0])]),
+        noise_std_max=noise_max,
+        false_alarm=float(false_alarm), noise_lines=lines, given_noise_std=noise_std,
+    )
+
+
+def _jacobian(xy: np.ndarray) -> np.ndarray:
+    """Finite-difference Jacobian ∂(x, y)/∂(u, v), (H, W, 2, 2): central differences, one-sided
+    at the border; NaN where a neighbour is NaN."""
+    h, w, _ = xy.shape
+    jac = np.full((h, w, 2, 2), np.nan)
+    if w >= 2:
+        jac[..., 0] = np.gradient(xy, axis=1)
+    if h >= 2:
+        jac[..., 1] = np.gradient(xy, axis=0)
+    return jac
+
+
+def _orientation_flipped(measured_xy: np.ndarray, expected_xy: np.ndarray) -> np.ndarray:
+    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 (see the module docstring), (H, W) bool."""
+    if expected_xy.shape != measured_xy.shape:
+        raise PhaseDecodingError(f"expected_xy_mm: shape {expected_xy.shape}, expected {measured_xy.shape}")
+    j = _jacobian(measured_xy)
+    j0 = _jacobian(expected_xy)
+    det0 = j0[..., 0, 0] * j0[..., 1, 1] - j0[..., 0, 1] * j0[..., 1, 0]
+    # J₀⁻¹ = adj(J₀)/det J₀
+    adj = np.empty_like(j0)
+    adj[..., 0, 0] = j0[..., 1, 1]
+    adj[..., 1, 1] = j0[..., 0, 0]
+    adj[..., 0, 1] = -j0[..., 0, 1]
+    adj[..., 1, 0] = -j0[..., 1, 0]
+    m = np.einsum("...ij,...jk->...ik", adj, j) / det0[..., None, None]
+    det_m = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+    tr_m = m[..., 0, 0] + m[..., 1, 1]
+    return (det_m < 0) | (tr_m < 0)  # NaN compares False: untested
+
+
+def with_consistency(decoded: ScreenCoordinates, result: ConsistencyResult, *,
+                     rescale_std: bool = False) -> ScreenCoordinates:
+    """``decoded`` with the consistency flags OR-ed in; newly flagged pixels become invalid (NaN).
+
+    ``rescale_std``: scale ``std_xy_mm`` (∝ σ_I, :func:`.phase.decode_direction`) from the noise
+    the decoder was given to the noise the checks found in the images
+    (:meth:`ConsistencyResult.noise_std_at` of the finest periods' offsets).
+    """
+    flags = decoded.flags | result.flags
+    valid = flags == 0
+    xy = np.where(valid[..., None], decoded.screen_xy_mm, np.nan)
+    std = np.where(valid[..., None], decoded.std_xy_mm, np.nan)
+    if rescale_std:
+        given = np.broadcast_to(np.asarray(result.given_noise_std, dtype=np.float64), valid.shape)
+        for d in range(2):
+            std[..., d] *= result.noise_std_at(decoded.offset[..., d]) / given
+    return ScreenCoordinates(screen_xy_mm=xy, valid=valid, flags=flags, std_xy_mm=std,
+                             modulation=decoded.modulation, offset=decoded.offset)
+
+
+def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sample: RigidTransform,
+                      T_world_screen: RigidTransform) -> np.ndarray:
+    """Screen coordinates (x_q, y_q) each pixel would see via a mirror in the sample's x–y plane.
+
+    The view ray (paper §2.2) is reflected at the plane z = 0 of the sample frame and
+    intersected with the plane z = 0 of the screen frame (the planar screen model).
+
+    Returns
+    -------
+    ndarray (H, W, 2), mm, screen frame; NaN where the ray misses either plane (or the
+    distortion cannot be inverted).
+    """
+    d_cam, ok = camera.sensor_rays()
+    o = T_world_cam.translation
+    d = T_world_cam.apply_vector(d_cam)
+    n = T_world_sample.apply_vector(np.array([0.0, 0.0, 1.0]))
+    p0 = T_world_sample.translation
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dn = d @ n
+        t = ((p0 - o) @ n) / dn
+        hit = o + t[..., None] * d
+        r = d - 2.0 * dn[..., None] * n
+        m = T_world_screen.apply_vector(np.array([0.0, 0.0, 1.0]))
+        t2 = ((T_world_screen.translation - hit) @ m) / (r @ m)
+        q = hit + t2[..., None] * r
+    xy = T_world_screen.inv().apply(q)[..., :2]
+    bad = ~ok | ~(t > 0) | ~(t2 > 0)
+    xy[bad] = np.nan
+    return xy
