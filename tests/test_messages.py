@@ -51,3 +51,26 @@ def test_bad_experiment_lists_are_refused_before_any_work(tmp_path, args, msg):
     r = CliRunner().invoke(main, [*args, "--out", str(out), "--quiet"])
     assert r.exit_code == 2 and msg in r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args, names", [
+    (["evaluate", "run", "--out", "e", "--method", "simpson"], ["'--method'", "simpson"]),
+    (["simulate", "--out", "s", "--bulge-mm", "three"], ["'--bulge-mm'", "three"]),
+    (["evaluate", "run", "--out", "e", "--min-valid-fraction", "1.5"], ["'--min-valid-fraction'", "1.5"]),
+    (["simulate", "--out", "s", "--no-such-option"], ["--no-such-option"]),
+    (["experiment", "9", "--out", "x"], ["'9'"]),
+    (["frobnicate"], ["frobnicate"]),
+])
+def test_bad_options_get_one_pmdsim_error_line(tmp_path, monkeypatch, args, names):
+    """Click's usage errors (a bad choice, a number that is not one, an unknown option or
+    command) come out in pmdsim's one style (issue 11, item 3): one ``pmdsim: error:`` line
+    naming the option and the value, exit code 2, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("pmdsim: error: "), r.output
+    for n in names:
+        assert n in lines[0], lines[0]
+    assert "--help" in lines[0]
+    assert not any(tmp_path.iterdir())

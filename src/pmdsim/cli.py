@@ -78,6 +78,10 @@ class _Group(click.Group):
     def invoke(self, ctx):
         try:
             rv = super().invoke(ctx)
+        except click.UsageError as e:  # a bad option or argument: one line in pmdsim's style, exit 2
+            where = e.ctx.command_path if e.ctx is not None else "pmdsim"
+            click.echo(f"pmdsim: error: {e.format_message()} (see '{where} --help')", err=True)
+            ctx.exit(2)
         except ComputationError as e:  # the inputs were fine, the computation failed: exit 1
             click.echo(f"pmdsim: error: {e}", err=True)
             ctx.exit(1)
