@@ -180,7 +180,9 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False),
               help="Setup with the evaluation's knowledge of cameras and screen (default: Table 1).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
-@click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default="stepwise", show_default=True)
+@click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default=None,
+              help="Surface integration. Default: the manifest's method (least_squares for imported real "
+                   "measurements), else stepwise.")
 @click.option("--screen-model", type=click.Choice(["planar", "setup"]), default=None,
               help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface. "
                    "Default: the manifest's screen_model, else planar.")

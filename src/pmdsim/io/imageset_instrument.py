@@ -13,6 +13,8 @@ Manifest keys (all optional; :mod:`pmdsim.io.imageset` validates the rest of the
     "screen_map": {"file": "screen_map.json"},   # pattern → physical screen coordinates
     "anchor": {...},                 # what fixes the height (pmdsim.evaluation.anchor)
     "screen_model": "setup",         # the screen model `pmdsim evaluate` uses by default
+    "method": "least_squares",       # the integration `pmdsim evaluate` uses by default (real
+                                     # slope fields are not exactly integrable: least squares)
 
 An image entry may name a ``page`` of a multi-page TIFF (0-based); a multi-page file without
 ``page`` is refused (never page 0 silently).
@@ -337,6 +339,7 @@ class InstrumentInfo:
     anchor: dict | None = None
     full_scale: float | None = None
     screen_model: str | None = None
+    method: str | None = None
 
     def describe(self) -> dict:
         """JSON-ready summary for the evaluation's outputs."""
@@ -372,7 +375,11 @@ def parse_instrument(doc: dict, src: str, directory: Path) -> InstrumentInfo:
     sm = doc.get("screen_model")
     if sm is not None and sm not in ("planar", "setup"):
         raise ImageSetError(f"{src}: key 'screen_model' must be 'planar' or 'setup', got {sm!r}")
-    return InstrumentInfo(resp, info, mask, mask_file, smap, anchor, None if full is None else float(full), sm)
+    method = doc.get("method")
+    if method is not None and method not in ("stepwise", "least_squares"):
+        raise ImageSetError(f"{src}: key 'method' must be 'stepwise' or 'least_squares', got {method!r}")
+    return InstrumentInfo(resp, info, mask, mask_file, smap, anchor, None if full is None else float(full), sm,
+                          method)
 
 
 # ============================================================================ decoding steps

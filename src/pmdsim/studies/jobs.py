@@ -303,7 +303,7 @@ def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
     return None
 
 
-def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str = "stepwise",
+def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str | None = None,
                        screen_model: str | None = None, seed_pixel=None, seed_height_mm: float | None = None,
                        anchor=None, noise_std=None, force: bool = False, command: str | None = None,
                        progress: Progress | None = None, inputs: Sequence[str | Path | None] = (),
@@ -313,6 +313,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
 
     ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
     "setup" (the setup's screen surface); None: the manifest's ``screen_model``, else "planar".
+    ``method`` "stepwise" or "least_squares"; None: the manifest's ``method``, else "stepwise".
     The height is fixed by ``anchor`` (:mod:`pmdsim.evaluation.anchor`), else by ``seed_pixel``
     / ``seed_height_mm`` (a known point), else by the manifest's ``anchor``; without any, heights
     are relative (default seed at height 0) and the summary says so. Writes ``evaluation.h5``
@@ -349,6 +350,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
         screen_model = manifest.instrument.screen_model or "planar"
     if screen_model not in ("planar", "setup"):
         raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
+    if method is None:
+        method = manifest.instrument.method or "stepwise"
     if not 0.0 <= float(min_valid_fraction) <= 1.0:
         raise JobInputError(f"min_valid_fraction must be in [0, 1], got {min_valid_fraction!r}")
     unknown = [c for c in manifest.cameras if c not in setup.cameras]

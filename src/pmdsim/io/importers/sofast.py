@@ -579,6 +579,10 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
                        "description": f"SOFAST dist_optic_screen: the optic's measure point (seen at {anchor_how}) "
                                       f"to the display origin"},
             "screen_model": "setup" if disp.model == "distorted3D" else "planar",
+            # A measured slope field is not exactly integrable: stepwise integration accumulates its
+            # noise along the paths (4.7 µm p95 on the shared facet, least squares 0.69 µm;
+            # docs/benchmarks.md, "Real data: the SOFAST heliostat facet").
+            "method": "least_squares",
             "description": f"imported from SOFAST: {measurement}",
             "metadata": {"sofast": {"measurement": str(measurement), "camera": str(camera), "display": str(display),
                                     "display_model": disp.model, "orientation": str(orientation),
