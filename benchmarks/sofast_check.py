@@ -88,7 +88,8 @@ def main() -> None:
     ap.add_argument("--display", default="distorted_2d", choices=["distorted_2d", "distorted_3d", "rectangular"])
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--work", type=Path, default=None)
-    ap.add_argument("--method", default="stepwise", choices=["stepwise", "least_squares"])
+    ap.add_argument("--method", default=None, choices=["stepwise", "least_squares"],
+                    help="default: the image set's (least_squares, as the importer declares)")
     ap.add_argument("--anchor-pixel", type=float, nargs=2, default=None,
                     help="control: override the imported anchor's pixel (row, column), e.g. SOFAST's refined "
                          "measure-point pixel 98.0868 111.8048")
@@ -106,7 +107,7 @@ def main() -> None:
         extra = ["--anchor-distance-mm", str(anc["distance_mm"]), "--anchor-pixel", *map(str, a.anchor_pixel),
                  "--anchor-point-mm", *map(str, anc["point_world_mm"])]
     r = run(["evaluate", str(imp / "images"), "--setup", str(imp / "setup.toml"), "--out", str(ev), "--force",
-             "--quiet", "--method", a.method, *extra])
+             "--quiet", *(["--method", a.method] if a.method else []), *extra])
     print(r.stdout.strip())
     fit = json.loads((ev / "surface_fit.json").read_text())
 

@@ -236,3 +236,15 @@ def test_bad_response_declarations(tmp_path, response, needle):
     with pytest.raises(ImageSetError, match="response") as ei:
         load_manifest(tmp_path / "s")
     assert needle in str(ei.value)
+
+
+def test_declared_integration_method(tmp_path):
+    """A manifest may name the integration ``pmdsim evaluate`` uses by default; anything but
+    the two methods is refused naming the key."""
+    write_set(tmp_path / "a", gamma_law(1.0), bits=8, extra={"method": "least_squares"})
+    assert load_manifest(tmp_path / "a").instrument.method == "least_squares"
+    write_set(tmp_path / "b", gamma_law(1.0), bits=8)
+    assert load_manifest(tmp_path / "b").instrument.method is None
+    write_set(tmp_path / "c", gamma_law(1.0), bits=8, extra={"method": "simpson"})
+    with pytest.raises(ImageSetError, match="key 'method' must be 'stepwise' or 'least_squares', got 'simpson'"):
+        load_manifest(tmp_path / "c")

@@ -170,6 +170,9 @@ def test_cli_end_to_end_focal_lengths_and_outputs(imported):
         assert inst["response"]["kind"] == "series" and inst["response"]["interpolation"] == "linear"
         assert f["camera/slopes"].shape == (154, 203, 2)
         assert json.loads(f.attrs["anchors"])["camera"]["kind"] == "distance"
+        # The image set declares least squares (a measured slope field is not exactly integrable)
+        # and evaluate without --method takes it.
+        assert f.attrs["method"] == "least_squares"
 
 
 def test_slopes_match_sofast_with_its_measure_point_pixel(imported):

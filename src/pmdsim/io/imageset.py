@@ -100,7 +100,7 @@ _OPTIONAL_ENTRY_KEYS = ("n_shifts", "period_index", "page")
 _ENTRY_KEYS = _REQUIRED_ENTRY_KEYS + _PERIOD_KEYS + _OPTIONAL_ENTRY_KEYS
 _TOP_KEYS = ("format", "format_version", "pmdsim_version", "command", "setup_toml", "bit_depth",
              "screen_size_mm", "cameras", "images", "description", "metadata",
-             "response", "mask", "screen_map", "anchor", "full_scale", "screen_model")
+             "response", "mask", "screen_map", "anchor", "full_scale", "screen_model", "method")
 
 #: Two periods of one camera and direction are the same period if they differ by less than this
 #: relative amount (periods computed from ``period_fraction`` may differ in the last bits).
