@@ -84,13 +84,15 @@ def load_setup_default_poses():
 
 # ----------------------------------------------------------------------------- memory, binning
 def test_huge_camera_refused_before_allocation(tmp_path, default_toml):
+    # 60000 px per side: a plausible camera model (pmdsim.geometry.camera_checks refuses more
+    # than 65536), whose images would not fit in memory: the memory estimate refuses it.
     huge = tmp_path / "huge.toml"
-    huge.write_text(replace_exactly(default_toml, "image_size_px = [1920, 1200]", "image_size_px = [100000, 100000]", 2))
+    huge.write_text(replace_exactly(default_toml, "image_size_px = [1920, 1200]", "image_size_px = [60000, 60000]", 2))
     out = tmp_path / "sim"
     r = _run(["simulate", "--setup", str(huge), "--out", str(out), "--quiet"])
     assert r.exit_code == 2, r.output
     (err,) = _errors(r)
-    assert "100000×100000" in err and "GiB" in err
+    assert "60000×60000" in err and "GiB" in err
     assert not out.exists()
     r = _run(["experiment", "1", "--setup", str(huge), "--out", str(tmp_path / "e1"), "--quiet"])
     assert r.exit_code == 2 and "GiB" in _errors(r)[0]
@@ -134,17 +136,17 @@ def test_huge_image_file_refused(tmp_path, small_set, small_setup_file, default_
     assert "left_x_p0_s0.png" in err
     # The same size in the setup: the size check passes, the memory estimate refuses.
     huge = tmp_path / "huge.toml"
-    huge.write_text(replace_exactly(default_toml, "image_size_px = [1920, 1200]", "image_size_px = [100000, 100000]", 2))
+    huge.write_text(replace_exactly(default_toml, "image_size_px = [1920, 1200]", "image_size_px = [60000, 60000]", 2))
     d2 = tmp_path / "set2"
     shutil.copytree(small_set, d2)
     man = d2 / "manifest.json"
     doc = json.loads(man.read_text())
-    doc["cameras"] = {c: {"image_size_px": [100000, 100000]} for c in doc["cameras"]}
+    doc["cameras"] = {c: {"image_size_px": [60000, 60000]} for c in doc["cameras"]}
     man.write_text(json.dumps(doc))
     r = _run(["evaluate", str(d2), "--setup", str(huge), "--out", str(tmp_path / "ev2"), "--quiet"])
     assert r.exit_code == 2, r.output
     (err,) = _errors(r)
-    assert "GiB" in err and "100000×100000" in err
+    assert "GiB" in err and "60000×60000" in err
 
 
 def test_memory_estimate_scales_with_pixels(default_toml, tmp_path):

@@ -61,6 +61,10 @@ def _in_finaliser(frame) -> bool:
         code = frame.f_code
         if code.co_name == "__del__" or code.co_filename.endswith("weakref.py"):
             return True
+        # importlib's module-lock weakref callback (_get_module_lock.<locals>.cb): seen to swallow
+        # a SIGINT ("Exception ignored in: <function _get_module_lock.<locals>.cb …>").
+        if code.co_name == "cb" and code.co_filename.startswith("<frozen importlib"):
+            return True
         frame = frame.f_back
     return False
 

@@ -182,6 +182,7 @@ class EvaluationSummary:
     warnings: tuple[str, ...] = ()
     response: dict | None = None
     min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION
+    notes: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         out = []
@@ -208,6 +209,13 @@ class EvaluationSummary:
                 else:
                     out.append(f"{cam}: anchored: height {a['height_mm']:g} mm at pixel "
                                f"({a['pixel_vu'][0]:.2f}, {a['pixel_vu'][1]:.2f})")
+            if "stereo" in c:  # evaluate_image_set_stereo
+                st = c["stereo"]
+                out.append(f"{cam}: stereo: {st['anchors']} anchors of {st['searched']} searched pixels, overlap "
+                           f"{st['overlap']} pixels; normal disagreement median "
+                           f"{st['normal_disagreement_median_urad']:.3g} µrad (max {st['normal_disagreement_max_urad']:.3g}), "
+                           f"height discrepancy median {st['height_discrepancy_median_um']:.3g} µm "
+                           f"(max {st['height_discrepancy_max_um']:.3g})")
         if self.surface_fit:
             f = self.surface_fit
 
@@ -217,13 +225,7 @@ class EvaluationSummary:
             out.append(f"paraboloid over the slopes: focal length x {fmt(f['focal_length_x_mm'], '.6g')} mm, "
                        f"y {fmt(f['focal_length_y_mm'], '.6g')} mm; slope residual RMS "
                        f"{fmt(f['slope_residual_rms_mrad'], '.4g')} mrad")
-            if "stereo" in c:  # evaluate_image_set_stereo
-                st = c["stereo"]
-                out.append(f"{cam}: stereo: {st['anchors']} anchors of {st['searched']} searched pixels, overlap "
-                           f"{st['overlap']} pixels; normal disagreement median "
-                           f"{st['normal_disagreement_median_urad']:.3g} µrad (max {st['normal_disagreement_max_urad']:.3g}), "
-                           f"height discrepancy median {st['height_discrepancy_median_um']:.3g} µm "
-                           f"(max {st['height_discrepancy_max_um']:.3g})")
+        out += list(self.notes)
         return out
 
     def data_warnings(self) -> list[str]:
@@ -370,9 +372,10 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     checks = {}
     inst = manifest.instrument
     run_checks = consistency and inst.response is None and inst.screen_map is None
+    notes = []
     if consistency and not run_checks:
-        warnings.append("consistency checks skipped: the manifest declares a response or a screen map, which the "
-                        "checks do not model yet (docs/reliability.md)")
+        notes.append("consistency checks (docs/reliability.md) not run: the manifest declares a response or a screen "
+                     "map, which they do not model yet")
     with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
         for cam in manifest.cameras:
             c = setup.cameras[cam].camera
@@ -463,7 +466,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "consistency_counts": c.counts() if c is not None else {},
                      "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
     return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
-                             manifest.instrument.response_info, float(min_valid_fraction))
+                             manifest.instrument.response_info, float(min_valid_fraction), tuple(notes))
 
 
 def _ratios_by_camera_pose(residuals) -> dict:
