@@ -375,6 +375,7 @@ _ACCEL_ALPHA = 0.75
 #: parameter in Marquardt's method", IMM-REP-1999-05; Madsen, Nielsen & Tingleff 2004, §3.1).
 _LAMBDA_MIN_FACTOR = 0.1
 
+
 def _scaled(a: np.ndarray, g: np.ndarray):
     dg = np.sqrt(np.diag(a))
     dg = np.where(dg > 0, dg, 1.0)
