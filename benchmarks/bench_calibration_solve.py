@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import numba
 import numpy as np
@@ -83,7 +84,7 @@ def main() -> None:
            "residuals": result.n_residuals, "parameters": len(result.parameter_names), "rms_px": result.rms_px,
            "converged": result.converged, "reason": result.reason, "peak_rss_mb": peak_rss_mb()}
     if args.save_params:
-        np.savez(args.save_params, params=start.increment_to(result.state), std=result.parameter_std, cov=result.covariance, rms=result.rms_px,
+        np.savez(args.save_params, params=(start if sm is None else replace(start, screen=sm)).increment_to(result.state), std=result.parameter_std, cov=result.covariance, rms=result.rms_px,
                  names=np.array(result.parameter_names))
     if args.json:
         dump_json(res)

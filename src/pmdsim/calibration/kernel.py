@@ -357,3 +357,20 @@ def _avv_kernel(c_start, c_end, c_cam, c_pose, uv, q, q_t, intr, rot, cen, mir, 
         nbad[c] = _avv_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, q_t, intr, rot, cen, mir, e1, e2,
                            intr_t, rot_t, cen_t, mir_t, e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit,
                            h, out[c])
+
+
+@numba.njit(cache=True, parallel=True)
+def _screen_points_kernel(q, wx, wy, heights, out):
+    """out[m] = (q[m, 0], q[m, 1], Σ_j Σ_i wy[m, j]·heights[j, i]·wx[m, i]): the correspondences'
+    screen points with z = h(x_q, y_q) of the screen model (1-D basis weights per correspondence)."""
+    ny, nx = heights.shape
+    for m in numba.prange(q.shape[0]):
+        z = 0.0
+        for j in range(ny):
+            s = 0.0
+            for i in range(nx):
+                s += heights[j, i] * wx[m, i]
+            z += wy[m, j] * s
+        out[m, 0] = q[m, 0]
+        out[m, 1] = q[m, 1]
+        out[m, 2] = z

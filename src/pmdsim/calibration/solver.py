@@ -35,7 +35,7 @@ from .screen import ScreenModel, _basis_weights
 from .model import (CalibrationState, DEFAULT_CONDITION_LIMIT, MIN_CORRESPONDENCES, MIN_POSES, Observations,
                     SCREEN_HEIGHT_UNIT_MM, SCREEN_WEIGHT_MIN, WEAK_DIRECTIONS, _CAM_UNITS, _CHUNK, _MIR_UNITS, _NB,
                     _NC, _NJ, _NM, _PLANE_HINT_TOL)
-from .kernel import _avv_kernel, _chunks_kernel, _rows_kernel
+from .kernel import _avv_kernel, _chunks_kernel, _rows_kernel, _screen_points_kernel
 from .result import CalibrationResult, WeakDirection
 
 
@@ -89,8 +89,8 @@ def _screen_q(q: np.ndarray, wx: np.ndarray, wy: np.ndarray, screen: ScreenModel
     without one)."""
     if screen is None:
         return q
-    out = np.array(q)
-    out[:, 2] = np.einsum("mi,mi->m", wy @ screen.heights_mm, wx)
+    out = np.empty_like(q)
+    _screen_points_kernel(q, wx, wy, np.ascontiguousarray(screen.heights_mm, dtype=float), out)
     return out
 
 
@@ -374,6 +374,7 @@ _ACCEL_ALPHA = 0.75
 #: bounded to [1/10, 1]; a rejected step multiplies λ by ν = 2, 4, 8, … (Nielsen 1999, "Damping
 #: parameter in Marquardt's method", IMM-REP-1999-05; Madsen, Nielsen & Tingleff 2004, §3.1).
 _LAMBDA_MIN_FACTOR = 0.1
+
 
 def _scaled(a: np.ndarray, g: np.ndarray):
     dg = np.sqrt(np.diag(a))
