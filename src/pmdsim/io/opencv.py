@@ -32,19 +32,11 @@ import numpy as np
 
 from ..errors import SetupError
 from ..geometry.camera import Camera
-from ..setup.opencv_file import FILESTORAGE_FORMATS, camera_from_filestorage, read_filestorage, read_opencv_camera
+from ..setup.opencv_file import _format_of, camera_from_filestorage, read_filestorage, read_opencv_camera
 from .outputs import atomic_file
 
 __all__ = ["read_filestorage", "write_filestorage", "read_opencv_camera", "write_opencv_camera",
            "camera_from_filestorage", "camera_to_filestorage"]
-
-
-def _format_of(path: Path) -> str:
-    fmt = FILESTORAGE_FORMATS.get(path.suffix.lower())
-    if fmt is None:
-        raise SetupError(f"{path}: not an OpenCV FileStorage file name (expected .yml, .yaml, .xml or .json, "
-                         f"got {path.suffix or 'no suffix'!r})")
-    return fmt
 
 
 # ============================================================================ writing
