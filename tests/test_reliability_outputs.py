@@ -441,7 +441,9 @@ def test_version_and_help_import_no_numba(args):
 
 def _read_only_script(tmp_path: Path, tmp_writable: bool) -> str:
     """Shell commands for a private mount namespace: the source tree remounted read-only, home
-    a read-only file system; /tmp, /var/tmp and /dev/shm read-only too unless ``tmp_writable``."""
+    a read-only file system; /tmp, /var/tmp and /dev/shm read-only too unless ``tmp_writable``
+    (each bind-mounted onto itself read-only, so that a checkout or a virtual environment that
+    lives under /tmp stays visible)."""
     lines = ["set -e", f"mount --bind {SRC} {SRC}", f"mount -o remount,bind,ro {SRC}"]
     if tmp_writable:
         home, tmpdir = tmp_path / "home", tmp_path / "tmp"
@@ -450,7 +452,7 @@ def _read_only_script(tmp_path: Path, tmp_writable: bool) -> str:
         lines.append(f"mount -t tmpfs -o ro,size=1m tmpfs {home}")
     else:
         home, tmpdir = Path("/tmp/home"), Path("/tmp")
-        lines.append("for d in /tmp /var/tmp /dev/shm; do mount -t tmpfs -o ro,size=1m tmpfs $d; done")
+        lines.append("for d in /tmp /var/tmp /dev/shm; do mount --bind $d $d; mount -o remount,bind,ro $d; done")
     lines += [f"cd {SRC}", f"export HOME={home} TMPDIR={tmpdir} PYTHONPATH={SRC}",
               "unset XDG_CACHE_HOME NUMBA_CACHE_DIR",
               f"{sys.executable} -m pmdsim.cli --version",
