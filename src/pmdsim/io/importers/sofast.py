@@ -366,7 +366,8 @@ def facet_centre_pixel(mask: np.ndarray, cam: Camera, delta: np.ndarray | None =
     """Pixel (row, column) of the centre of a parallelogram facet (a rectangle, a square) from
     its outline in ``mask``: the intersection of the diagonals of the outline's corners in
     undistorted normalised coordinates (a pinhole maps the facet's plane projectively, which
-    keeps the diagonals' intersection), distorted back to pixels."""
+    keeps the diagonals' intersection), distorted back to pixels (= the homography of
+    :func:`~pmdsim.io.importers.outline.outline_point_pixel` for the centre)."""
     corners = facet_outline_corners(mask, delta)
     xy_d = np.stack([(corners[:, 0] - cam.ppx_px) / cam.fx_px, (corners[:, 1] - cam.ppy_px) / cam.fy_px], -1)
     xy, ok = cam.undistort(xy_d)
@@ -377,6 +378,73 @@ def facet_centre_pixel(mask: np.ndarray, cam: Camera, delta: np.ndarray | None =
     st = np.linalg.solve(np.stack([p2 - p0, -(p3 - p1)], axis=-1), p1 - p0)
     c = cam.distort((p0 + st[0] * (p2 - p0))[None])[0]
     return (float(c[1] * cam.fy_px + cam.ppy_px), float(c[0] * cam.fx_px + cam.ppx_px))
+
+
+@dataclass(frozen=True)
+class MeasurePointLocation:
+    """Where the optic's measure point is seen (:func:`measure_point_pixel`).
+
+    Attributes
+    ----------
+    pixel_vu : (row, column)
+        By the pose fit of the outline corners (the anchor pixel).
+    pixel_vu_homography : (row, column) or None
+        By the corners' homography (a cross-check; None when the point is off the corners' plane).
+    corners_px : ndarray (K, 2)
+        The found corners (u, v), in the order of the optic's corners.
+    rms_px : float
+        Reprojection RMS of the pose fit.
+    T_cam_obj : RigidTransform
+        The pose fit (optic frame → camera frame, the optic file's unit).
+    """
+
+    pixel_vu: tuple[float, float]
+    pixel_vu_homography: tuple[float, float] | None
+    corners_px: np.ndarray
+    rms_px: float
+    T_cam_obj: RigidTransform
+
+
+def measure_point_pixel(mask: np.ndarray, cam: Camera, corners_obj, point_obj,
+                        delta: np.ndarray | None = None) -> MeasurePointLocation:
+    """Pixel of a point ``point_obj`` (3,) of a four-cornered optic whose corners ``corners_obj``
+    (4, 3) are known in its frame: the corners found in ``mask`` (:func:`facet_outline_corners`,
+    sub-pixel with ``delta``), matched to the known ones, a pose fit (perspective-n-point with
+    pmdsim's camera model, :func:`~pmdsim.io.importers.outline.outline_pose`), the point projected.
+
+    Matching: of the 8 cyclic orders, those whose pose fit is within 1.5× (+0.05 px) of the best
+    RMS; among them (a square's four turns fit equally) the one whose optic x axis points most
+    along the image's +u and y axis along −v (SOFAST's convention: its expected optic orientation
+    is the camera's turned 180° about x). On the shared facet the pose fit is 0.014 / 0.044 px
+    (column / row, worst of 16 sub-pixel positions) from the truth on a rendered facet, the
+    diagonals 0.047 / 0.057 px (docs/benchmarks.md, issue 12; benchmarks/sofast_anchor.py)."""
+    from .outline import OutlineError, outline_point_pixel, outline_pose
+
+    obj = np.asarray(corners_obj, dtype=float)
+    pt = np.asarray(point_obj, dtype=float).reshape(3)
+    if obj.shape != (4, 3):
+        raise SofastImportError(f"the optic's outline must have 4 corners (4, 3), got {obj.shape}")
+    found = facet_outline_corners(mask, delta)
+    fits = []
+    for direction in (1, -1):
+        for shift in range(4):
+            order = [(shift + direction * k) % 4 for k in range(4)]
+            c = found[order]
+            try:
+                fits.append((outline_pose(cam, c, obj), c))
+            except OutlineError as e:
+                raise SofastImportError(f"the facet's outline: {e}") from None
+    best = min(f[0].rms_px for f in fits)
+    ok = [f for f in fits if f[0].rms_px <= 1.5 * best + 0.05 and f[0].T_cam_obj.translation[2] > 0]
+    R_of = lambda f: f[0].T_cam_obj.rotation  # noqa: E731
+    pose, corners = max(ok, key=lambda f: R_of(f)[0, 0] - R_of(f)[1, 1])
+    uv = pose.pixel_of(cam, pt)
+    try:
+        h = outline_point_pixel(cam, corners, obj, pt)
+        hv = (float(h[1]), float(h[0]))
+    except OutlineError:
+        hv = None
+    return MeasurePointLocation((float(uv[1]), float(uv[0])), hv, corners, pose.rms_px, pose.T_cam_obj)
 
 
 # ============================================================================ import
@@ -506,6 +574,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     pix = (float(vv.mean()), float(uu.mean()))
     anchor_how = "the mask centroid (no --facet)"
     fcent = None
+    outline_info = None
     if facet is not None:
         try:
             fdoc = json.loads(Path(facet).read_text(encoding="utf-8"))
@@ -514,14 +583,19 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
         except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
             raise SofastImportError(f"facet file {str(facet)!r}: expected JSON with v_facet_corners.x/.y/.z and "
                                     f"v_centroid_facet (m): {e!r}") from None
-        para = fc.shape == (4, 3) and np.allclose(fc[0] + fc[2], fc[1] + fc[3], atol=1e-9)
-        if not para or not np.allclose(fc.mean(axis=0), fcent, atol=1e-9) or not np.allclose(mp, fcent, atol=1e-9):
-            warn.append(f"{str(facet)!r}: the facet is not a parallelogram centred on its centroid, or the measure "
-                        f"point {mp.tolist()} is not the centroid; the anchor pixel is the mask centroid")
-        else:
-            delta = mask_imgs[..., 1].astype(float) - mask_imgs[..., 0].astype(float)
-            pix = facet_centre_pixel(mask, cam, delta)
-            anchor_how = "the facet's centre, located from its outline in the mask (diagonals of the corners)"
+        if fc.shape != (4, 3):
+            raise SofastImportError(f"facet file {str(facet)!r}: v_facet_corners must hold 4 corners, got {fc.shape[0]}")
+        delta = mask_imgs[..., 1].astype(float) - mask_imgs[..., 0].astype(float)
+        loc = measure_point_pixel(mask, cam, fc, mp, delta)
+        pix = loc.pixel_vu
+        v_mp = loc.T_cam_obj.apply(mp[None])[0]  # metres, camera frame
+        outline_info = {"pixel_vu_pose_fit": list(loc.pixel_vu),
+                        "pixel_vu_homography": None if loc.pixel_vu_homography is None else list(loc.pixel_vu_homography),
+                        "corners_px_uv": loc.corners_px.tolist(), "reprojection_rms_px": loc.rms_px,
+                        "distance_from_outline_mm": 1e3 * float(np.linalg.norm(v_cs - v_mp)),
+                        "distance_measured_mm": 1e3 * dist_m}
+        anchor_how = (f"the measure point {mp.tolist()} m of the facet, located by a pose fit of the facet's outline "
+                      f"corners (reprojection RMS {loc.rms_px:.3f} px)")
     elif np.any(mp != 0):
         warn.append(f"{src_m}: v_measure_point_facet = {mp.tolist()} is not the facet origin; the anchor pixel is the "
                     f"mask centroid, which is where SOFAST places the optic's origin before refining it")
@@ -587,7 +661,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
             "metadata": {"sofast": {"measurement": str(measurement), "camera": str(camera), "display": str(display),
                                     "display_model": disp.model, "orientation": str(orientation),
                                     "calibration": str(calibration), "facet": None if facet is None else str(facet)},
-                         "warnings": warn},
+                         "outline": outline_info, "warnings": warn},
         }
         write_json(img_dir / MANIFEST_NAME, manifest)
     for w in warn:
