@@ -16,6 +16,8 @@ A. Real data (OpenCSP's facet measurement and SOFAST's own evaluation of it):
    4. Edge widths per side (erf fits of the light − dark profile), SOFAST's threshold as a
       fraction of the local step, the inward shift a threshold τ predicts for a Gaussian edge
       (σ·Φ⁻¹(τ)) and the centre shift that follows, vs the observed side offsets.
+C. (printed before B) A replica of the real facet: the same, rendered at the pose pmdsim fits to
+   the real outline, with the real levels; SOFAST − pmdsim on the replica vs on the real data.
 B. Synthetic truth: the facet rendered at SOFAST's pose through the same camera, with the real
    edges' measured blur per side, at 16 sub-pixel positions; each method's error vs the true
    projected centre.
@@ -144,19 +146,60 @@ def real(D: Path):
     dv_obs = 0.5 * (shift["top"][0] - shift["bottom"][0])
     print(f"    centre shift SOFAST − pmdsim from the side offsets: predicted by the threshold on Gaussian edges "
           f"(Δu, Δv) = ({du_pred:+.3f}, {dv_pred:+.3f}) px; from the observed sides ({du_obs:+.3f}, {dv_obs:+.3f}) px")
-    return cam, prof, (Rotation.from_rotvec(r1).as_matrix(), 1e3 * v1), exp
+    real_data = dict(delta=delta, mask=mask_half, loop=loop, threshold=ths[tie_sofast][1], sofast_uv=sofast_uv,
+                     ours=out["pmdsim: half-level sub-pixel edges (the importer)"])
+    return cam, prof, (Rotation.from_rotvec(r1).as_matrix(), 1e3 * v1), exp, real_data
+
+
+def calibrated_blur(cam, R, t, prof, dark=0.0, lit=216.0):
+    """Optical σ per side such that the rendered edges re-measure (erf fits) as the real ones."""
+    target = {k: float(np.median(v[:, 3])) for k, v in prof.items()}
+    sig = {k: float(np.sqrt(max(v**2 - 1.0 / 12.0, 0.0))) for k, v in target.items()}
+    for _ in range(4):
+        img = ref.render_facet(cam, R, t, 606.0, sig, dark, lit)
+        got = ref.edge_profiles(img, facet_outline_corners(_mask(np.zeros_like(img), img), img))
+        sig = {k: max(0.0, sig[k] + target[k] - float(np.median(got[k][:, 3]))) for k in sig}
+    return sig
+
+
+def replica(cam, prof, exp, real_data):
+    """C. The real facet re-rendered: at the pose pmdsim fits to its outline, with the real
+    outside/inside levels (quadratic fields near the outline) and the measured blur per side,
+    8-bit; SOFAST's method at SOFAST's threshold and pmdsim's, each vs the replica's true centre,
+    and their difference vs the real one."""
+    from pmdsim.io.importers.sofast import measure_point_pixel
+
+    obj = 1e3 * OBJ_M
+    loc = measure_point_pixel(real_data["mask"], cam, obj, [0, 0, 0], real_data["delta"])
+    R, t = loc.T_cam_obj.rotation, loc.T_cam_obj.translation
+    B, L = ref.level_fields(real_data["delta"], real_data["mask"])
+    sig = calibrated_blur(cam, R, t, prof)
+    img = ref.render_facet(cam, R, t, 606.0, sig, B, L)
+    light = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    dark = np.zeros_like(light)
+    truth = cam.project(t[None])[0]
+    m = _mask(dark, light)
+    ours = measure_point_pixel(m, cam, obj, [0, 0, 0], light.astype(float))
+    uv_p = np.array([ours.pixel_vu[1], ours.pixel_vu[0]])
+    mr = ref.mask_raw(dark, light, threshold=real_data["threshold"])
+    c_s = ref.perimeter(ref.pixel_edges(mr), exp)
+    uv_s = outline_pose(cam, c_s, obj).pixel_of(cam, [0, 0, 0])
+    real_diff = real_data["sofast_uv"] - real_data["ours"][1]
+    print("C. replica of the real facet (pose of pmdsim's outline fit, real levels, blur " +
+          ", ".join(f"{k} {v:.3f}" for k, v in sig.items()) + " px, 8 bit), SOFAST's threshold "
+          f"{real_data['threshold']:.1f}")
+    print(f"    replica's corners vs the real ones: SOFAST's method max |Δ| {np.abs(c_s - real_data['loop']).max():.3f} px, "
+          f"pmdsim's {np.abs(ours.corners_px - loc.corners_px).max():.3f} px")
+    print(f"    pmdsim (pose fit) − truth: ({uv_p[0] - truth[0]:+.3f}, {uv_p[1] - truth[1]:+.3f}) px; "
+          f"SOFAST's method − truth: ({uv_s[0] - truth[0]:+.3f}, {uv_s[1] - truth[1]:+.3f}) px")
+    print(f"    SOFAST − pmdsim: replica ({uv_s[0] - uv_p[0]:+.3f}, {uv_s[1] - uv_p[1]:+.3f}) px; real data "
+          f"({real_diff[0]:+.3f}, {real_diff[1]:+.3f}) px")
 
 
 def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12):
     R, t0 = pose
     rng = np.random.default_rng(seed)
-    target = {k: float(np.median(v[:, 3])) for k, v in prof.items()}
-    sig = {k: float(np.sqrt(max(v**2 - 1.0 / 12.0, 0.0))) for k, v in target.items()}
-    # Optical blur per side such that the rendered (noise-free) edges re-measure as the real ones.
-    for _ in range(4):
-        img = ref.render_facet(cam, R, t0, 606.0, sig, 0.0, 216.0)
-        got = ref.edge_profiles(img, facet_outline_corners(_mask(np.zeros_like(img), img), img))
-        sig = {k: max(0.0, sig[k] + target[k] - float(np.median(got[k][:, 3]))) for k in sig}
+    sig = calibrated_blur(cam, R, t0, prof)
     print("B. synthetic facet at SOFAST's pose, optical blur per side ("
           "adjusted until the rendered edges re-measure as the real ones): " + ", ".join(f"{k} {v:.3f}" for k, v in sig.items()) + f" px; dark 14, lit 230 DN, noise "
           f"{noise:g} DN per image, 8 bit; "
@@ -207,7 +250,8 @@ def main() -> None:
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--shifts", type=int, default=4)
     a = ap.parse_args()
-    cam, prof, pose, exp = real(a.data)
+    cam, prof, pose, exp, real_data = real(a.data)
+    replica(cam, prof, exp, real_data)
     if not a.no_synthetic:
         synthetic(cam, prof, pose, exp, a.shifts)
 

@@ -166,13 +166,14 @@ def edge_profiles(delta: np.ndarray, corners: np.ndarray, n_lines: int = 40, hal
     return out
 
 
-def render_facet(cam, R_cam_facet, t_cam_facet_mm, half_mm: float, sigma_px: dict, dark: float, lit: float,
+def render_facet(cam, R_cam_facet, t_cam_facet_mm, half_mm: float, sigma_px: dict, dark, lit,
                  n: int = 8) -> np.ndarray:
     """Light − dark image (H, W) of a square facet (±half_mm in its x, y) at pose (R, t) (facet →
     camera, mm): each pixel the mean of n × n sub-pixel samples of dark + (lit − dark)·Π Φ(d_s/σ_s)
     — d_s the sample's distance inside side s (in the facet plane, mm), σ_s = ``sigma_px[side]``
     (optical blur, px, by the side's place in the image) × the facet's mm per px. Pixel
-    integration comes from the sub-sampling; σ = 0 gives a sharp edge."""
+    integration comes from the sub-sampling; σ = 0 gives a sharp edge. ``dark``, ``lit``: levels,
+    scalars or (H, W) arrays (the level outside and inside the facet at each pixel)."""
     from scipy.special import ndtr
 
     R = np.asarray(R_cam_facet, float)
@@ -202,5 +203,21 @@ def render_facet(cam, R_cam_facet, t_cam_facet_mm, half_mm: float, sigma_px: dic
         sg = sigma_px[name(k)] * mm_per_px
         w *= (dist >= 0) if sg <= 0 else ndtr(dist / sg)
     w = np.where(ok, w, 0.0)
-    img = dark + (lit - dark) * w
-    return img.reshape(cam.height_px, n, cam.width_px, n).mean(axis=(1, 3))
+    cover = w.reshape(cam.height_px, n, cam.width_px, n).mean(axis=(1, 3))
+    return dark + (np.asarray(lit, float) - dark) * cover
+
+
+def level_fields(delta: np.ndarray, mask: np.ndarray, band_px: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth outside and inside levels (H, W) of a light − dark image near the outline of
+    ``mask``: quadratic polynomials in (u, v) fitted (least squares) to the pixels within
+    ``band_px`` outside resp. inside the mask, 2 px away from its boundary (off the partial pixels)."""
+    m = np.asarray(mask, bool)
+    d_out = ndimage.distance_transform_edt(~m)
+    d_in = ndimage.distance_transform_edt(m)
+    v, u = np.mgrid[0:m.shape[0], 0:m.shape[1]].astype(float)
+    A = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], -1) / [1, 100, 100, 1e4, 1e4, 1e4]
+    out = []
+    for sel in ((d_out >= 2) & (d_out <= band_px), (d_in >= 3) & (d_in <= band_px)):
+        c, *_ = np.linalg.lstsq(A[sel], delta[sel], rcond=None)
+        out.append(A @ c)
+    return out[0], out[1]

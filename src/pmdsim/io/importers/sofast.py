@@ -291,12 +291,22 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
 def _boundary(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
     """Edge points (u, v) of the lit region, (K, 2), between 4-neighbouring pixel centres of
     which one is inside the mask and one outside: where the light − dark difference ``delta``
-    crosses the level halfway between the dark and the lit pixels (linear interpolation between
-    the two centres: a sub-pixel edge), or their midpoint without ``delta``."""
+    crosses the level halfway between the local dark and lit levels (linear interpolation between
+    the two centres: a sub-pixel edge), or their midpoint without ``delta``.
+
+    The local levels are ``delta`` two pixels beyond the pair on either side (the edge lies
+    between the pair's outer pixel boundaries, so those pixels are a pixel or more away from it):
+    the light around an optic is rarely uniform (on the SOFAST facet the outside level is 7 DN
+    below the facet and 32 DN right of it), and a global level would move the sides with
+    different surroundings by different amounts (0.07 px in the centre on a replica of that
+    facet; docs/benchmarks.md, issue 12). Where those pixels are off the image, or not darker
+    resp. brighter than the crossing, the global level halfway between the median lit and dark
+    pixels is used."""
     m = np.asarray(mask, bool)
-    level = None
+    glob = None
     if delta is not None:
-        level = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
+        delta = np.asarray(delta, dtype=float)
+        glob = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
     out = []
     for axis in (0, 1):
         a_m, b_m = (m[:-1, :], m[1:, :]) if axis == 0 else (m[:, :-1], m[:, 1:])
@@ -306,6 +316,26 @@ def _boundary(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
         if delta is not None:
             a, b = (delta[:-1, :], delta[1:, :]) if axis == 0 else (delta[:, :-1], delta[:, 1:])
             a, b = a[sel], b[sel]
+            i = v if axis == 0 else u  # index of the pair's first pixel along the axis
+            n = delta.shape[axis]
+            before, after = i - 2, i + 3
+            okb = before >= 0
+            oka = after < n
+            db = np.full(i.shape, np.nan)
+            da = np.full(i.shape, np.nan)
+            if axis == 0:
+                db[okb] = delta[before[okb], u[okb]]
+                da[oka] = delta[after[oka], u[oka]]
+            else:
+                db[okb] = delta[v[okb], before[okb]]
+                da[oka] = delta[v[oka], after[oka]]
+            first_in = a_m[sel]
+            lit = np.where(first_in, db, da)
+            dk = np.where(first_in, da, db)
+            level = 0.5 * (lit + dk)
+            lo, hi = np.minimum(a, b), np.maximum(a, b)
+            good = np.isfinite(level) & (lit > hi - 1e-9) & (dk < lo + 1e-9) & (lit - dk > 0)
+            level = np.where(good, level, glob)
             with np.errstate(invalid="ignore", divide="ignore"):
                 tt = (level - a) / (b - a)
             t = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
