@@ -288,59 +288,64 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
     return m
 
 
-def _boundary(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
-    """Edge points (u, v) of the lit region, (K, 2), between 4-neighbouring pixel centres of
-    which one is inside the mask and one outside: where the light − dark difference ``delta``
-    crosses the level halfway between the local dark and lit levels (linear interpolation between
-    the two centres: a sub-pixel edge), or their midpoint without ``delta``.
+def _boundary(mask: np.ndarray, delta: np.ndarray | None = None, *, with_axis: bool = False):
+    """Edge points (u, v) of the lit region, (K, 2), one per pair of 4-neighbouring pixels of
+    which one is inside the mask and one outside (and, with ``with_axis``, the pair's axis (K,):
+    0 = the pair is vertical, the point's v is sub-pixel; 1 = horizontal, u sub-pixel).
 
-    The local levels are ``delta`` two pixels beyond the pair on either side (the edge lies
-    between the pair's outer pixel boundaries, so those pixels are a pixel or more away from it):
-    the light around an optic is rarely uniform (on the SOFAST facet the outside level is 7 DN
-    below the facet and 32 DN right of it), and a global level would move the sides with
-    different surroundings by different amounts (0.07 px in the centre on a replica of that
-    facet; docs/benchmarks.md, issue 12). Where those pixels are off the image, or not darker
-    resp. brighter than the crossing, the global level halfway between the median lit and dark
-    pixels is used."""
+    Without ``delta``: the pair's midpoint. With the light − dark image ``delta``: the edge's
+    position along the pair's axis from the **area** of the profile across it (moment-preserving
+    edge location, Tabatabai & Mitchell, IEEE PAMI 6 (1984) 188): the four pixels from one before
+    to one after the pair, normalised between the local dark and lit levels (``delta`` two pixels
+    beyond them on either side), sum to the lit length of their 4-px span — exact for a straight
+    edge under any blur narrower than a pixel and the pixels' own integration, where the
+    crossing of half the level between two pixel centres is off by up to 0.086 px for a sharp
+    edge (c + 1/(2c) − 3/2 for a partial pixel of coverage c ≥ ½), which does not average out
+    along a side nearly parallel to the pixel grid (on the SOFAST facet it moved the centre by
+    0.05 px; docs/benchmarks.md, issue 12). Local levels, not global ones: the light around an
+    optic is rarely uniform (on that facet the outside is 7 DN below it and 32 DN right of it).
+    Where the levels cannot be read (image border, no contrast) the half-level crossing of a
+    global level (halfway between the median lit and dark pixels) between the pair is used."""
     m = np.asarray(mask, bool)
     glob = None
     if delta is not None:
         delta = np.asarray(delta, dtype=float)
         glob = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
-    out = []
+    out, axes = [], []
     for axis in (0, 1):
         a_m, b_m = (m[:-1, :], m[1:, :]) if axis == 0 else (m[:, :-1], m[:, 1:])
         sel = a_m != b_m
         v, u = np.nonzero(sel)
         t = np.full(v.shape, 0.5)
         if delta is not None:
-            a, b = (delta[:-1, :], delta[1:, :]) if axis == 0 else (delta[:, :-1], delta[:, 1:])
-            a, b = a[sel], b[sel]
-            i = v if axis == 0 else u  # index of the pair's first pixel along the axis
             n = delta.shape[axis]
-            before, after = i - 2, i + 3
-            okb = before >= 0
-            oka = after < n
-            db = np.full(i.shape, np.nan)
-            da = np.full(i.shape, np.nan)
-            if axis == 0:
-                db[okb] = delta[before[okb], u[okb]]
-                da[oka] = delta[after[oka], u[oka]]
-            else:
-                db[okb] = delta[v[okb], before[okb]]
-                da[oka] = delta[v[oka], after[oka]]
+            i = v if axis == 0 else u  # index of the pair's first pixel along the axis
+
+            def at(k):
+                ok = (k >= 0) & (k < n)
+                val = np.full(k.shape, np.nan)
+                kk = np.clip(k, 0, n - 1)
+                val[ok] = (delta[kk, u] if axis == 0 else delta[v, kk])[ok]
+                return val
+
+            a, b = at(i), at(i + 1)
             first_in = a_m[sel]
-            lit = np.where(first_in, db, da)
-            dk = np.where(first_in, da, db)
-            level = 0.5 * (lit + dk)
-            lo, hi = np.minimum(a, b), np.maximum(a, b)
-            good = np.isfinite(level) & (lit > hi - 1e-9) & (dk < lo + 1e-9) & (lit - dk > 0)
-            level = np.where(good, level, glob)
+            lit = np.where(first_in, at(i - 2), at(i + 3))
+            dk = np.where(first_in, at(i + 3), at(i - 2))
+            span = np.stack([at(i - 1), a, b, at(i + 2)], -1)
             with np.errstate(invalid="ignore", divide="ignore"):
-                tt = (level - a) / (b - a)
-            t = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
+                frac = np.clip((span - dk[:, None]) / (lit - dk)[:, None], 0.0, 1.0).sum(axis=-1)
+                # Lit part of [i − 1.5, i + 2.5]: [i − 1.5, x] (lit first) or [x, i + 2.5].
+                t_area = np.where(first_in, -1.5 + frac, 2.5 - frac)
+                tt = (glob - a) / (b - a)
+            contrast = (lit - dk) > 0.25 * abs(np.median(delta[m]) - np.median(delta[~m]))
+            good = np.isfinite(t_area) & contrast & (t_area >= -0.5) & (t_area <= 1.5)
+            t_glob = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
+            t = np.where(good, t_area, t_glob)
         out.append(np.stack([u.astype(float), v + t], -1) if axis == 0 else np.stack([u + t, v.astype(float)], -1))
-    return np.concatenate(out)
+        axes.append(np.full(v.shape, axis))
+    pts = np.concatenate(out)
+    return (pts, np.concatenate(axes)) if with_axis else pts
 
 
 def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -356,8 +361,9 @@ def facet_outline_corners(mask: np.ndarray, delta: np.ndarray | None = None) -> 
     the boundary points extreme along the diagonals of the frame (rotated in 15° steps, the set
     of largest area kept); each side's boundary points (nearest to it, away from the corners)
     are fitted by a total-least-squares line, twice, and adjacent lines intersected. Edge points:
-    :func:`_boundary` (sub-pixel with the light − dark image ``delta``)."""
-    pts = _boundary(mask, delta)
+    :func:`_boundary` (sub-pixel with the light − dark image ``delta``), of each side only those
+    located across it (the pair's axis the one more perpendicular to the side)."""
+    pts, pair_axis = _boundary(mask, delta, with_axis=True)
     if len(pts) < 16:
         raise SofastImportError("the lit region is too small to find the facet's outline")
     best, best_area = None, -1.0
@@ -379,7 +385,8 @@ def facet_outline_corners(mask: np.ndarray, delta: np.ndarray | None = None) -> 
             L = float(np.linalg.norm(ab))
             t = (pts - a) @ ab / L**2
             dist = np.abs((pts - a) @ np.array([-ab[1], ab[0]]) / L)
-            sel = (t > 0.1) & (t < 0.9) & (dist < max(3.0, 0.05 * L))
+            across = 1 if abs(ab[0]) < abs(ab[1]) else 0  # near-vertical side: horizontal pairs
+            sel = (t > 0.1) & (t < 0.9) & (dist < max(3.0, 0.05 * L)) & (pair_axis == across)
             if sel.sum() < 4:
                 raise SofastImportError("cannot fit the facet's outline to the lit region (a side has too few "
                                         "boundary pixels); is the facet fully in view?")
