@@ -162,7 +162,7 @@ def calibrated_blur(cam, R, t, prof, dark=0.0, lit=216.0):
     return sig
 
 
-def replica(cam, prof, exp, real_data):
+def replica(cam, prof, exp, real_data, n_seeds=9):
     """C. The real facet re-rendered: at the pose pmdsim fits to its outline, with the real
     outside/inside levels (quadratic fields near the outline) and the measured blur per side,
     8-bit; SOFAST's method at SOFAST's threshold and pmdsim's, each vs the replica's true centre,
@@ -175,24 +175,38 @@ def replica(cam, prof, exp, real_data):
     B, L = ref.level_fields(real_data["delta"], real_data["mask"])
     sig = calibrated_blur(cam, R, t, prof)
     img = ref.render_facet(cam, R, t, 606.0, sig, B, L)
-    light = np.clip(np.round(img), 0, 255).astype(np.uint8)
-    dark = np.zeros_like(light)
     truth = cam.project(t[None])[0]
-    m = _mask(dark, light)
-    ours = measure_point_pixel(m, cam, obj, [0, 0, 0], light.astype(float))
-    uv_p = np.array([ours.pixel_vu[1], ours.pixel_vu[0]])
-    mr = ref.mask_raw(dark, light, threshold=real_data["threshold"])
-    c_s = ref.perimeter(ref.pixel_edges(mr), exp)
-    uv_s = outline_pose(cam, c_s, obj).pixel_of(cam, [0, 0, 0])
+    rows = []
+    for seed in range(n_seeds):
+        # 8-bit dark and light images; seed 0 without noise, the others with 1 DN per image.
+        rng = np.random.default_rng(seed)
+        sd = 0.0 if seed == 0 else 1.0
+        dark = np.clip(np.round(14.0 + sd * rng.normal(size=img.shape)), 0, 255).astype(np.uint8)
+        light = np.clip(np.round(14.0 + img + sd * rng.normal(size=img.shape)), 0, 255).astype(np.uint8)
+        delta = light.astype(float) - dark
+        ours = measure_point_pixel(_mask(dark, light), cam, obj, [0, 0, 0], delta)
+        uv_p = np.array([ours.pixel_vu[1], ours.pixel_vu[0]])
+        mr = ref.mask_raw(dark, light, threshold=real_data["threshold"])
+        c_s = ref.perimeter(ref.pixel_edges(mr), exp)
+        uv_s = outline_pose(cam, c_s, obj).pixel_of(cam, [0, 0, 0])
+        rows.append(np.r_[uv_p - truth, uv_s - truth, np.abs(c_s - real_data["loop"]).max(),
+                          np.abs(ours.corners_px - loc.corners_px).max()])
+    rows = np.array(rows)
+    e_p, e_s = rows[:, 0:2], rows[:, 2:4]
     real_diff = real_data["sofast_uv"] - real_data["ours"][1]
     print("C. replica of the real facet (pose of pmdsim's outline fit, real levels, blur " +
           ", ".join(f"{k} {v:.3f}" for k, v in sig.items()) + " px, 8 bit), SOFAST's threshold "
           f"{real_data['threshold']:.1f}")
-    print(f"    replica's corners vs the real ones: SOFAST's method max |Δ| {np.abs(c_s - real_data['loop']).max():.3f} px, "
-          f"pmdsim's {np.abs(ours.corners_px - loc.corners_px).max():.3f} px")
-    print(f"    pmdsim (pose fit) − truth: ({uv_p[0] - truth[0]:+.3f}, {uv_p[1] - truth[1]:+.3f}) px; "
-          f"SOFAST's method − truth: ({uv_s[0] - truth[0]:+.3f}, {uv_s[1] - truth[1]:+.3f}) px")
-    print(f"    SOFAST − pmdsim: replica ({uv_s[0] - uv_p[0]:+.3f}, {uv_s[1] - uv_p[1]:+.3f}) px; real data "
+    print(f"    replica's corners vs the real ones (noise-free): SOFAST's method max |Δ| {rows[0, 4]:.3f} px, "
+          f"pmdsim's {rows[0, 5]:.3f} px")
+    print(f"    pmdsim (pose fit) − truth: noise-free ({e_p[0, 0]:+.3f}, {e_p[0, 1]:+.3f}) px, with noise "
+          f"({e_p[1:, 0].mean():+.3f} ± {e_p[1:, 0].std():.3f}, {e_p[1:, 1].mean():+.3f} ± {e_p[1:, 1].std():.3f}) px")
+    print(f"    SOFAST's method − truth: noise-free ({e_s[0, 0]:+.3f}, {e_s[0, 1]:+.3f}) px, with noise "
+          f"({e_s[1:, 0].mean():+.3f} ± {e_s[1:, 0].std():.3f}, {e_s[1:, 1].mean():+.3f} ± {e_s[1:, 1].std():.3f}) px "
+          f"[{n_seeds - 1} seeds]")
+    d = e_s - e_p
+    print(f"    SOFAST − pmdsim: replica noise-free ({d[0, 0]:+.3f}, {d[0, 1]:+.3f}), with noise ({d[1:, 0].mean():+.3f} ± "
+          f"{d[1:, 0].std():.3f}, {d[1:, 1].mean():+.3f} ± {d[1:, 1].std():.3f}) px; real data "
           f"({real_diff[0]:+.3f}, {real_diff[1]:+.3f}) px")
 
 
