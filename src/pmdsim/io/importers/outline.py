@@ -17,11 +17,14 @@ corners); two ways from there to the point's pixel:
   (px) and the distance it implies are a consistency check of the found outline against the
   optic's nominal size.
 
-The two agree for exact corners. For corners with errors they differ: a pose fit explains an
-outline whose aspect ratio is slightly off by a tilt, and the tilt moves the projected centre
-(on the SOFAST facet, 84 px wide at 9.65 m: 0.1–0.25 px; docs/benchmarks.md, issue 12). The
-homography's point is an affine combination of the corners' errors (for the centre of a
-rectangle: half the difference of opposite sides' offsets), hence the importer's choice.
+The two agree for exact corners. With found corners they differ by the corners' errors: an
+offset of one side moves either centre by about half of it, but corner errors that do not fit
+the known shape (the pose fit's residual) move them differently. On a facet rendered at the
+SOFAST facet's pose (84 px wide, 9.7 m away) the pose fit of pmdsim's outline is within
+0.009 / 0.011 px (column / row) of the true centre, the homography 0.016 / 0.013 px; on the
+real facet the two are 0.03 px apart and the pose fit's residual is 0.033 px RMS
+(docs/benchmarks.md, issue 12; ``benchmarks/sofast_anchor.py``). The importer uses the pose fit
+(a measure point may be anywhere on the optic) and records the homography's pixel beside it.
 
 Pixel coordinates (u, v) with integer values at pixel centres (OpenCV's convention, as
 :meth:`Camera.project`); object points (..., 3) in the optic's frame, any unit (the pose's

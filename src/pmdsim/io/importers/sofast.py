@@ -452,9 +452,10 @@ def measure_point_pixel(mask: np.ndarray, cam: Camera, corners_obj, point_obj,
     Matching: of the 8 cyclic orders, those whose pose fit is within 1.5× (+0.05 px) of the best
     RMS; among them (a square's four turns fit equally) the one whose optic x axis points most
     along the image's +u and y axis along −v (SOFAST's convention: its expected optic orientation
-    is the camera's turned 180° about x). On the shared facet the pose fit is 0.014 / 0.044 px
-    (column / row, worst of 16 sub-pixel positions) from the truth on a rendered facet, the
-    diagonals 0.047 / 0.057 px (docs/benchmarks.md, issue 12; benchmarks/sofast_anchor.py)."""
+    is the camera's turned 180° about x). On a facet rendered at the shared facet's pose with its
+    measured edge blur, the pose fit is within 0.009 / 0.011 px (column / row, worst of 16
+    sub-pixel positions) of the true centre, the diagonals 0.016 / 0.013 px (docs/benchmarks.md,
+    issue 12; benchmarks/sofast_anchor.py)."""
     from .outline import OutlineError, outline_point_pixel, outline_pose
 
     obj = np.asarray(corners_obj, dtype=float)
