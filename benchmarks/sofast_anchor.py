@@ -111,7 +111,7 @@ def real(D: Path):
     sets += [("SOFAST's mask, pmdsim's side selection (binary edges)", facet_outline_corners(mraw)),
              ("pmdsim's half-level mask, SOFAST's RANSAC perimeter", ref.perimeter(ref.pixel_edges(mask_half), exp)),
              ("pmdsim's half-level mask, pmdsim's side selection (binary edges)", facet_outline_corners(mask_half)),
-             ("pmdsim: half-level sub-pixel edges (the importer)", facet_outline_corners(mask_half, delta))]
+             ("pmdsim: area sub-pixel edges, local levels (the importer's corners)", facet_outline_corners(mask_half, delta))]
     out = {}
     for name, c in sets:
         h, p, rms, derr = locate(cam, c, OBJ_M, v_screen, dist_m)
@@ -147,7 +147,7 @@ def real(D: Path):
     print(f"    centre shift SOFAST − pmdsim from the side offsets: predicted by the threshold on Gaussian edges "
           f"(Δu, Δv) = ({du_pred:+.3f}, {dv_pred:+.3f}) px; from the observed sides ({du_obs:+.3f}, {dv_obs:+.3f}) px")
     real_data = dict(delta=delta, mask=mask_half, loop=loop, threshold=ths[tie_sofast][1], sofast_uv=sofast_uv,
-                     ours=out["pmdsim: half-level sub-pixel edges (the importer)"])
+                     ours=out["pmdsim: area sub-pixel edges, local levels (the importer's corners)"])
     return cam, prof, (Rotation.from_rotvec(r1).as_matrix(), 1e3 * v1), exp, real_data
 
 
@@ -210,7 +210,7 @@ def replica(cam, prof, exp, real_data, n_seeds=9):
           f"({real_diff[0]:+.3f}, {real_diff[1]:+.3f}) px")
 
 
-def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12):
+def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12, real_rms=float("nan")):
     R, t0 = pose
     rng = np.random.default_rng(seed)
     sig = calibrated_blur(cam, R, t0, prof)
@@ -219,7 +219,7 @@ def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12):
           f"{noise:g} DN per image, 8 bit; "
           f"{n_shift}×{n_shift} sub-pixel positions")
     obj = 1e3 * OBJ_M
-    errs = {k: [] for k in ("pmdsim sub-pixel + homography (the importer)", "pmdsim sub-pixel + pose fit",
+    errs = {k: [] for k in ("pmdsim edges + homography", "pmdsim edges + pose fit (the importer)",
                             "SOFAST-like (threshold, pixel edges, RANSAC) + pose fit (SOFAST)",
                             "SOFAST-like + homography")}
     check = None
@@ -238,10 +238,10 @@ def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12):
             c_p = facet_outline_corners(m, delta)
             mr = ref.mask_raw(dark, light)
             c_s = ref.perimeter(ref.pixel_edges(mr), exp + [du, dv])
-            errs["pmdsim sub-pixel + homography (the importer)"].append(outline_point_pixel(cam, c_p, obj, [0, 0, 0]) - truth)
+            errs["pmdsim edges + homography"].append(outline_point_pixel(cam, c_p, obj, [0, 0, 0]) - truth)
             pp = outline_pose(cam, c_p, obj)
             rms.append(pp.rms_px)
-            errs["pmdsim sub-pixel + pose fit"].append(pp.pixel_of(cam, [0, 0, 0]) - truth)
+            errs["pmdsim edges + pose fit (the importer)"].append(pp.pixel_of(cam, [0, 0, 0]) - truth)
             errs["SOFAST-like (threshold, pixel edges, RANSAC) + pose fit (SOFAST)"].append(
                 outline_pose(cam, c_s, obj).pixel_of(cam, [0, 0, 0]) - truth)
             errs["SOFAST-like + homography"].append(outline_point_pixel(cam, c_s, obj, [0, 0, 0]) - truth)
@@ -249,7 +249,7 @@ def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12):
                 check = ref.edge_profiles(delta, c_p)
     print("    rendered edges re-measured (σ px): " + ", ".join(f"{k} {np.median(v[:, 3]):.3f}" for k, v in check.items())
           + " (real: " + ", ".join(f"{k} {np.median(v[:, 3]):.3f}" for k, v in prof.items()) + ")")
-    print(f"    pose fit of pmdsim's corners: reprojection RMS {np.mean(rms):.3f} px (max {np.max(rms):.3f}; real data 0.133)")
+    print(f"    pose fit of pmdsim's corners: reprojection RMS {np.mean(rms):.3f} px (max {np.max(rms):.3f}; real data {real_rms:.3f})")
     print("    | method | error u: mean ± sd, max | | error v: mean ± sd, max | |")
     for k, v in errs.items():
         v = np.array(v)
@@ -267,7 +267,7 @@ def main() -> None:
     cam, prof, pose, exp, real_data = real(a.data)
     replica(cam, prof, exp, real_data)
     if not a.no_synthetic:
-        synthetic(cam, prof, pose, exp, a.shifts)
+        synthetic(cam, prof, pose, exp, a.shifts, real_rms=real_data["ours_rms"])
 
 
 if __name__ == "__main__":
