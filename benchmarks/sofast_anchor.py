@@ -147,7 +147,8 @@ def real(D: Path):
     print(f"    centre shift SOFAST − pmdsim from the side offsets: predicted by the threshold on Gaussian edges "
           f"(Δu, Δv) = ({du_pred:+.3f}, {dv_pred:+.3f}) px; from the observed sides ({du_obs:+.3f}, {dv_obs:+.3f}) px")
     real_data = dict(delta=delta, mask=mask_half, loop=loop, threshold=ths[tie_sofast][1], sofast_uv=sofast_uv,
-                     ours=out["pmdsim: area sub-pixel edges, local levels (the importer's corners)"])
+                     ours=out["pmdsim: area sub-pixel edges, local levels (the importer's corners)"],
+                     ours_rms=outline_pose(cam, facet_outline_corners(mask_half, delta), OBJ_M).rms_px)
     return cam, prof, (Rotation.from_rotvec(r1).as_matrix(), 1e3 * v1), exp, real_data
 
 
