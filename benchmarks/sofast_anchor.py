@@ -9,7 +9,7 @@ A. Real data (OpenCSP's facet measurement and SOFAST's own evaluation of it):
       ``v_cam_optic_cam_refine_1``.
    2. SOFAST's mask and corners reproduced from the images by an independent re-implementation
       of its method (tests/sofast_reference.py).
-   3. The 0.13 px decomposed: corners from SOFAST's mask and pixel-boundary edges with its RANSAC
+   3. The 0.13 px (pmdsim before this change vs SOFAST) decomposed: corners from SOFAST's mask and pixel-boundary edges with its RANSAC
       perimeter fit / with pmdsim's side selection / from pmdsim's half-level mask / with
       pmdsim's sub-pixel edges; each located by the homography (pmdsim) and by the pose fit
       (SOFAST); the pose's reprojection RMS and the distance it implies vs the measured one.
