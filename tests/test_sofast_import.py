@@ -153,7 +153,7 @@ def _slopes_in_sofast_frame(eval_dir, setup):
 
 def test_cli_end_to_end_focal_lengths_and_outputs(imported):
     """surface_fit.json has exactly the issue's keys, focal lengths within 2 % of SOFAST's
-    (measured −0.25 %, +0.23 %), the stepwise integration converges at the 10 m stand-off, the
+    (measured +0.02 %, +0.45 %), the stepwise integration converges at the 10 m stand-off, the
     heights are anchored (not relative)."""
     d, r = imported
     fit = json.loads((d / "ev" / "surface_fit.json").read_text())
