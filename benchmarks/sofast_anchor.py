@@ -215,9 +215,9 @@ def synthetic(cam, prof, pose, exp, n_shift=4, noise=1.0, seed=12, real_rms=floa
     R, t0 = pose
     rng = np.random.default_rng(seed)
     sig = calibrated_blur(cam, R, t0, prof)
-    print("B. synthetic facet at SOFAST's pose, optical blur per side ("
-          "adjusted until the rendered edges re-measure as the real ones): " + ", ".join(f"{k} {v:.3f}" for k, v in sig.items()) + f" px; dark 14, lit 230 DN, noise "
-          f"{noise:g} DN per image, 8 bit; "
+    blur = ", ".join(f"{k} {v:.3f}" for k, v in sig.items())
+    print("B. synthetic facet at SOFAST's pose, optical blur per side (adjusted until the rendered edges "
+          f"re-measure as the real ones): {blur} px; dark 14, lit 230 DN, noise {noise:g} DN per image, 8 bit; "
           f"{n_shift}×{n_shift} sub-pixel positions")
     obj = 1e3 * OBJ_M
     errs = {k: [] for k in ("pmdsim edges + homography", "pmdsim edges + pose fit (the importer)",
