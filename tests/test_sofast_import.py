@@ -581,9 +581,11 @@ def test_area_edges_are_exact_on_straight_edges():
     """Sub-pixel edge points of a lit band between two vertical edges at known positions, the
     pixels integrating the light exactly (closed form: a sharp edge gives the covered fraction;
     a Gaussian-blurred one ∫Φ over the pixel), the outside level different on the two sides
-    (10 and 40 DN under a 220 DN band): every point across each edge lies on it to 1e-6 px,
-    for edge positions sweeping a whole pixel. (Crossing half a global level between pixel
-    centres would be off by up to 0.086 px: c + 1/(2c) − 3/2 for a partial pixel covered c ≥ ½.)"""
+    (10 and 40 DN under a 220 DN band): every point across each edge lies on it to 1e-6 px for
+    the SOFAST facet's edges (σ ≤ 0.3 px), and to 1e-3 px (the span's design: tails beyond
+    3.5 σ_eff) for blurs of 1 and 2 px, for edge positions sweeping a whole pixel. (Crossing half
+    a global level between pixel centres would be off by up to 0.086 px: c + 1/(2c) − 3/2 for a
+    partial pixel covered c ≥ ½.)"""
     from scipy.special import ndtr
     from scipy.stats import norm
 
@@ -600,12 +602,12 @@ def test_area_edges_are_exact_on_straight_edges():
         fall = G(k + 0.5 - x1) - G(k - 0.5 - x1)
         return rise - fall
 
-    k = np.arange(60.0)
-    for sigma in (0.0, 0.3):
+    k = np.arange(70.0)
+    for sigma, tol in ((0.0, 1e-6), (0.3, 1e-6), (1.0, 1e-3), (2.0, 1e-3)):
         for phase in np.linspace(0.0, 0.95, 20):
-            x0, x1 = 20.0 + phase, 41.3 + phase
+            x0, x1 = 20.0 + phase, 46.3 + phase
             c = covered(k, x0, x1, sigma)
-            out = np.where(k < 30, 10.0, 40.0)
+            out = np.where(k < 33, 10.0, 40.0)
             row = out + (220.0 - out) * c
             delta = np.tile(row, (30, 1))
             m = _mask(np.zeros_like(delta), delta)
@@ -613,4 +615,4 @@ def test_area_edges_are_exact_on_straight_edges():
             u = pts[axis == 1, 0]
             assert len(u) == 60
             err = np.minimum(np.abs(u - x0), np.abs(u - x1))
-            assert err.max() < 1e-6, (sigma, phase, err.max())
+            assert err.max() < tol, (sigma, phase, err.max())
