@@ -21,7 +21,7 @@ The two agree for exact corners. With found corners they differ by the corners' 
 offset of one side moves either centre by about half of it, but corner errors that do not fit
 the known shape (the pose fit's residual) move them differently. On a facet rendered at the
 SOFAST facet's pose (84 px wide, 9.7 m away) the pose fit of pmdsim's outline is within
-0.009 / 0.011 px (column / row) of the true centre, the homography 0.016 / 0.013 px; on the
+0.009 / 0.012 px (column / row) of the true centre, the homography 0.020 / 0.015 px; on the
 real facet the two are 0.03 px apart and the pose fit's residual is 0.033 px RMS
 (docs/benchmarks.md, issue 12; ``benchmarks/sofast_anchor.py``). The importer uses the pose fit
 (a measure point may be anywhere on the optic) and records the homography's pixel beside it.

@@ -492,8 +492,8 @@ def measure_point_pixel(mask: np.ndarray, cam: Camera, corners_obj, point_obj,
     RMS; among them (a square's four turns fit equally) the one whose optic x axis points most
     along the image's +u and y axis along −v (SOFAST's convention: its expected optic orientation
     is the camera's turned 180° about x). On a facet rendered at the shared facet's pose with its
-    measured edge blur, the pose fit is within 0.009 / 0.011 px (column / row, worst of 16
-    sub-pixel positions) of the true centre, the diagonals 0.016 / 0.013 px (docs/benchmarks.md,
+    measured edge blur, the pose fit is within 0.009 / 0.012 px (column / row, worst of 16
+    sub-pixel positions) of the true centre, the diagonals 0.020 / 0.015 px (docs/benchmarks.md,
     issue 12; benchmarks/sofast_anchor.py)."""
     from .outline import OutlineError, outline_point_pixel, outline_pose
 
