@@ -291,8 +291,9 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
 def _edge_span(mask: np.ndarray, delta: np.ndarray, reach: int = 6) -> int:
     """Half-width h (px) of the profile :func:`_boundary` integrates across an edge, such that
     the span reaches h + ½ ≥ 3.5 σ_eff beyond the edge (the tails outside hold ≲ 1e-3 px of
-    area; measured ≤ 5e-4 px for Gaussian blurs up to 2 px) for the edges' width σ_eff (blur and pixel together). σ_eff from the number of pixels
-    whose level is between 10 % and 90 % of the local step, ≈ 2.56 σ_eff per profile across an
+    area; measured ≤ 5e-4 px for Gaussian blurs up to 2 px) for the edges' width σ_eff (blur
+    and pixel together). σ_eff from the number of pixels whose level is between 10 % and 90 % of
+    the local step, ≈ 2.56 σ_eff per profile across an
     edge (the 10–90 % width of a Gaussian edge; a sharp edge gives 0 or 1 depending on the
     partial pixel's coverage: σ_eff ≈ 0.31): counted on each pair's profile within ``reach`` px,
     normalised between the levels just beyond it (so independent of noise and of non-uniform
@@ -335,9 +336,9 @@ def _boundary(mask: np.ndarray, delta: np.ndarray | None = None, *, with_axis: b
     to h after the pair, normalised between the local dark and lit levels (``delta`` one pixel
     beyond them on either side), sum to the lit length of their span — exact for a straight edge
     (any orientation: a row's pixels integrate a trapezoid, whose mean width is its width at the
-    row's centre) under the pixels' own integration and a blur whose tails the span holds (h =
-    ``span_px``, by default :func:`_edge_span` of the image: 1 for the SOFAST facet's edges), where the
-    crossing of half the level between two pixel centres is off by up to 0.086 px for a sharp
+    row's centre) under the pixels' own integration and a blur whose tails the span holds
+    (h = ``span_px``, by default :func:`_edge_span` of the image: 1 for the SOFAST facet's edges),
+    where the crossing of half the level between two pixel centres is off by up to 0.086 px for a sharp
     edge (c + 1/(2c) − 3/2 for a partial pixel of coverage c ≥ ½), which does not average out
     along a side nearly parallel to the pixel grid (on the SOFAST facet it moved the centre by
     0.05 px; docs/benchmarks.md, issue 12). Local levels, not global ones: the light around an
