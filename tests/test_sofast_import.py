@@ -616,3 +616,23 @@ def test_area_edges_are_exact_on_straight_edges():
             assert len(u) == 60
             err = np.minimum(np.abs(u - x0), np.abs(u - x1))
             assert err.max() < tol, (sigma, phase, err.max())
+
+
+def test_facet_file_that_does_not_fit_the_outline_warns(tmp_path):
+    """A facet file whose corners are 10 % larger than the facet (or in another unit): the
+    pose fit places the facet ≈ 10 % farther than the measured distance — a warning naming the
+    facet file and both distances. The shared facet's own file fits (0.12 %, no warning)."""
+    doc = json.loads((DATA / "Facet_NSTTF.json").read_text())
+    for k in ("x", "y"):
+        doc["v_facet_corners"][k] = [1.1 * v for v in doc["v_facet_corners"][k]]
+    bad = tmp_path / "facet_big.json"
+    bad.write_text(json.dumps(doc))
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        import_sofast(out_dir=tmp_path / "a", **files(facet=bad))
+    msgs = [str(x.message) for x in w if issubclass(x.category, SofastImportWarning)]
+    assert any("facet_big.json" in m and "do not match its outline" in m and "10232 mm" in m for m in msgs), msgs
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        import_sofast(out_dir=tmp_path / "b", **files())
+    assert not any("do not match its outline" in str(x.message) for x in w)

@@ -674,6 +674,13 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
                         "distance_measured_mm": 1e3 * dist_m}
         anchor_how = (f"the measure point {mp.tolist()} m of the facet, located by a pose fit of the facet's outline "
                       f"corners (reprojection RMS {loc.rms_px:.3f} px)")
+        d_outline = outline_info["distance_from_outline_mm"]
+        if loc.rms_px > 1.0 or abs(d_outline / (1e3 * dist_m) - 1.0) > 0.02:
+            warn.append(f"{str(facet)!r}: the facet's corners do not match its outline in the image: pose fit "
+                        f"reprojection RMS {loc.rms_px:.2f} px, and the pose puts the measure point "
+                        f"{d_outline:.0f} mm from the display origin where {src_m} measured {1e3 * dist_m:.0f} mm; "
+                        f"is this the facet's file (corners in metres, in cyclic order), and is the facet fully in "
+                        f"view? The anchor pixel may be off")
     elif np.any(mp != 0):
         warn.append(f"{src_m}: v_measure_point_facet = {mp.tolist()} is not the facet origin; the anchor pixel is the "
                     f"mask centroid, which is where SOFAST places the optic's origin before refining it")
