@@ -288,29 +288,104 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
     return m
 
 
-def _boundary(mask: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
-    """Edge points (u, v) of the lit region, (K, 2), between 4-neighbouring pixel centres of
-    which one is inside the mask and one outside: where the light − dark difference ``delta``
-    crosses the level halfway between the dark and the lit pixels (linear interpolation between
-    the two centres: a sub-pixel edge), or their midpoint without ``delta``."""
+def _edge_span(mask: np.ndarray, delta: np.ndarray, reach: int = 6) -> int:
+    """Half-width h (px) of the profile :func:`_boundary` integrates across an edge, such that
+    the span reaches h + ½ ≥ 3.5 σ_eff beyond the edge (the tails outside hold ≲ 1e-3 px of
+    area; measured ≤ 5e-4 px for Gaussian blurs up to 2 px) for the edges' width σ_eff (blur
+    and pixel together). σ_eff from the number of pixels whose level is between 10 % and 90 % of
+    the local step, ≈ 2.56 σ_eff per profile across an
+    edge (the 10–90 % width of a Gaussian edge; a sharp edge gives 0 or 1 depending on the
+    partial pixel's coverage: σ_eff ≈ 0.31): counted on each pair's profile within ``reach`` px,
+    normalised between the levels just beyond it (so independent of noise and of non-uniform
+    surroundings), averaged over the pairs."""
     m = np.asarray(mask, bool)
-    level = None
+    counts = []
+    for axis in (0, 1):
+        a_m, b_m = (m[:-1, :], m[1:, :]) if axis == 0 else (m[:, :-1], m[:, 1:])
+        sel = a_m != b_m
+        v, u = np.nonzero(sel)
+        i = v if axis == 0 else u
+        n = delta.shape[axis]
+        ok = (i - reach >= 0) & (i + reach + 1 < n)
+        v, u, i, first_in = v[ok], u[ok], i[ok], a_m[sel][ok]
+        js = np.arange(-reach, reach + 2)
+        idx = i[:, None] + js[None, :]
+        prof = delta[idx, u[:, None]] if axis == 0 else delta[v[:, None], idx]
+        lit = np.where(first_in, prof[:, 0], prof[:, -1])
+        dk = np.where(first_in, prof[:, -1], prof[:, 0])
+        good = lit > dk
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nrm = (prof[:, 1:-1] - dk[:, None]) / (lit - dk)[:, None]
+        counts.append(((nrm > 0.1) & (nrm < 0.9)).sum(axis=1)[good])
+    c = np.concatenate(counts)
+    if c.size == 0:
+        return 1
+    sigma_eff = float(c.mean()) / 2.56
+    return int(np.clip(np.ceil(3.5 * sigma_eff - 0.5), 1, 8))
+
+
+def _boundary(mask: np.ndarray, delta: np.ndarray | None = None, *, with_axis: bool = False,
+              span_px: int | None = None):
+    """Edge points (u, v) of the lit region, (K, 2), one per pair of 4-neighbouring pixels of
+    which one is inside the mask and one outside (and, with ``with_axis``, the pair's axis (K,):
+    0 = the pair is vertical, the point's v is sub-pixel; 1 = horizontal, u sub-pixel).
+
+    Without ``delta``: the pair's midpoint. With the light − dark image ``delta``: the edge's
+    position along the pair's axis from the **area** of the profile across it (moment-preserving
+    edge location, Tabatabai & Mitchell, IEEE PAMI 6 (1984) 188): the 2h + 2 pixels from h before
+    to h after the pair, normalised between the local dark and lit levels (``delta`` one pixel
+    beyond them on either side), sum to the lit length of their span — exact for a straight edge
+    (any orientation: a row's pixels integrate a trapezoid, whose mean width is its width at the
+    row's centre) under the pixels' own integration and a blur whose tails the span holds
+    (h = ``span_px``, by default :func:`_edge_span` of the image: 1 for the SOFAST facet's edges),
+    where the crossing of half the level between two pixel centres is off by up to 0.086 px for a sharp
+    edge (c + 1/(2c) − 3/2 for a partial pixel of coverage c ≥ ½), which does not average out
+    along a side nearly parallel to the pixel grid (on the SOFAST facet it moved the centre by
+    0.05 px; docs/benchmarks.md, issue 12). Local levels, not global ones: the light around an
+    optic is rarely uniform (on that facet the outside is 7 DN below it and 32 DN right of it).
+    Where the levels cannot be read (image border, no contrast) the half-level crossing of a
+    global level (halfway between the median lit and dark pixels) between the pair is used."""
+    m = np.asarray(mask, bool)
+    glob = None
     if delta is not None:
-        level = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
-    out = []
+        delta = np.asarray(delta, dtype=float)
+        glob = 0.5 * (np.median(delta[m]) + np.median(delta[~m]))
+        h = _edge_span(m, delta) if span_px is None else int(span_px)
+    out, axes = [], []
     for axis in (0, 1):
         a_m, b_m = (m[:-1, :], m[1:, :]) if axis == 0 else (m[:, :-1], m[:, 1:])
         sel = a_m != b_m
         v, u = np.nonzero(sel)
         t = np.full(v.shape, 0.5)
         if delta is not None:
-            a, b = (delta[:-1, :], delta[1:, :]) if axis == 0 else (delta[:, :-1], delta[:, 1:])
-            a, b = a[sel], b[sel]
+            n = delta.shape[axis]
+            i = v if axis == 0 else u  # index of the pair's first pixel along the axis
+
+            def at(k):
+                ok = (k >= 0) & (k < n)
+                val = np.full(k.shape, np.nan)
+                kk = np.clip(k, 0, n - 1)
+                val[ok] = (delta[kk, u] if axis == 0 else delta[v, kk])[ok]
+                return val
+
+            a, b = at(i), at(i + 1)
+            first_in = a_m[sel]
+            lit = np.where(first_in, at(i - h - 1), at(i + h + 2))
+            dk = np.where(first_in, at(i + h + 2), at(i - h - 1))
+            span = np.stack([at(i + j) for j in range(-h, h + 2)], -1)
             with np.errstate(invalid="ignore", divide="ignore"):
-                tt = (level - a) / (b - a)
-            t = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
+                frac = ((span - dk[:, None]) / (lit - dk)[:, None]).sum(axis=-1)  # unclipped: noise unbiased
+                # Lit part of [i − h − ½, i + h + 1½]: [i − h − ½, x] (lit first) or [x, i + h + 1½].
+                t_area = np.where(first_in, -h - 0.5 + frac, h + 1.5 - frac)
+                tt = (glob - a) / (b - a)
+            contrast = (lit - dk) > 0.25 * abs(np.median(delta[m]) - np.median(delta[~m]))
+            good = np.isfinite(t_area) & contrast & (t_area >= -0.5) & (t_area <= 1.5)
+            t_glob = np.where(np.isfinite(tt) & (tt >= 0) & (tt <= 1), tt, 0.5)
+            t = np.where(good, t_area, t_glob)
         out.append(np.stack([u.astype(float), v + t], -1) if axis == 0 else np.stack([u + t, v.astype(float)], -1))
-    return np.concatenate(out)
+        axes.append(np.full(v.shape, axis))
+    pts = np.concatenate(out)
+    return (pts, np.concatenate(axes)) if with_axis else pts
 
 
 def _line_fit(pts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -326,8 +401,9 @@ def facet_outline_corners(mask: np.ndarray, delta: np.ndarray | None = None) -> 
     the boundary points extreme along the diagonals of the frame (rotated in 15° steps, the set
     of largest area kept); each side's boundary points (nearest to it, away from the corners)
     are fitted by a total-least-squares line, twice, and adjacent lines intersected. Edge points:
-    :func:`_boundary` (sub-pixel with the light − dark image ``delta``)."""
-    pts = _boundary(mask, delta)
+    :func:`_boundary` (sub-pixel with the light − dark image ``delta``), of each side only those
+    located across it (the pair's axis the one more perpendicular to the side)."""
+    pts, pair_axis = _boundary(mask, delta, with_axis=True)
     if len(pts) < 16:
         raise SofastImportError("the lit region is too small to find the facet's outline")
     best, best_area = None, -1.0
@@ -349,7 +425,8 @@ def facet_outline_corners(mask: np.ndarray, delta: np.ndarray | None = None) -> 
             L = float(np.linalg.norm(ab))
             t = (pts - a) @ ab / L**2
             dist = np.abs((pts - a) @ np.array([-ab[1], ab[0]]) / L)
-            sel = (t > 0.1) & (t < 0.9) & (dist < max(3.0, 0.05 * L))
+            across = 1 if abs(ab[0]) < abs(ab[1]) else 0  # near-vertical side: horizontal pairs
+            sel = (t > 0.1) & (t < 0.9) & (dist < max(3.0, 0.05 * L)) & (pair_axis == across)
             if sel.sum() < 4:
                 raise SofastImportError("cannot fit the facet's outline to the lit region (a side has too few "
                                         "boundary pixels); is the facet fully in view?")
@@ -366,7 +443,8 @@ def facet_centre_pixel(mask: np.ndarray, cam: Camera, delta: np.ndarray | None =
     """Pixel (row, column) of the centre of a parallelogram facet (a rectangle, a square) from
     its outline in ``mask``: the intersection of the diagonals of the outline's corners in
     undistorted normalised coordinates (a pinhole maps the facet's plane projectively, which
-    keeps the diagonals' intersection), distorted back to pixels."""
+    keeps the diagonals' intersection), distorted back to pixels (= the homography of
+    :func:`~pmdsim.io.importers.outline.outline_point_pixel` for the centre)."""
     corners = facet_outline_corners(mask, delta)
     xy_d = np.stack([(corners[:, 0] - cam.ppx_px) / cam.fx_px, (corners[:, 1] - cam.ppy_px) / cam.fy_px], -1)
     xy, ok = cam.undistort(xy_d)
@@ -377,6 +455,74 @@ def facet_centre_pixel(mask: np.ndarray, cam: Camera, delta: np.ndarray | None =
     st = np.linalg.solve(np.stack([p2 - p0, -(p3 - p1)], axis=-1), p1 - p0)
     c = cam.distort((p0 + st[0] * (p2 - p0))[None])[0]
     return (float(c[1] * cam.fy_px + cam.ppy_px), float(c[0] * cam.fx_px + cam.ppx_px))
+
+
+@dataclass(frozen=True)
+class MeasurePointLocation:
+    """Where the optic's measure point is seen (:func:`measure_point_pixel`).
+
+    Attributes
+    ----------
+    pixel_vu : (row, column)
+        By the pose fit of the outline corners (the anchor pixel).
+    pixel_vu_homography : (row, column) or None
+        By the corners' homography (a cross-check; None when the point is off the corners' plane).
+    corners_px : ndarray (K, 2)
+        The found corners (u, v), in the order of the optic's corners.
+    rms_px : float
+        Reprojection RMS of the pose fit.
+    T_cam_obj : RigidTransform
+        The pose fit (optic frame → camera frame, the optic file's unit).
+    """
+
+    pixel_vu: tuple[float, float]
+    pixel_vu_homography: tuple[float, float] | None
+    corners_px: np.ndarray
+    rms_px: float
+    T_cam_obj: RigidTransform
+
+
+def measure_point_pixel(mask: np.ndarray, cam: Camera, corners_obj, point_obj,
+                        delta: np.ndarray | None = None) -> MeasurePointLocation:
+    """Pixel of a point ``point_obj`` (3,) of a four-cornered optic whose corners ``corners_obj``
+    (4, 3) are known in its frame: the corners found in ``mask`` (:func:`facet_outline_corners`,
+    sub-pixel with ``delta``), matched to the known ones, a pose fit (perspective-n-point with
+    pmdsim's camera model, :func:`~pmdsim.io.importers.outline.outline_pose`), the point projected.
+
+    Matching: of the 8 cyclic orders, those whose pose fit is within 1.5× (+0.05 px) of the best
+    RMS; among them (a square's four turns fit equally) the one whose optic x axis points most
+    along the image's +u and y axis along −v (SOFAST's convention: its expected optic orientation
+    is the camera's turned 180° about x). On a facet rendered at the shared facet's pose with its
+    measured edge blur, the pose fit is within 0.009 / 0.012 px (column / row, worst of 16
+    sub-pixel positions) of the true centre, the diagonals 0.020 / 0.015 px (docs/benchmarks.md,
+    issue 12; benchmarks/sofast_anchor.py)."""
+    from .outline import OutlineError, outline_point_pixel, outline_pose
+
+    obj = np.asarray(corners_obj, dtype=float)
+    pt = np.asarray(point_obj, dtype=float).reshape(3)
+    if obj.shape != (4, 3):
+        raise SofastImportError(f"the optic's outline must have 4 corners (4, 3), got {obj.shape}")
+    found = facet_outline_corners(mask, delta)
+    fits = []
+    for direction in (1, -1):
+        for shift in range(4):
+            order = [(shift + direction * k) % 4 for k in range(4)]
+            c = found[order]
+            try:
+                fits.append((outline_pose(cam, c, obj), c))
+            except OutlineError as e:
+                raise SofastImportError(f"the facet's outline: {e}") from None
+    best = min(f[0].rms_px for f in fits)
+    ok = [f for f in fits if f[0].rms_px <= 1.5 * best + 0.05 and f[0].T_cam_obj.translation[2] > 0]
+    R_of = lambda f: f[0].T_cam_obj.rotation  # noqa: E731
+    pose, corners = max(ok, key=lambda f: R_of(f)[0, 0] - R_of(f)[1, 1])
+    uv = pose.pixel_of(cam, pt)
+    try:
+        h = outline_point_pixel(cam, corners, obj, pt)
+        hv = (float(h[1]), float(h[0]))
+    except OutlineError:
+        hv = None
+    return MeasurePointLocation((float(uv[1]), float(uv[0])), hv, corners, pose.rms_px, pose.T_cam_obj)
 
 
 # ============================================================================ import
@@ -506,6 +652,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     pix = (float(vv.mean()), float(uu.mean()))
     anchor_how = "the mask centroid (no --facet)"
     fcent = None
+    outline_info = None
     if facet is not None:
         try:
             fdoc = json.loads(Path(facet).read_text(encoding="utf-8"))
@@ -514,14 +661,26 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
         except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
             raise SofastImportError(f"facet file {str(facet)!r}: expected JSON with v_facet_corners.x/.y/.z and "
                                     f"v_centroid_facet (m): {e!r}") from None
-        para = fc.shape == (4, 3) and np.allclose(fc[0] + fc[2], fc[1] + fc[3], atol=1e-9)
-        if not para or not np.allclose(fc.mean(axis=0), fcent, atol=1e-9) or not np.allclose(mp, fcent, atol=1e-9):
-            warn.append(f"{str(facet)!r}: the facet is not a parallelogram centred on its centroid, or the measure "
-                        f"point {mp.tolist()} is not the centroid; the anchor pixel is the mask centroid")
-        else:
-            delta = mask_imgs[..., 1].astype(float) - mask_imgs[..., 0].astype(float)
-            pix = facet_centre_pixel(mask, cam, delta)
-            anchor_how = "the facet's centre, located from its outline in the mask (diagonals of the corners)"
+        if fc.shape != (4, 3):
+            raise SofastImportError(f"facet file {str(facet)!r}: v_facet_corners must hold 4 corners, got {fc.shape[0]}")
+        delta = mask_imgs[..., 1].astype(float) - mask_imgs[..., 0].astype(float)
+        loc = measure_point_pixel(mask, cam, fc, mp, delta)
+        pix = loc.pixel_vu
+        v_mp = loc.T_cam_obj.apply(mp[None])[0]  # metres, camera frame
+        outline_info = {"pixel_vu_pose_fit": list(loc.pixel_vu),
+                        "pixel_vu_homography": None if loc.pixel_vu_homography is None else list(loc.pixel_vu_homography),
+                        "corners_px_uv": loc.corners_px.tolist(), "reprojection_rms_px": loc.rms_px,
+                        "distance_from_outline_mm": 1e3 * float(np.linalg.norm(v_cs - v_mp)),
+                        "distance_measured_mm": 1e3 * dist_m}
+        anchor_how = (f"the measure point {mp.tolist()} m of the facet, located by a pose fit of the facet's outline "
+                      f"corners (reprojection RMS {loc.rms_px:.3f} px)")
+        d_outline = outline_info["distance_from_outline_mm"]
+        if loc.rms_px > 1.0 or abs(d_outline / (1e3 * dist_m) - 1.0) > 0.02:
+            warn.append(f"{str(facet)!r}: the facet's corners do not match its outline in the image: pose fit "
+                        f"reprojection RMS {loc.rms_px:.2f} px, and the pose puts the measure point "
+                        f"{d_outline:.0f} mm from the display origin where {src_m} measured {1e3 * dist_m:.0f} mm; "
+                        f"is this the facet's file (corners in metres, in cyclic order), and is the facet fully in "
+                        f"view? The anchor pixel may be off")
     elif np.any(mp != 0):
         warn.append(f"{src_m}: v_measure_point_facet = {mp.tolist()} is not the facet origin; the anchor pixel is the "
                     f"mask centroid, which is where SOFAST places the optic's origin before refining it")
@@ -587,7 +746,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
             "metadata": {"sofast": {"measurement": str(measurement), "camera": str(camera), "display": str(display),
                                     "display_model": disp.model, "orientation": str(orientation),
                                     "calibration": str(calibration), "facet": None if facet is None else str(facet)},
-                         "warnings": warn},
+                         "outline": outline_info, "warnings": warn},
         }
         write_json(img_dir / MANIFEST_NAME, manifest)
     for w in warn:
