@@ -1,0 +1,92 @@
+"""The fused render-and-decode path (evaluation/synthetic_decode.py) against the two-step path it
+replaces: render every image with simulation.render.render_images (uint8/uint16 arrays), decode
+them with evaluation.pipeline.decode_images. Every output array must agree bit for bit (NaN in
+the same places), with and without noise, for 8 and 16 bits, for periods not given coarsest first,
+and for pixels that miss the screen (black)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pmdsim.evaluation.pipeline import decode_images, decode_simulated
+from pmdsim.evaluation.synthetic_decode import decode_rendered_fringes
+from pmdsim.setup import default_setup
+from pmdsim.simulation.render import noise_generator, render_images, trace_setup_camera
+
+
+def _two_step(setup, camera, mapping, stream=None):
+    images: dict = {}
+    for spec, img in render_images(setup, camera, mapping, stream=stream):
+        images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+    return decode_images(setup, images)
+
+
+def _assert_identical(a, b):
+    for name in ("screen_xy_mm", "valid", "flags", "std_xy_mm", "modulation", "offset"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.shape == y.shape and x.dtype == y.dtype, name
+        # bit for bit: the same bytes (NaN patterns included), not a tolerance
+        assert np.array_equal(x.view(np.uint8), y.view(np.uint8)), f"{name} differs in {np.sum(x != y)} entries"
+
+
+@pytest.fixture(scope="module")
+def traced():
+    from pmdsim.simulation.trace import Mapping, Status
+
+    s = default_setup().binned(8).with_bulge(3.0)
+    maps = {}
+    for cam in s.cameras:
+        m = trace_setup_camera(s, cam)
+        # every pixel of this setup sees the screen: a corner block misses the sample instead
+        status, xy = m.status.copy(), m.screen_xy_mm.copy()
+        status[:20, :30] = Status.SAMPLE_OUTSIDE
+        xy[:20, :30] = np.nan
+        maps[cam] = Mapping(xy, status)
+    return s, maps
+
+
+@pytest.mark.parametrize("changes", [
+    {},
+    {"noise_std": 2.5, "seed": 7},
+    {"bit_depth": 16, "noise_std": 40.0},
+    # display order not coarsest first: the noise is drawn in display order, decoded coarse → fine
+    {"periods_x_mm": (48.0, 720.0, 2.0), "periods_y_mm": (28.0, 2.0, 420.0), "noise_std": 1.0, "n_shifts": 5},
+])
+def test_fused_path_equals_render_then_decode(traced, changes):
+    s0, maps = traced
+    s = s0.with_patterns(**changes) if changes else s0
+    for stream in (None, 3):
+        for cam, m in maps.items():
+            ref = _two_step(s, cam, m, stream=stream)
+            got = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, cam, stream=stream))
+            _assert_identical(got, ref)
+            assert 0 < ref.valid.sum() < ref.valid.size  # both decoded and black/flagged pixels are exercised
+
+
+def test_black_and_saturated_pixels_are_flagged_as_by_the_decoder(traced):
+    s, maps = traced
+    m = maps["left"]
+    valid = m.valid.copy()
+    valid[::3] = False  # a third of the rows see no screen: black, DARK
+    s2 = s.with_patterns(mean_level=0.6, amplitude=0.45)  # peaks at 1.05·F: clipped, SATURATED
+    images: dict = {}
+    from pmdsim.simulation.patterns import render_period
+    for d, periods in (("x", s2.patterns.sequence.periods_x_mm), ("y", s2.patterns.sequence.periods_y_mm)):
+        for p in periods:
+            images[(d, p)] = list(render_period(m.screen_xy_mm, valid, d, p, s2.patterns.sequence))
+    ref = decode_images(s2, images)
+    got = decode_simulated(s2, m.screen_xy_mm, valid)
+    _assert_identical(got, ref)
+    assert not got.valid[::3].any()
+    from pmdsim.evaluation.phase import PhaseFlag
+    assert np.any(got.flags & np.uint8(PhaseFlag.SATURATED))
+
+
+def test_noise_needs_a_generator_and_imaging_is_refused(traced):
+    s, maps = traced
+    m = maps["left"]
+    with pytest.raises(ValueError, match="rng"):
+        decode_rendered_fringes(m.screen_xy_mm, m.valid, s.patterns.sequence, s.screen.size_mm, noise_std=1.0)
+    with pytest.raises(ValueError, match="imaging"):
+        decode_simulated(s.with_imaging(f_number=4.0), m.screen_xy_mm, m.valid)
