@@ -43,16 +43,110 @@ from .phase import (
 __all__ = ["decode_rendered_fringes"]
 
 
+# sin and cos for the renderer's phases, vectorisable (libm's sin and cos are calls that stop the
+# row loop from vectorising and cost ≈ 2/3 of the render time). Cody–Waite reduction by π/2 with
+# fdlibm's three-part π/2 (k·PIO2_1 and k·PIO2_2 exact for |k| < 2^20) and fdlibm's
+# __kernel_sin/__kernel_cos polynomials on [−π/4, π/4]. Its deviation from libm is ~1e-16
+# (tests/test_synthetic_decode.py bounds it by 4e-16 over |φ| ≤ 10^5); a grey level is taken
+# from it only when the value being rounded is farther than _TIE_GUARD from a rounding boundary,
+# otherwise the pixel is recomputed with libm, so the quantised images are those of libm exactly.
+_TWO_OVER_PI = 6.36619772367581382433e-01
+_PIO2_1 = 1.57079632673412561417e+00
+_PIO2_2 = 6.07710050630396597660e-11
+_PIO2_3 = 2.02226624871116645580e-21
+_S1 = -1.66666666666666324348e-01
+_S2 = 8.33333333332248946124e-03
+_S3 = -1.98412698298579493134e-04
+_S4 = 2.75573137070700676789e-06
+_S5 = -2.50507602534068634195e-08
+_S6 = 1.58969099521155010221e-10
+_C1 = 4.16666666666666019037e-02
+_C2 = -1.38888888888741095749e-03
+_C3 = 2.48015872894767294178e-05
+_C4 = -2.75573143513906633035e-07
+_C5 = 2.08757232129817482790e-09
+_C6 = -1.13596475577881948265e-11
+_ROUND_MAGIC = 6755399441055744.0  # 1.5·2^52: x + M − M rounds x to the nearest integer
+_MAX_FAST_PHASE = 1.0e5  # |φ| above this (or not finite): libm
+_TIE_GUARD = 1.0e-7  # grey levels; the fast sin/cos move the rounded value by < 1e-12
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _sincos_fast(phi):
+    """(sin φ, cos φ), branch-free (selects only, so that loops calling it vectorise); for
+    |φ| ≤ _MAX_FAST_PHASE."""
+    k = (phi * _TWO_OVER_PI + _ROUND_MAGIC) - _ROUND_MAGIC  # nearest integer (|k| < 2^51)
+    r = ((phi - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
+    z = r * r
+    sr = r + r * z * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
+    cr = 1.0 - 0.5 * z + z * z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6)))))
+    q = k - 4.0 * np.floor(k * 0.25)  # quadrant 0, 1, 2, 3
+    swap = (q == 1.0) | (q == 3.0)
+    s = cr if swap else sr
+    c = sr if swap else cr
+    s = -s if q >= 2.0 else s
+    c = -c if (q == 1.0) | (q == 2.0) else c
+    return s, c
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _sincos_rows(phi, s, c):
+    """Element-wise :func:`_sincos_fast` (for the tests and the row loop)."""
+    for i in range(phi.shape[0]):
+        s[i], c[i] = _sincos_fast(phi[i])
+
+
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
 def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_d, mean, amp, full_scale,
-                           noise, w_a, w_c, w_s, sa, sc, ss, mx):
-    """Row v: the N quantised grey levels of every pixel (the arithmetic of
+                           noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx, cb, sb, redo):
+    """Row v: the N quantised grey levels of every pixel (the model and arithmetic of
     ``patterns._render_stack_rows``; 0 where not ``valid``), accumulated as in
-    ``phase._accumulate_row``: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I."""
+    ``phase._accumulate_row``: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I.
+
+    Vectorised passes over the row (fast sin/cos, then image by image); pixels whose value lies
+    within ``tie_guard`` of a rounding boundary, or whose phase is not in the fast range, are
+    recomputed with libm's sin and cos. Returns the number of recomputed pixels."""
     w = valid.shape[1]
     n = cos_d.shape[0]
     has_noise = noise.shape[0] > 0
+    for u in range(w):  # the strided load in a loop of its own: the next one vectorises
+        cb[u] = two_pi_over_p * screen_xy[v, u, axis]
     for u in range(w):
+        phi = cb[u]
+        fast = abs(phi) <= _MAX_FAST_PHASE  # False for NaN
+        s, c = _sincos_fast(phi if fast else 0.0)
+        sb[u] = s
+        cb[u] = c
+        redo[u] = valid[v, u] & (not fast)
+        sa[u] = 0.0
+        sc[u] = 0.0
+        ss[u] = 0.0
+        mx[u] = -np.inf
+    for k in range(n):
+        ca = w_a[k]
+        cc = w_c[k]
+        cs = w_s[k]
+        cdk = cos_d[k]
+        sdk = sin_d[k]
+        for u in range(w):
+            val = full_scale * (mean + amp * (cb[u] * cdk + sb[u] * sdk))
+            if has_noise:
+                val += noise[k, v, u]
+            t = val + 0.5
+            q = np.floor(t)
+            frac = t - q
+            redo[u] = redo[u] | (frac < tie_guard) | (frac > 1.0 - tie_guard)
+            q = min(max(q, 0.0), full_scale)
+            q = q if valid[v, u] else 0.0
+            sa[u] += ca * q
+            sc[u] += cc * q
+            ss[u] += cs * q
+            mx[u] = max(mx[u], q)
+    n_redo = 0
+    for u in range(w):
+        if not redo[u]:
+            continue
+        n_redo += 1
         a = 0.0
         c_acc = 0.0
         s_acc = 0.0
@@ -80,28 +174,36 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
         sc[u] = c_acc
         ss[u] = s_acc
         mx[u] = m
+    return n_redo
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
                           w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio,
                           mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
-                          out, flags, modulation, offset, std):
+                          tie_guard, out, flags, modulation, offset, std):
     """One period: render (in registers) and decode, one parallel pass over image rows; the
-    arguments after ``render_noise`` are those of ``phase._decode_kernel``."""
+    arguments after ``render_noise`` are those of ``phase._decode_kernel``. Returns the number of
+    pixels recomputed with libm's sin and cos (see ``_render_accumulate_row``)."""
     h, w = valid.shape
     inv_period = 1.0 / period
     two_pi_over_p = 2.0 * np.pi / period
+    n_redo = np.zeros(h, np.int64)
     for v in numba.prange(h):
         sa = np.empty(w)
         sc = np.empty(w)
         ss = np.empty(w)
         mx = np.empty(w)
-        _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_d, mean, amp, full_scale,
-                               render_noise, w_a, w_c, w_s, sa, sc, ss, mx)
+        cb = np.empty(w)
+        sb = np.empty(w)
+        redo = np.empty(w, np.bool_)
+        n_redo[v] = _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_d, mean, amp,
+                                           full_scale, render_noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx,
+                                           cb, sb, redo)
         _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
                     min_ratio, mode, period, inv_period, origin, upper, tolerance, store, finish,
                     std_scale, noise_sigma, out, flags, modulation, offset, std)
+    return n_redo.sum()
 
 
 def decode_rendered_fringes(
@@ -114,6 +216,7 @@ def decode_rendered_fringes(
     noise_std: float = 0.0,
     rng: np.random.Generator | None = None,
     decoder_noise_std: float | None = None,
+    tie_guard: float = _TIE_GUARD,
 ) -> ScreenCoordinates:
     """Decode the images the ideal renderer would produce from a pixel → screen mapping.
 
@@ -138,6 +241,9 @@ def decode_rendered_fringes(
         Required when ``noise_std`` > 0; consumed as :func:`render_period` would.
     decoder_noise_std : float, optional
         σ_I of the decoder's σ prediction (grey levels); default quantisation noise 1/√12.
+    tie_guard : float
+        Grey levels: a pixel whose unrounded value lies closer than this to a rounding boundary
+        is rendered with libm's sin and cos (see the module notes); 0.5 sends every pixel there.
 
     Returns
     -------
@@ -150,6 +256,8 @@ def decode_rendered_fringes(
     ok = np.ascontiguousarray(valid, dtype=bool)
     if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
         raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    if not 0.0 <= tie_guard <= 0.5:
+        raise ValueError(f"tie_guard must be in [0, 0.5] grey levels, got {tie_guard!r}")
     if noise_std > 0 and rng is None:
         raise ValueError("noise_std > 0 needs a seeded rng for reproducible images")
     size = np.asarray(screen_size_mm, dtype=np.float64)
@@ -183,7 +291,7 @@ def decode_rendered_fringes(
                 xy, ok, axis, cos_d, sin_d, sequence.mean_level, sequence.amplitude, full, noise,
                 w_a, w_c, w_s, True, full, DEFAULT_DARK_FRACTION * full, DEFAULT_MIN_MODULATION_FRACTION * full,
                 DEFAULT_MIN_MODULATION_RATIO, _MODE_COARSE if level == 0 else _MODE_REFINE, p, org, upper,
-                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, **arrays)
+                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, float(tie_guard), **arrays)
         per_dir.append(arrays)
     rx, ry = per_dir
     xy_out = np.empty((h, w, 2))
