@@ -68,6 +68,10 @@ def test_fused_path_equals_render_then_decode(traced, changes):
                                             rng=noise_generator(s, cam, stream=stream), tie_guard=0.5,
                                             decoder_noise_std=float(np.hypot(p.noise_std, 1 / np.sqrt(12))))
             _assert_identical(exact, ref)
+            # only every 3rd pixel: the same values as the full decode there (noise fields drawn in full)
+            sub = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, cam, stream=stream),
+                                   pixel_stride=3)
+            _assert_identical(sub, type(ref)(**{k: v[::3, ::3] for k, v in vars(ref).items()}))
             assert 0 < ref.valid.sum() < ref.valid.size  # both decoded and black/flagged pixels are exercised
 
 
@@ -113,3 +117,42 @@ def test_fast_sincos_matches_libm():
     # 4e-16 absolute: ≈ 2 ulp of 1; the tie guard (1e-7 grey levels) needs < 4e-10 at 8 bit, 1.5e-12 at 16 bit
     assert np.max(np.abs(s - np.sin(phi))) < 4e-16
     assert np.max(np.abs(c - np.cos(phi))) < 4e-16
+
+
+def _observations_reference(truth):
+    """The calibration observations as computed before the fused path: every pose traced, its
+    full images rendered and decoded, every stride-th pixel kept by observations_from_mapping."""
+    from pmdsim.calibration import observations_from_mapping
+    from pmdsim.simulation.trace import trace_camera
+
+    cal = truth.calibration
+    out = []
+    for k, (_, T) in enumerate(cal.mirror_poses(truth.sample)):
+        for cam, cs in truth.cameras.items():
+            m = trace_camera(cs.camera, cs.T_world_cam, T, cal.mirror_surface(), truth.screen.T_world_screen,
+                             truth.screen.surface)
+            dec = _two_step(truth, cam, m, stream=k + 1)
+            out.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
+                                                 screen_std_xy_mm=dec.std_xy_mm))
+    return out
+
+
+def test_calibration_observations_decode_only_the_used_pixels_bit_for_bit():
+    """simulate_calibration_observations decodes only the stride-th pixels (fused path) and, with
+    an image sink, renders and decodes full images (two-step path): both equal the reference."""
+    from pmdsim.studies.calibration_data import simulate_calibration_observations
+
+    truth = default_setup().binned(8).with_bulge(2.0).with_patterns(noise_std=1.5, seed=11)
+    ref = _observations_reference(truth)
+    sunk = []
+    for got in (simulate_calibration_observations(truth),
+                simulate_calibration_observations(truth, image_sink=lambda k, spec, img: sunk.append(k))):
+        assert len(got) == len(ref)
+        for g, r in zip(got, ref):
+            assert (g.camera, g.pose_index) == (r.camera, r.pose_index)
+            for name in ("uv_px", "q_screen_mm", "q_std_mm"):
+                a, b = getattr(g, name), getattr(r, name)
+                assert a.shape == b.shape and a.shape[0] > 100, name
+                assert np.array_equal(a, b), name
+    n_images = len(truth.patterns.sequence.frames())
+    assert len(sunk) == len(ref) * n_images  # the sink saw every image of every pose and camera

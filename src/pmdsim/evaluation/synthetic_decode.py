@@ -217,6 +217,7 @@ def decode_rendered_fringes(
     rng: np.random.Generator | None = None,
     decoder_noise_std: float | None = None,
     tie_guard: float = _TIE_GUARD,
+    pixel_stride: int = 1,
 ) -> ScreenCoordinates:
     """Decode the images the ideal renderer would produce from a pixel → screen mapping.
 
@@ -244,6 +245,10 @@ def decode_rendered_fringes(
     tie_guard : float
         Grey levels: a pixel whose unrounded value lies closer than this to a rounding boundary
         is rendered with libm's sin and cos (see the module notes); 0.5 sends every pixel there.
+    pixel_stride : int
+        Decode only the pixels (v, u) ≡ (0, 0) mod ``pixel_stride`` (the decoder works per
+        pixel, so their values are those of the full decode, noise included: the full noise
+        fields are drawn and subsampled); the result has the shape of ``valid[::s, ::s]``.
 
     Returns
     -------
@@ -252,10 +257,16 @@ def decode_rendered_fringes(
     """
     if bit_depth not in (8, 16):
         raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth!r}")
-    xy = np.ascontiguousarray(screen_xy_mm, dtype=np.float64)
-    ok = np.ascontiguousarray(valid, dtype=bool)
+    xy = np.asarray(screen_xy_mm, dtype=np.float64)
+    ok = np.asarray(valid, dtype=bool)
     if xy.ndim != 3 or xy.shape[-1] != 2 or ok.shape != xy.shape[:2]:
         raise ValueError(f"screen_xy_mm must be (H, W, 2) and valid (H, W), got {xy.shape} and {ok.shape}")
+    stride = int(pixel_stride)
+    if stride != pixel_stride or stride < 1:
+        raise ValueError(f"pixel_stride must be a positive integer, got {pixel_stride!r}")
+    full_shape = ok.shape
+    xy = np.ascontiguousarray(xy[::stride, ::stride])
+    ok = np.ascontiguousarray(ok[::stride, ::stride])
     if not 0.0 <= tie_guard <= 0.5:
         raise ValueError(f"tie_guard must be in [0, 0.5] grey levels, got {tie_guard!r}")
     if noise_std > 0 and rng is None:
@@ -272,7 +283,7 @@ def decode_rendered_fringes(
     sigma = np.full((1, 1), 1.0 / math.sqrt(12.0) if decoder_noise_std is None else float(decoder_noise_std))
     if not (np.isfinite(sigma).all() and sigma[0, 0] >= 0):
         raise PhaseDecodingError("decoder_noise_std: intensity noise must be finite and >= 0 (grey levels)")
-    noise_source = _NoiseFields(sequence, noise_std, rng, ok.shape)
+    noise_source = _NoiseFields(sequence, noise_std, rng, full_shape, stride)
     no_noise = np.empty((0, 0, 0))
     per_dir = []
     for axis, direction in enumerate(DIRECTIONS):
@@ -308,14 +319,16 @@ def decode_rendered_fringes(
 
 class _NoiseFields:
     """The renderer's noise fields, drawn in display order (N fields per period, as
-    ``render_period`` draws them) and handed out in decoding order (coarsest first per direction)."""
+    ``render_period`` draws them, full frames, subsampled by ``stride``) and handed out in decoding
+    order (coarsest first per direction)."""
 
-    def __init__(self, sequence: FringeSequence, noise_std: float, rng, shape):
+    def __init__(self, sequence: FringeSequence, noise_std: float, rng, shape, stride: int = 1):
         self._order = [(d, float(p)) for d in DIRECTIONS for p in sequence.periods(d)]
         self._n = sequence.n_shifts
         self._std = noise_std
         self._rng = rng
         self._shape = shape
+        self._stride = stride
         self._drawn: dict = {}
         self._next = 0
 
@@ -324,5 +337,7 @@ class _NoiseFields:
         while key not in self._drawn:
             k = self._order[self._next]
             self._next += 1
-            self._drawn[k] = np.stack([self._rng.normal(0.0, self._std, size=self._shape) for _ in range(self._n)])
+            st = self._stride
+            self._drawn[k] = np.stack([self._rng.normal(0.0, self._std, size=self._shape)[::st, ::st]
+                                       for _ in range(self._n)])
         return self._drawn.pop(key)

@@ -6,6 +6,9 @@ from a real instrument's decoded images.
 
 from __future__ import annotations
 
+from dataclasses import fields
+
+from ..evaluation.phase import ScreenCoordinates
 from ..simulation.imaging import decoder_response
 from ..evaluation.pipeline import decode_images, decode_simulated
 from ..setup import Setup
@@ -18,24 +21,30 @@ __all__ = ["simulate_calibration_observations", "trace_calibration_poses", "obse
 
 
 def simulate_decoded(truth: Setup, camera: str, mapping, *, stream: int | None = None, T_world_sample=None,
-                     image_sink=None):
+                     image_sink=None, pixel_stride: int = 1) -> ScreenCoordinates:
     """Render ``camera``'s fringe images of a traced ``mapping`` (noise stream ``stream``, see
     :func:`~pmdsim.simulation.render.render_images`) and decode them
-    (:func:`~pmdsim.evaluation.pipeline.decode_images`).
+    (:func:`~pmdsim.evaluation.pipeline.decode_images`); with ``pixel_stride`` s > 1 only the
+    decoded pixels (v, u) ≡ (0, 0) mod s are returned (every array ``[::s, ::s]``).
 
     Without image-formation effects and without an ``image_sink`` (called as
-    ``image_sink(spec, image)`` for every image) the images are never materialised: the fused
-    :func:`~pmdsim.evaluation.pipeline.decode_simulated` gives the same result bit for bit.
+    ``image_sink(spec, image)`` for every image) the images are never materialised and only the
+    returned pixels are decoded: the fused :func:`~pmdsim.evaluation.pipeline.decode_simulated`
+    gives the same values bit for bit (tests/test_synthetic_decode.py).
     """
     if image_sink is None and not (truth.imaging is not None and truth.imaging.any_on):
         return decode_simulated(truth, mapping.screen_xy_mm, mapping.valid,
-                                rng=noise_generator(truth, camera, stream=stream))
+                                rng=noise_generator(truth, camera, stream=stream), pixel_stride=pixel_stride)
     images: dict = {}
     for spec, img in render_images(truth, camera, mapping, stream=stream, T_world_sample=T_world_sample):
         images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
         if image_sink is not None:
             image_sink(spec, img)
-    return decode_images(truth, images, response=decoder_response(truth))
+    dec = decode_images(truth, images, response=decoder_response(truth))
+    if pixel_stride == 1:
+        return dec
+    s = int(pixel_stride)
+    return ScreenCoordinates(**{f.name: getattr(dec, f.name)[::s, ::s] for f in fields(ScreenCoordinates)})
 
 
 def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress: Progress | None = None,
@@ -51,11 +60,12 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
     -------
     list of :class:`pmdsim.calibration.Observations`
     """
-    from ..calibration import observations_from_mapping
+    from ..calibration import Observations, observations_from_mapping
     from ..simulation.trace import trace_camera
 
     cal = truth.calibration
     mirror = cal.mirror_surface()
+    s = int(cal.observation_stride_px)
     obs = []
     for k, (label, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
         for cam, cs in truth.cameras.items():
@@ -65,10 +75,13 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
                              truth.screen.surface, store_points=needs_points(truth))
             # One independent noise stream per pose (stream 0 is left to the sample's images).
             sink = None if image_sink is None else (lambda spec, img, k=k: image_sink(k, spec, img))
-            dec = simulate_decoded(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror, image_sink=sink)
+            # Only the pixels the calibration uses are decoded (u, v ≡ 0 mod the stride).
+            dec = simulate_decoded(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror, image_sink=sink,
+                                   pixel_stride=s)
             # The decoder's σ per pixel: the covariance's noise model (calibration, "Uncertainties").
-            obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
-                                                 screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm))
+            o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1,
+                                          screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm)
+            obs.append(Observations(cam, k, o.uv_px * s, o.q_screen_mm, o.q_std_mm))
     return obs
 
 
