@@ -156,3 +156,15 @@ def test_calibration_observations_decode_only_the_used_pixels_bit_for_bit():
                 assert np.array_equal(a, b), name
     n_images = len(truth.patterns.sequence.frames())
     assert len(sunk) == len(ref) * n_images  # the sink saw every image of every pose and camera
+
+
+def test_parallel_and_serial_kernels_agree(traced, monkeypatch):
+    """Images of ≥ _SERIAL_BELOW_PX pixels go through the parallel kernel: force it here."""
+    import pmdsim.evaluation.synthetic_decode as sd
+
+    s0, maps = traced
+    s = s0.with_patterns(noise_std=2.0)
+    m = maps["right"]
+    ref = _two_step(s, "right", m, stream=2)
+    monkeypatch.setattr(sd, "_SERIAL_BELOW_PX", 0)
+    _assert_identical(decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, "right", stream=2)), ref)

@@ -177,33 +177,66 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
     return n_redo
 
 
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
+                       w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio,
+                       mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
+                       tie_guard, out, flags, modulation, offset, std):
+    """Row v of one period: render (in registers) and decode; the arguments after
+    ``render_noise`` are those of ``phase._decode_kernel``. Returns the number of pixels
+    recomputed with libm's sin and cos (see ``_render_accumulate_row``)."""
+    w = valid.shape[1]
+    sa = np.empty(w)
+    sc = np.empty(w)
+    ss = np.empty(w)
+    mx = np.empty(w)
+    cb = np.empty(w)
+    sb = np.empty(w)
+    redo = np.empty(w, np.bool_)
+    n_redo = _render_accumulate_row(v, screen_xy, valid, axis, 2.0 * np.pi / period, cos_d, sin_d, mean, amp,
+                                    full_scale, render_noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx, cb, sb, redo)
+    _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
+                min_ratio, mode, period, 1.0 / period, origin, upper, tolerance, store, finish,
+                std_scale, noise_sigma, out, flags, modulation, offset, std)
+    return n_redo
+
+
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
                           w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio,
                           mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
                           tie_guard, out, flags, modulation, offset, std):
-    """One period: render (in registers) and decode, one parallel pass over image rows; the
-    arguments after ``render_noise`` are those of ``phase._decode_kernel``. Returns the number of
-    pixels recomputed with libm's sin and cos (see ``_render_accumulate_row``)."""
-    h, w = valid.shape
-    inv_period = 1.0 / period
-    two_pi_over_p = 2.0 * np.pi / period
+    """One period, one parallel pass over image rows (:func:`_render_decode_row`)."""
+    h = valid.shape[0]
     n_redo = np.zeros(h, np.int64)
     for v in numba.prange(h):
-        sa = np.empty(w)
-        sc = np.empty(w)
-        ss = np.empty(w)
-        mx = np.empty(w)
-        cb = np.empty(w)
-        sb = np.empty(w)
-        redo = np.empty(w, np.bool_)
-        n_redo[v] = _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_d, mean, amp,
-                                           full_scale, render_noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx,
-                                           cb, sb, redo)
-        _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
-                    min_ratio, mode, period, inv_period, origin, upper, tolerance, store, finish,
-                    std_scale, noise_sigma, out, flags, modulation, offset, std)
+        n_redo[v] = _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
+                                       render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
+                                       min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,
+                                       finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset,
+                                       std)
     return n_redo.sum()
+
+
+@numba.njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
+def _render_decode_kernel_serial(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
+                                 w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation,
+                                 min_ratio, mode, period, origin, upper, tolerance, store, finish, std_scale,
+                                 noise_sigma, tie_guard, out, flags, modulation, offset, std):
+    """:func:`_render_decode_kernel` in the calling thread: for small images (e.g. the
+    calibration's strided pixels) a parallel region's wake-up of the other threads can cost
+    more than the work on a loaded machine."""
+    n_redo = 0
+    for v in range(valid.shape[0]):
+        n_redo += _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
+                                     render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
+                                     min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,
+                                     finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset, std)
+    return n_redo
+
+
+_SERIAL_BELOW_PX = 200_000
+_CHUNK_ROWS = 8
 
 
 def decode_rendered_fringes(
@@ -283,7 +316,33 @@ def decode_rendered_fringes(
     sigma = np.full((1, 1), 1.0 / math.sqrt(12.0) if decoder_noise_std is None else float(decoder_noise_std))
     if not (np.isfinite(sigma).all() and sigma[0, 0] >= 0):
         raise PhaseDecodingError("decoder_noise_std: intensity noise must be finite and >= 0 (grey levels)")
-    noise_source = _NoiseFields(sequence, noise_std, rng, full_shape, stride)
+    noise_source = _NoiseFields(sequence, noise_std, rng, full_shape, stride) if noise_std > 0 else None
+    kernel = _render_decode_kernel_serial if h * w < _SERIAL_BELOW_PX else _render_decode_kernel
+    # Rows are handed out in chunks of _CHUNK_ROWS (not one static block per thread), so that a
+    # thread the OS schedules late (a shared machine) holds up the others by one chunk at most.
+    old_chunk = numba.set_parallel_chunksize(_CHUNK_ROWS)
+    try:
+        per_dir = _decode_directions(kernel, xy, ok, sequence, size, n, full, cos_d, sin_d, w_a, w_c, w_s, sigma,
+                                     noise_source, float(tie_guard))
+    finally:
+        numba.set_parallel_chunksize(old_chunk)
+    rx, ry = per_dir
+    xy_out = np.empty((h, w, 2))
+    std = np.empty((h, w, 2))
+    modulation = np.empty((h, w, 2))
+    offset = np.empty((h, w, 2))
+    flags = np.empty((h, w), np.uint8)
+    _combine_kernel(rx["out"], ry["out"], rx["flags"], ry["flags"], rx["std"], ry["std"],
+                    rx["modulation"], ry["modulation"], rx["offset"], ry["offset"],
+                    xy_out, flags, std, modulation, offset)
+    return ScreenCoordinates(screen_xy_mm=xy_out, valid=flags == 0, flags=flags, std_xy_mm=std,
+                             modulation=modulation, offset=offset)
+
+
+def _decode_directions(kernel, xy, ok, sequence, size, n, full, cos_d, sin_d, w_a, w_c, w_s, sigma, noise_source,
+                       tie_guard):
+    """Both directions, coarse → fine per direction: a list of two dicts of (H, W) arrays."""
+    h, w = ok.shape
     no_noise = np.empty((0, 0, 0))
     per_dir = []
     for axis, direction in enumerate(DIRECTIONS):
@@ -297,24 +356,14 @@ def decode_rendered_fringes(
         for level, i in enumerate(order):
             p = float(periods[i])
             last = level == len(order) - 1
-            noise = noise_source.fields(direction, p) if noise_std > 0 else no_noise
-            _render_decode_kernel(
+            noise = no_noise if noise_source is None else noise_source.fields(direction, p)
+            kernel(
                 xy, ok, axis, cos_d, sin_d, sequence.mean_level, sequence.amplitude, full, noise,
                 w_a, w_c, w_s, True, full, DEFAULT_DARK_FRACTION * full, DEFAULT_MIN_MODULATION_FRACTION * full,
                 DEFAULT_MIN_MODULATION_RATIO, _MODE_COARSE if level == 0 else _MODE_REFINE, p, org, upper,
-                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, float(tie_guard), **arrays)
+                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, tie_guard, **arrays)
         per_dir.append(arrays)
-    rx, ry = per_dir
-    xy_out = np.empty((h, w, 2))
-    std = np.empty((h, w, 2))
-    modulation = np.empty((h, w, 2))
-    offset = np.empty((h, w, 2))
-    flags = np.empty((h, w), np.uint8)
-    _combine_kernel(rx["out"], ry["out"], rx["flags"], ry["flags"], rx["std"], ry["std"],
-                    rx["modulation"], ry["modulation"], rx["offset"], ry["offset"],
-                    xy_out, flags, std, modulation, offset)
-    return ScreenCoordinates(screen_xy_mm=xy_out, valid=flags == 0, flags=flags, std_xy_mm=std,
-                             modulation=modulation, offset=offset)
+    return per_dir
 
 
 class _NoiseFields:
