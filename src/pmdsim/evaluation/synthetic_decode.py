@@ -68,7 +68,9 @@ _C5 = 2.08757232129817482790e-09
 _C6 = -1.13596475577881948265e-11
 _ROUND_MAGIC = 6755399441055744.0  # 1.5·2^52: x + M − M rounds x to the nearest integer
 _MAX_FAST_PHASE = 1.0e5  # |φ| above this (or not finite): libm
-_TIE_GUARD = 1.0e-7  # grey levels; the fast sin/cos move the rounded value by < 1e-12
+# Grey levels. The fast sin/cos (≤ 4e-16 from libm) move the value being rounded by at most
+# F·2·4e-16 plus a few of its ulps: < 1e-10 even at 16 bits (F = 65535).
+_TIE_GUARD = 1.0e-7
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
@@ -91,7 +93,7 @@ def _sincos_fast(phi):
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
 def _sincos_rows(phi, s, c):
-    """Element-wise :func:`_sincos_fast` (for the tests and the row loop)."""
+    """Element-wise :func:`_sincos_fast` (for the tests)."""
     for i in range(phi.shape[0]):
         s[i], c[i] = _sincos_fast(phi[i])
 
