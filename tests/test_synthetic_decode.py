@@ -106,14 +106,14 @@ def test_noise_needs_a_generator_and_imaging_is_refused(traced):
 def test_fast_sincos_matches_libm():
     """The vectorised sin/cos of the renderer against numpy's (libm) over the phases it gets
     (|φ| ≤ 1e5 rad: 2π·x/p for x within ±16 m at p = 1 mm), including the quadrant edges."""
-    from pmdsim.evaluation.synthetic_decode import _sincos_rows
+    from pmdsim.geometry.fast_trig import sincos_into
 
     rng = np.random.default_rng(1)
     k = np.arange(-4, 5)
     phi = np.concatenate([rng.uniform(-1e5, 1e5, 400_000), rng.uniform(-10, 10, 400_000),
                           (k[:, None] * np.pi / 4 + np.array([-1e-12, 0, 1e-12])).ravel(), [0.0, -0.0]])
     s, c = np.empty_like(phi), np.empty_like(phi)
-    _sincos_rows(phi, s, c)
+    sincos_into(phi, s, c)
     # 4e-16 absolute (≈ 2 ulp of 1): moves a 16-bit grey level by < 65535·2·4e-16 ≈ 5e-11, far
     # inside the renderer's tie guard of 1e-7 grey levels
     assert np.max(np.abs(s - np.sin(phi))) < 4e-16
