@@ -12,11 +12,12 @@ import numpy as np
 from ..geometry.surface import SplineSurface
 from ..setup import Setup
 from .phase import ScreenCoordinates, decode_screen_coordinates
+from .synthetic_decode import decode_rendered_fringes
 from .anchor import default_seed_pixel
 from .reconstruction import Reconstruction, ReconstructionError, reconstruct
 from .registration import Registration, register
 
-__all__ = ["decode_images", "evaluate_decoded"]
+__all__ = ["decode_images", "decode_simulated", "evaluate_decoded"]
 
 
 def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordinates:
@@ -39,6 +40,24 @@ def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordin
     noise = np.hypot(setup.patterns.noise_std, 1.0 / np.sqrt(12.0))
     return decode_screen_coordinates(xs, seq.periods_x_mm, ys, seq.periods_y_mm, setup.screen.size_mm, full,
                                      noise_std=noise)
+
+
+def decode_simulated(setup: Setup, screen_xy_mm: np.ndarray, valid: np.ndarray, *, rng=None,
+                     pixel_stride: int = 1) -> ScreenCoordinates:
+    """What :func:`decode_images` returns for the ideal renderer's images of a traced mapping
+    (:func:`pmdsim.simulation.render.render_images` with ``rng`` =
+    :func:`~pmdsim.simulation.render.noise_generator`), bit for bit, without rendering them
+    (:func:`~.synthetic_decode.decode_rendered_fringes`). Only for setups without image-formation
+    effects (``setup.imaging`` off): those images come from another renderer. ``pixel_stride``
+    s: only the pixels (v, u) ≡ (0, 0) mod s, i.e. the full result's ``[::s, ::s]``.
+    """
+    if setup.imaging is not None and setup.imaging.any_on:
+        raise ValueError("decode_simulated covers the ideal renderer only; with setup.imaging effects on, "
+                         "render the images (render_images) and decode them (decode_images)")
+    p = setup.patterns
+    return decode_rendered_fringes(screen_xy_mm, valid, p.sequence, setup.screen.size_mm, bit_depth=p.bit_depth,
+                                   noise_std=p.noise_std, rng=rng, pixel_stride=pixel_stride,
+                                   decoder_noise_std=float(np.hypot(p.noise_std, 1.0 / np.sqrt(12.0))))
 
 
 def evaluate_decoded(model: Setup, camera: str, decoded: ScreenCoordinates, *, screen_model=None,

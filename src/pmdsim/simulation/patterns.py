@@ -14,6 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.fast_trig import MAX_FAST_PHASE, TIE_GUARD, sincos
 from ..setup.fringes import DIRECTIONS, FringeSequence, PatternFrame
 
 __all__ = ["PatternFrame", "FringeSequence", "render", "render_period", "render_sequence"]
@@ -97,22 +98,53 @@ def render(
 
 @numba.njit(cache=True, error_model="numpy")
 def _render_stack_rows(v0, v1, screen_xy, valid, axis, period, cos_d, sin_d, mean, amp, full_scale, noise, out):
+    """Rows v0 … v1 − 1 of all N images: I_k = round(F·(A + B·(cos φ cos δ_k + sin φ sin δ_k)) + noise).
+
+    Row by row in vectorisable passes: the phases, their sine and cosine from the branch-free
+    :func:`~pmdsim.geometry.fast_trig.sincos`, then image by image the quantised grey levels.
+    A pixel whose unrounded value lies within ``TIE_GUARD`` of a rounding boundary in any image
+    (or whose phase is outside the fast range) is rendered again with libm's ``sin`` and ``cos``,
+    so the images are those of libm bit for bit (tests/test_render.py)."""
     w = valid.shape[1]
     n = cos_d.shape[0]
     two_pi_over_p = 2.0 * np.pi / period
+    has_noise = noise.shape[0] > 0
+    cb = np.empty(w)
+    sb = np.empty(w)
+    redo = np.empty(w, np.bool_)
     for v in range(v0, v1):
+        for u in range(w):  # the strided load in a loop of its own: the next one vectorises
+            cb[u] = two_pi_over_p * screen_xy[v, u, axis]
         for u in range(w):
-            if not valid[v, u]:
-                for k in range(n):
-                    out[k, v, u] = 0
+            phi = cb[u]
+            fast = abs(phi) <= MAX_FAST_PHASE  # False for NaN
+            s, c = sincos(phi if fast else 0.0)
+            sb[u] = s
+            cb[u] = c
+            redo[u] = valid[v, u] & (not fast)
+        for k in range(n):
+            cdk = cos_d[k]
+            sdk = sin_d[k]
+            for u in range(w):
+                # cos(φ − δ_k) = cos φ cos δ_k + sin φ sin δ_k: one sine and cosine per pixel.
+                val = full_scale * (mean + amp * (cb[u] * cdk + sb[u] * sdk))
+                if has_noise:
+                    val += noise[k, v, u]
+                t = val + 0.5
+                q = np.floor(t)
+                frac = t - q
+                redo[u] = redo[u] | (valid[v, u] & ((frac < TIE_GUARD) | (frac > 1.0 - TIE_GUARD)))
+                q = min(max(q, 0.0), full_scale)
+                out[k, v, u] = q if valid[v, u] else 0.0
+        for u in range(w):
+            if not redo[u]:
                 continue
             phi = two_pi_over_p * screen_xy[v, u, axis]
             c = np.cos(phi)
             s = np.sin(phi)
             for k in range(n):
-                # cos(φ − δ_k) = cos φ cos δ_k + sin φ sin δ_k: one sine and cosine per pixel.
                 val = full_scale * (mean + amp * (c * cos_d[k] + s * sin_d[k]))
-                if noise.shape[0] > 0:
+                if has_noise:
                     val += noise[k, v, u]
                 q = np.floor(val + 0.5)
                 if q < 0.0:

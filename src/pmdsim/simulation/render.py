@@ -15,7 +15,7 @@ from .patterns import PatternFrame, render_period
 from ..setup import Setup
 from .trace import Mapping, trace_camera
 
-__all__ = ["trace_setup_camera", "ImageSpec", "image_specs", "render_images"]
+__all__ = ["trace_setup_camera", "ImageSpec", "image_specs", "render_images", "noise_generator"]
 
 
 def trace_setup_camera(setup: Setup, camera: str, *, store_points: bool = False) -> Mapping:
@@ -81,8 +81,7 @@ def render_images(setup: Setup, camera: str, mapping: Mapping, *,
     emission need ``mapping`` traced with ``store_points=True``.
     """
     p = setup.patterns
-    cam_index = list(setup.cameras).index(camera)
-    key = [p.seed, cam_index] if stream is None else [p.seed, cam_index, int(stream)]
+    key = _noise_key(setup, camera, stream)
     if setup.imaging is not None and setup.imaging.any_on:
         yield from _render_images_imaging(setup, camera, mapping, key, T_world_sample)
         return
@@ -94,6 +93,19 @@ def render_images(setup: Setup, camera: str, mapping: Mapping, *,
             stack = render_period(mapping.screen_xy_mm, mapping.valid, f.direction, f.period_mm, p.sequence,
                                   bit_depth=p.bit_depth, noise_std=p.noise_std, rng=rng)
         yield spec, stack[f.shift_index]
+
+
+def _noise_key(setup: Setup, camera: str, stream: int | None) -> list:
+    """The documented seed contract: ``[seed, camera index]`` or ``[seed, camera index, stream]``."""
+    cam_index = list(setup.cameras).index(camera)
+    return [setup.patterns.seed, cam_index] if stream is None else [setup.patterns.seed, cam_index, int(stream)]
+
+
+def noise_generator(setup: Setup, camera: str, *, stream: int | None = None) -> np.random.Generator | None:
+    """The generator :func:`render_images` draws the ideal renderer's noise from (None without
+    noise): seeded by ``[seed, camera index]`` or ``[seed, camera index, stream]``, so that
+    :func:`pmdsim.evaluation.synthetic_decode.decode_rendered_fringes` reproduces its images."""
+    return np.random.default_rng(_noise_key(setup, camera, stream)) if setup.patterns.noise_std > 0 else None
 
 
 def _render_images_imaging(setup, camera, mapping, key, T_world_sample):

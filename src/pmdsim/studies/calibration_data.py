@@ -6,14 +6,45 @@ from a real instrument's decoded images.
 
 from __future__ import annotations
 
+from dataclasses import fields
+
+from ..evaluation.phase import ScreenCoordinates
 from ..simulation.imaging import decoder_response
-from ..evaluation.pipeline import decode_images
+from ..evaluation.pipeline import decode_images, decode_simulated
 from ..setup import Setup
 from ..simulation.imaging import needs_points
-from ..simulation.render import render_images
+from ..simulation.render import noise_generator, render_images
 from .experiment1 import Progress
 
-__all__ = ["simulate_calibration_observations", "trace_calibration_poses", "observe_calibration_poses"]
+__all__ = ["simulate_calibration_observations", "trace_calibration_poses", "observe_calibration_poses",
+           "simulate_decoded"]
+
+
+def simulate_decoded(truth: Setup, camera: str, mapping, *, stream: int | None = None, T_world_sample=None,
+                     image_sink=None, pixel_stride: int = 1) -> ScreenCoordinates:
+    """Render ``camera``'s fringe images of a traced ``mapping`` (noise stream ``stream``, see
+    :func:`~pmdsim.simulation.render.render_images`) and decode them
+    (:func:`~pmdsim.evaluation.pipeline.decode_images`); with ``pixel_stride`` s > 1 only the
+    decoded pixels (v, u) ≡ (0, 0) mod s are returned (every array ``[::s, ::s]``).
+
+    Without image-formation effects and without an ``image_sink`` (called as
+    ``image_sink(spec, image)`` for every image) the images are never materialised and only the
+    returned pixels are decoded: the fused :func:`~pmdsim.evaluation.pipeline.decode_simulated`
+    gives the same values bit for bit (tests/test_synthetic_decode.py).
+    """
+    if image_sink is None and not (truth.imaging is not None and truth.imaging.any_on):
+        return decode_simulated(truth, mapping.screen_xy_mm, mapping.valid,
+                                rng=noise_generator(truth, camera, stream=stream), pixel_stride=pixel_stride)
+    images: dict = {}
+    for spec, img in render_images(truth, camera, mapping, stream=stream, T_world_sample=T_world_sample):
+        images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+        if image_sink is not None:
+            image_sink(spec, img)
+    dec = decode_images(truth, images, response=decoder_response(truth))
+    if pixel_stride == 1:
+        return dec
+    s = int(pixel_stride)
+    return ScreenCoordinates(**{f.name: getattr(dec, f.name)[::s, ::s] for f in fields(ScreenCoordinates)})
 
 
 def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress: Progress | None = None,
@@ -29,11 +60,12 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
     -------
     list of :class:`pmdsim.calibration.Observations`
     """
-    from ..calibration import observations_from_mapping
+    from ..calibration import Observations, observations_from_mapping
     from ..simulation.trace import trace_camera
 
     cal = truth.calibration
     mirror = cal.mirror_surface()
+    s = int(cal.observation_stride_px)
     obs = []
     for k, (label, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
         for cam, cs in truth.cameras.items():
@@ -41,16 +73,15 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
                 progress(f"pose {k} ({label}), camera {cam}")
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
                              truth.screen.surface, store_points=needs_points(truth))
-            images: dict = {}
             # One independent noise stream per pose (stream 0 is left to the sample's images).
-            for spec, img in render_images(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror):
-                images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-                if image_sink is not None:
-                    image_sink(k, spec, img)
-            dec = decode_images(truth, images, response=decoder_response(truth))
+            sink = None if image_sink is None else (lambda spec, img, k=k: image_sink(k, spec, img))
+            # Only the pixels the calibration uses are decoded (u, v ≡ 0 mod the stride).
+            dec = simulate_decoded(truth, cam, m, stream=k + 1, T_world_sample=T_world_mirror, image_sink=sink,
+                                   pixel_stride=s)
             # The decoder's σ per pixel: the covariance's noise model (calibration, "Uncertainties").
-            obs.append(observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=cal.observation_stride_px,
-                                                 screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm))
+            o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1,
+                                          screen_surface=screen_surface, screen_std_xy_mm=dec.std_xy_mm)
+            obs.append(Observations(cam, k, o.uv_px * s, o.q_screen_mm, o.q_std_mm))
     return obs
 
 
@@ -90,10 +121,7 @@ def observe_calibration_poses(truth: Setup, traced: list, stride: int = 1) -> li
 
     obs = []
     for k, cam, m in traced:
-        images: dict = {}
-        for spec, img in render_images(truth, cam, m, stream=k + 1):
-            images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        dec = decode_images(truth, images, response=decoder_response(truth))
+        dec = simulate_decoded(truth, cam, m, stream=k + 1)
         o = observations_from_mapping(cam, k, dec.screen_xy_mm, dec.valid, stride=1, screen_std_xy_mm=dec.std_xy_mm)
         obs.append(Observations(cam, k, o.uv_px * stride, o.q_screen_mm, o.q_std_mm))
     return obs

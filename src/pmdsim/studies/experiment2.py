@@ -7,15 +7,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..simulation.imaging import decoder_response
 from ..calibration.setup_bridge import calibrated_setup, calibration_deviation, free_screen_model, nominal_setup
 from ..evaluation.metrics import surface_error_metrics
-from ..evaluation.pipeline import decode_images, evaluate_decoded
+from ..evaluation.pipeline import evaluate_decoded
 from ..evaluation.reconstruction import ReconstructionError
 from ..setup import Setup, default_setup
 from ..simulation.imaging import needs_points
-from ..simulation.render import render_images, trace_setup_camera
-from .calibration_data import simulate_calibration_observations
+from ..simulation.render import trace_setup_camera
+from .calibration_data import simulate_calibration_observations, simulate_decoded
 from .experiment1 import CaseResult, Progress
 
 __all__ = ["PAPER_TABLE3", "INITIAL_ERRORS", "Experiment2Bulge", "run_experiment2_bulge", "calibrate_and_reconstruct"]
@@ -107,11 +106,7 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         if progress is not None:
             progress(f"Δh = {bulge_mm:g} mm: reconstructing, camera {cam}")
         m = trace_setup_camera(truth, cam, store_points=needs_points(truth))
-        images: dict = {}
-        for spec, img in render_images(truth, cam, m):
-            images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
-        decoded = decode_images(truth, images, response=decoder_response(truth))
-        del images
+        decoded = simulate_decoded(truth, cam, m)
         c = model.cameras[cam].camera
         seed_px = (c.height_px // 2, c.width_px // 2)
         if not decoded.valid[seed_px]:  # e.g. washed-out fringes (issue 13): the decoded pixel nearest the centre
