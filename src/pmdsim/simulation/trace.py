@@ -20,6 +20,7 @@ from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
 from ..geometry.transform import RigidTransform
+from .trace_rows import _BLK, _NF, trace_row
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
 
@@ -79,7 +80,7 @@ _BAND_ROWS = 16
 # about NaN or infinity, so the validity checks are unaffected.
 @numba.njit(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 def _trace_run(
-    band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+    band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
@@ -120,6 +121,17 @@ def _trace_run(
     for row in range(row0, row_end):
         kb = np.uint64(row * run_length)
         above = row > row0  # not the first row of the band
+        if above:
+            # The pixels do not depend on each other: the vectorised row kernel.
+            trace_row(
+                kb, min(run_length, n - row * run_length), d_cam, ok, zr, scratch[band], pscratch[band],
+                r_sc, t_sc, r_ps, t_ps, _COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE,
+                s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
+                tol, max_iter, sample_codes, screen_codes,
+                screen_xy, status, p_sample, q_screen, store,
+            )
+            continue
         zs_prev = nan  # sample height of the previous pixel
         # Screen heights of the previous three pixels (NaN where not valid).
         zp1 = nan
@@ -228,7 +240,7 @@ def _trace_run(
 
 @numba.njit(cache=True, parallel=True)
 def _trace_kernel(
-    d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+    d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
@@ -236,7 +248,7 @@ def _trace_kernel(
 ):
     for band in numba.prange(z_rows.shape[0]):
         _trace_run(
-            band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+            band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
             p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
@@ -335,12 +347,14 @@ def trace_rays(
     band_rows = _BAND_ROWS if len(shape) >= 2 else 1
     n_runs = (n + run_length - 1) // run_length
     z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 4, run_length), np.nan)
+    scratch = np.empty((z_rows.shape[0], _NF * _BLK))
+    pscratch = np.empty((z_rows.shape[0], _BLK), dtype=np.int64)
     # Bands are handed to the threads one at a time: on a shared machine a thread that is
     # descheduled for a while does not hold up the others.
     old_chunksize = numba.set_parallel_chunksize(1)
     try:
         _trace_kernel(
-            df, okf, run_length, band_rows, z_rows,
+            df, okf, run_length, band_rows, z_rows, scratch, pscratch,
             np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
             np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
             s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
