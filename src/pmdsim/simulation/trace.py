@@ -20,7 +20,7 @@ from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
 from ..geometry.transform import RigidTransform
-from .trace_rows import _BLK, _NF, trace_row
+from .trace_rows import _BLK, _NF, _NI, trace_row
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
 
@@ -348,7 +348,7 @@ def trace_rays(
     n_runs = (n + run_length - 1) // run_length
     z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 4, run_length), np.nan)
     scratch = np.empty((z_rows.shape[0], _NF * _BLK))
-    pscratch = np.empty((z_rows.shape[0], _BLK), dtype=np.int64)
+    pscratch = np.empty((z_rows.shape[0], _NI * _BLK), dtype=np.int64)
     # Bands are handed to the threads one at a time: on a shared machine a thread that is
     # descheduled for a while does not hold up the others.
     old_chunksize = numba.set_parallel_chunksize(1)

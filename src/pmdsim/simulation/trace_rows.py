@@ -41,19 +41,61 @@ _BLK = 128
 (_VX, _VY, _VZ, _PX, _PY, _PZ, _SC, _QOX, _QOY, _QOZ, _WX, _WY, _WZ,
  _AX, _AY, _BX, _BY, _INV, _OZ, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(27)
 _NF = 27
-_PID = 0  # int64 scratch: patch offset per pixel
+_JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
+
+_PID = 0  # int64 scratch: patch offset per pixel, then (scratch) the row index of the patch
+_PIY = 1
+_NI = 2
+#: Grids with at most this many intervals (n_x − 1 + n_y − 1) find each pixel's patch by
+#: counting the grid lines below it (vectorised); larger ones by bisection (scalar).
+_SMALL_GRID = 16
+
+
+@numba.njit(**_JIT)
+def _patches_small(n, gx, gy, S, P):
+    """Patch offsets (:func:`pmdsim.geometry.surface._patch`) of the start points of n pixels,
+    by counting grid lines: the same intervals as :func:`~pmdsim.geometry.surface._interval`
+    (v ≤ g[1] → 0; g[m] ≤ v < g[m + 1] → m; v ≥ g[−2] → last), with one compare per grid
+    line and pixel, without branches."""
+    B = _BLK
+    nx = gx.shape[0]
+    ny = gy.shape[0]
+    for i in range(n):
+        z = S[_ZG * B + i]
+        S[_X * B + i] = S[_AX * B + i] + S[_BX * B + i] * z
+        S[_Y * B + i] = S[_AY * B + i] + S[_BY * B + i] * z
+        P[_PID * B + i] = 0
+        P[_PIY * B + i] = 0
+    for m in range(1, nx - 1):
+        g = gx[m]
+        for i in range(n):
+            P[_PID * B + i] += S[_X * B + i] >= g
+    for m in range(1, ny - 1):
+        g = gy[m]
+        for i in range(n):
+            P[_PIY * B + i] += S[_Y * B + i] >= g
+    if nx > 2:  # v = g[1] exactly belongs to the first interval
+        g = gx[1]
+        for i in range(n):
+            P[_PID * B + i] -= S[_X * B + i] == g
+    if ny > 2:
+        g = gy[1]
+        for i in range(n):
+            P[_PIY * B + i] -= S[_Y * B + i] == g
+    nx1 = nx - 1
+    for i in range(n):
+        P[_PID * B + i] = (P[_PIY * B + i] * nx1 + P[_PID * B + i]) * 16
 
 _FAILED = -1.0  # sample code of a pixel whose view ray is not defined (UNDISTORT_FAILED)
 _NOT_TRACED = -1.0  # screen code of a pixel that did not reach the screen
 
-_JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 
 
 @numba.njit(**_JIT)
-def _newton_run(s, e, c, gxi, gyj, m2c, m3c, tol, gradient, S):
-    """One Newton step (:func:`pmdsim.geometry.surface._newton_step`) for the pixels s … e − 1
-    of the block, which all evaluate on the same bicubic patch (coefficients ``c[0:16]``,
-    origin (gxi, gyj)).
+def _newton_run(n, c, gxi, gyj, m2c, m3c, tol, gradient, S):
+    """One Newton step (:func:`pmdsim.geometry.surface._newton_step`) for the pixels 0 … n − 1
+    of ``S`` (a view of the block's scratch from the run's first pixel on), which all evaluate
+    on the same bicubic patch (coefficients ``c[0:16]``, origin (gxi, gyj)).
 
     Reads the ray x = a_x + b_x z, y = a_y + b_y z (fields _AX, _AY, _BX, _BY) and the start
     height (_ZG); writes the new height (_Z), point (_X, _Y), with ``gradient`` the gradient
@@ -65,7 +107,7 @@ def _newton_run(s, e, c, gxi, gyj, m2c, m3c, tol, gradient, S):
     c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
     c8, c9, c10, c11, c12, c13, c14, c15 = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
     B = _BLK
-    for i in range(s, e):
+    for i in range(n):  # from 0: LLVM then knows the indices are not negative (and vectorises)
         ax = S[_AX * B + i]
         ay = S[_AY * B + i]
         bx = S[_BX * B + i]
@@ -136,22 +178,33 @@ def _intersect_block(n, kind, gx, gy, coef, dmax, tol, gradient, S, P):
             S[_HY * B + i] = 0.0
     elif kind == _KIND_SPLINE:
         nx1 = gx.shape[0] - 1
+        ny1 = gy.shape[0] - 1
+        if nx1 + ny1 <= _SMALL_GRID:
+            _patches_small(n, gx, gy, S, P)
+        else:
+            for i in range(n):
+                z = S[_ZG * B + i]
+                x = S[_AX * B + i] + S[_BX * B + i] * z
+                y = S[_AY * B + i] + S[_BY * B + i] * z
+                P[_PID * B + i] = (_interval(gy, y) * nx1 + _interval(gx, x)) * 16
+        # Runs of pixels on the same patch (usually one per block).
+        b0 = P[_PID * B]
+        n_other = 0
         for i in range(n):
-            z = S[_ZG * B + i]
-            x = S[_AX * B + i] + S[_BX * B + i] * z
-            y = S[_AY * B + i] + S[_BY * B + i] * z
-            P[_PID * B + i] = (_interval(gy, y) * nx1 + _interval(gx, x)) * 16
+            n_other += P[_PID * B + i] != b0
         i = 0
         while i < n:
             s = i
             b = P[_PID * B + i]
             i += 1
+            if n_other == 0:
+                i = n
             while i < n and P[_PID * B + i] == b:
                 i += 1
             bi = b // 16
             gxi = gx[bi % nx1]
             gyj = gy[bi // nx1]
-            _newton_run(s, i, coef[b:b + 16], gxi, gyj, dmax[0], dmax[1], tol, gradient, S)
+            _newton_run(i - s, coef[b:b + 16], gxi, gyj, dmax[0], dmax[1], tol, gradient, S[s:])
     else:
         for i in range(n):
             if S[_C * B + i] == 0.0:
@@ -165,13 +218,9 @@ def _intersect_block(n, kind, gx, gy, coef, dmax, tol, gradient, S, P):
         x = S[_X * B + i]
         y = S[_Y * B + i]
         t = (z - S[_OZ * B + i]) * inv
-        code = 0.0
-        if not t > 0.0:
-            code = 1.0
-        elif x < x_lo or x > x_hi or y < y_lo or y > y_hi:
-            code = 2.0
-        if S[_CONV * B + i] == 0.0:
-            code = float(_NEEDS_SOLVE)
+        outside = (x < x_lo) | (x > x_hi) | (y < y_lo) | (y > y_hi)
+        code = 1.0 if not t > 0.0 else (2.0 if outside else 0.0)
+        code = code if S[_CONV * B + i] != 0.0 else float(_NEEDS_SOLVE)
         S[_C * B + i] = c if c != 0.0 else code
 
 
@@ -233,19 +282,24 @@ def trace_row(
     for col0 in range(0, m, B):
         n = min(B, m - col0)
         kc = kb + np.uint64(col0)
+        # The heights of the two rows above from this block's first pixel on (1-D views: unit
+        # strides and indices from 0, which LLVM vectorises).
+        zs1 = zr[0][col0:]
+        zs2 = zr[1][col0:]
+        zq1 = zr[2][col0:]
+        zq2 = zr[3][col0:]
         # 1. The view ray in the sample frame, as a function of the height (eqs. 14-16).
         for i in range(n):
             k = kc + np.uint64(i)
-            col = col0 + i
             a = d_cam[k, 0]
             b = d_cam[k, 1]
             c = d_cam[k, 2]
             vx = a00 * a + a01 * b + a02 * c
             vy = a10 * a + a11 * b + a12 * c
             vz = a20 * a + a21 * b + a22 * c
-            g = 2.0 * zr[0, col] - zr[1, col]
+            g = 2.0 * zs1[i] - zs2[i]
             if not np.isfinite(g):
-                g = zr[0, col]
+                g = zs1[i]
             inv = 1.0 / vz
             bx = vx * inv
             by = vy * inv
@@ -273,7 +327,6 @@ def trace_row(
         _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, True, _VX, S)
         # 3. Grazing incidence, reflection (eq. 17), the reflected ray in the screen frame.
         for i in range(n):
-            col = col0 + i
             sc = S[_C * B + i]
             vx = S[_VX * B + i]
             vy = S[_VY * B + i]
@@ -300,9 +353,9 @@ def trace_row(
             wx = b00 * rx + b01 * ry + b02 * rz
             wy = b10 * rx + b11 * ry + b12 * rz
             wz = b20 * rx + b21 * ry + b22 * rz
-            g = 2.0 * zr[2, col] - zr[3, col]
+            g = 2.0 * zq1[i] - zq2[i]
             if not np.isfinite(g):
-                g = zr[2, col]
+                g = zq1[i]
             inv = 1.0 / wz
             bx = wx * inv
             by = wy * inv
@@ -335,7 +388,6 @@ def trace_row(
         # 5. Status codes and stores.
         for i in range(n):
             k = kc + np.uint64(i)
-            col = col0 + i
             sc = S[_SC * B + i]
             qc = S[_C * B + i]
             zs = nan
@@ -363,7 +415,7 @@ def trace_row(
                 q_screen[k, 0] = qx
                 q_screen[k, 1] = qy
                 q_screen[k, 2] = qz
-            zr[1, col] = zr[0, col]  # row - 1 becomes row - 2
-            zr[0, col] = zs
-            zr[3, col] = zr[2, col]
-            zr[2, col] = qz
+            zs2[i] = zs1[i]  # row - 1 becomes row - 2
+            zs1[i] = zs
+            zq2[i] = zq1[i]
+            zq1[i] = qz
