@@ -39,8 +39,8 @@ _BLK = 128
 # Scratch fields (float64; codes stored as small integers in float64). The intersection
 # stages work on the generic fields _AX … _C (first for the sample, then for the screen).
 (_VX, _VY, _VZ, _PX, _PY, _PZ, _SC, _QOX, _QOY, _QOZ, _WX, _WY, _WZ,
- _AX, _AY, _BX, _BY, _INV, _OZ, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(27)
-_NF = 27
+ _AX, _AY, _BX, _BY, _INV, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(26)
+_NF = 26
 _JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 
 _PID = 0  # int64 scratch: patch offset per pixel, then (scratch) the row index of the patch
@@ -161,7 +161,7 @@ def _intersect_block(n, kind, gx, gy, coef, dmax, tol, gradient, S, P):
     step not converged, a surface kind other than plane and spline); _X, _Y, _Z (and with
     ``gradient`` _HX, _HY) hold the intersection of the settled pixels. The checks of
     :func:`~pmdsim.geometry.surface._finish`: ray parameter t = (z − o_z)/d_z > 0 (o_z in
-    _OZ, 1/d_z in _INV), point within the grid's bounds.
+    _QOZ, 1/d_z in _INV), point within the grid's bounds.
     """
     B = _BLK
     x_lo = gx[0]
@@ -217,7 +217,7 @@ def _intersect_block(n, kind, gx, gy, coef, dmax, tol, gradient, S, P):
         z = S[_Z * B + i]
         x = S[_X * B + i]
         y = S[_Y * B + i]
-        t = (z - S[_OZ * B + i]) * inv
+        t = (z - S[_QOZ * B + i]) * inv
         outside = (x < x_lo) | (x > x_hi) | (y < y_lo) | (y > y_hi)
         code = 1.0 if not t > 0.0 else (2.0 if outside else 0.0)
         code = code if S[_CONV * B + i] != 0.0 else float(_NEEDS_SOLVE)
@@ -252,6 +252,59 @@ def _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, gradient, f
             S[_C * B + i] = st
 
 
+@numba.njit(**_JIT, inline="always")
+def _to_screen(i, sc, vx, vy, vz, px, py, pz, hx, hy, cos2_max, bm, zq1, zq2, S):
+    """Grazing-incidence test, reflection (eq. 17) and the reflected ray in the screen frame
+    (origin _QOX…, direction _WX…, parametrised by height in _AX … _INV, warm start _ZG from the
+    rows above, code _C) for pixel i; writes its sample code (_SC) and point (_PX, _PY, _PZ).
+    ``bm``: the screen ← sample rotation (row major) and translation."""
+    B = _BLK
+    b00, b01, b02, b10, b11, b12, b20, b21, b22, c0, c1, c2 = bm
+    # Grazing or back-side incidence: |v·n| ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1),
+    # or v·n of the other sign than v_z (pmdsim.simulation.trace, the pixel-by-pixel loop).
+    vn = vz - hx * vx - hy * vy
+    grazing = not ((vn * vz > 0.0) & (vn * vn > cos2_max * (
+        (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))))
+    if sc == 0.0 and grazing:
+        sc = 5.0  # -> SAMPLE_GRAZING
+    nx = -hx
+    ny = -hy
+    f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
+    rx = vx - f * nx
+    ry = vy - f * ny
+    rz = vz - f
+    qox = b00 * px + b01 * py + b02 * pz + c0
+    qoy = b10 * px + b11 * py + b12 * pz + c1
+    qoz = b20 * px + b21 * py + b22 * pz + c2
+    wx = b00 * rx + b01 * ry + b02 * rz
+    wy = b10 * rx + b11 * ry + b12 * rz
+    wz = b20 * rx + b21 * ry + b22 * rz
+    g = 2.0 * zq1[i] - zq2[i]
+    if not np.isfinite(g):
+        g = zq1[i]
+    inv = 1.0 / wz
+    bx = wx * inv
+    by = wy * inv
+    S[_SC * B + i] = sc
+    S[_PX * B + i] = px
+    S[_PY * B + i] = py
+    S[_PZ * B + i] = pz
+    S[_QOX * B + i] = qox
+    S[_QOY * B + i] = qoy
+    S[_QOZ * B + i] = qoz
+    S[_WX * B + i] = wx
+    S[_WY * B + i] = wy
+    S[_WZ * B + i] = wz
+    S[_AX * B + i] = qox - qoz * bx
+    S[_AY * B + i] = qoy - qoz * by
+    S[_BX * B + i] = bx
+    S[_BY * B + i] = by
+    S[_INV * B + i] = inv
+    S[_ZG * B + i] = g
+    code = 1.0 if (wz == 0.0) | (not np.isfinite(wz)) else 0.0  # PARALLEL
+    S[_C * B + i] = code if sc == 0.0 else _NOT_TRACED
+
+
 @numba.njit(**_JIT)
 def trace_row(
     kb, m, d_cam, ok, zr, S, P, r_sc, t_sc, r_ps, t_ps, cos2_max,
@@ -264,7 +317,7 @@ def trace_row(
 
     The arguments are those of :func:`pmdsim.simulation.trace._trace_run`; ``zr`` (4, m): the
     sample and screen heights of the two rows above (updated here for the next row), ``S``
-    and ``P``: the band's float64 (_NF·_BLK) and int64 (_BLK) scratch; ``cos2_max``: the
+    and ``P``: the band's float64 (_NF·_BLK) and int64 (_NI·_BLK) scratch; ``cos2_max``: the
     squared cosine of the largest angle of incidence on the sample.
     """
     B = _BLK
@@ -275,10 +328,8 @@ def trace_row(
     a00, a01, a02 = r_sc[0, 0], r_sc[0, 1], r_sc[0, 2]
     a10, a11, a12 = r_sc[1, 0], r_sc[1, 1], r_sc[1, 2]
     a20, a21, a22 = r_sc[2, 0], r_sc[2, 1], r_sc[2, 2]
-    b00, b01, b02 = r_ps[0, 0], r_ps[0, 1], r_ps[0, 2]
-    b10, b11, b12 = r_ps[1, 0], r_ps[1, 1], r_ps[1, 2]
-    b20, b21, b22 = r_ps[2, 0], r_ps[2, 1], r_ps[2, 2]
-    c0, c1, c2 = t_ps[0], t_ps[1], t_ps[2]
+    bm = (r_ps[0, 0], r_ps[0, 1], r_ps[0, 2], r_ps[1, 0], r_ps[1, 1], r_ps[1, 2], r_ps[2, 0], r_ps[2, 1], r_ps[2, 2],
+          t_ps[0], t_ps[1], t_ps[2])
     for col0 in range(0, m, B):
         n = min(B, m - col0)
         kc = kb + np.uint64(col0)
@@ -314,10 +365,9 @@ def trace_row(
             S[_BX * B + i] = bx
             S[_BY * B + i] = by
             S[_INV * B + i] = inv
-            S[_OZ * B + i] = oz
             S[_ZG * B + i] = g
             code = 0.0
-            if vz == 0.0 or not np.isfinite(vz):
+            if (vz == 0.0) | (not np.isfinite(vz)):
                 code = 1.0  # PARALLEL
             if not ok[k]:
                 code = _FAILED
@@ -327,95 +377,38 @@ def trace_row(
         _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, True, _VX, S)
         # 3. Grazing incidence, reflection (eq. 17), the reflected ray in the screen frame.
         for i in range(n):
-            sc = S[_C * B + i]
-            vx = S[_VX * B + i]
-            vy = S[_VY * B + i]
-            vz = S[_VZ * B + i]
-            hx = S[_HX * B + i]
-            hy = S[_HY * B + i]
-            px = S[_X * B + i]
-            py = S[_Y * B + i]
-            pz = S[_Z * B + i]
-            vn = vz - hx * vx - hy * vy
-            grazing = not ((vn * vz > 0.0) & (vn * vn > cos2_max * (
-                (vx * vx + vy * vy + vz * vz) * (hx * hx + hy * hy + 1.0))))
-            if sc == 0.0 and grazing:
-                sc = 5.0  # -> SAMPLE_GRAZING
-            nx = -hx
-            ny = -hy
-            f = 2.0 * (vx * nx + vy * ny + vz) / (nx * nx + ny * ny + 1.0)
-            rx = vx - f * nx
-            ry = vy - f * ny
-            rz = vz - f
-            qox = b00 * px + b01 * py + b02 * pz + c0
-            qoy = b10 * px + b11 * py + b12 * pz + c1
-            qoz = b20 * px + b21 * py + b22 * pz + c2
-            wx = b00 * rx + b01 * ry + b02 * rz
-            wy = b10 * rx + b11 * ry + b12 * rz
-            wz = b20 * rx + b21 * ry + b22 * rz
-            g = 2.0 * zq1[i] - zq2[i]
-            if not np.isfinite(g):
-                g = zq1[i]
-            inv = 1.0 / wz
-            bx = wx * inv
-            by = wy * inv
-            S[_SC * B + i] = sc
-            S[_PX * B + i] = px
-            S[_PY * B + i] = py
-            S[_PZ * B + i] = pz
-            S[_QOX * B + i] = qox
-            S[_QOY * B + i] = qoy
-            S[_QOZ * B + i] = qoz
-            S[_WX * B + i] = wx
-            S[_WY * B + i] = wy
-            S[_WZ * B + i] = wz
-            S[_AX * B + i] = qox - qoz * bx
-            S[_AY * B + i] = qoy - qoz * by
-            S[_BX * B + i] = bx
-            S[_BY * B + i] = by
-            S[_INV * B + i] = inv
-            S[_OZ * B + i] = qoz
-            S[_ZG * B + i] = g
-            code = 0.0
-            if wz == 0.0 or not np.isfinite(wz):
-                code = 1.0  # PARALLEL
-            if sc != 0.0:
-                code = _NOT_TRACED
-            S[_C * B + i] = code
+            _to_screen(i, S[_C * B + i], S[_VX * B + i], S[_VY * B + i], S[_VZ * B + i], S[_X * B + i],
+                       S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i], cos2_max, bm, zq1, zq2, S)
         # 4. The screen intersection.
         _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
         _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, False, _WX, S)
-        # 5. Status codes and stores.
+        # 5. Status codes and stores (three loops: each vectorises with few alias checks).
         for i in range(n):
             k = kc + np.uint64(i)
             sc = S[_SC * B + i]
             qc = S[_C * B + i]
-            zs = nan
-            qx = nan
-            qy = nan
-            qz = nan
-            if sc == _FAILED:
-                st = 1  # UNDISTORT_FAILED
-            elif sc != 0.0:
-                st = sample_codes[int(sc)]
-            else:
-                zs = S[_PZ * B + i]
-                st = screen_codes[int(qc)]
-                if qc == 0.0:
-                    qx = S[_X * B + i]
-                    qy = S[_Y * B + i]
-                    qz = S[_Z * B + i]
+            valid = (sc == 0.0) & (qc == 0.0)
+            st = screen_codes[int(qc)] if sc == 0.0 else (sample_codes[int(sc)] if sc != _FAILED else 1)
             status[k] = st
-            screen_xy[k, 0] = qx
-            screen_xy[k, 1] = qy
-            if store:
-                p_sample[k, 0] = S[_PX * B + i] if sc == 0.0 else nan
-                p_sample[k, 1] = S[_PY * B + i] if sc == 0.0 else nan
-                p_sample[k, 2] = zs
-                q_screen[k, 0] = qx
-                q_screen[k, 1] = qy
-                q_screen[k, 2] = qz
+            screen_xy[k, 0] = S[_X * B + i] if valid else nan
+            screen_xy[k, 1] = S[_Y * B + i] if valid else nan
+        for i in range(n):
+            sc = S[_SC * B + i]
+            qc = S[_C * B + i]
             zs2[i] = zs1[i]  # row - 1 becomes row - 2
-            zs1[i] = zs
+            zs1[i] = S[_PZ * B + i] if sc == 0.0 else nan
             zq2[i] = zq1[i]
-            zq1[i] = qz
+            zq1[i] = S[_Z * B + i] if (sc == 0.0) & (qc == 0.0) else nan
+        if store:
+            for i in range(n):
+                k = kc + np.uint64(i)
+                sc = S[_SC * B + i]
+                qc = S[_C * B + i]
+                hit = sc == 0.0
+                valid = hit & (qc == 0.0)
+                p_sample[k, 0] = S[_PX * B + i] if hit else nan
+                p_sample[k, 1] = S[_PY * B + i] if hit else nan
+                p_sample[k, 2] = S[_PZ * B + i] if hit else nan
+                q_screen[k, 0] = S[_X * B + i] if valid else nan
+                q_screen[k, 1] = S[_Y * B + i] if valid else nan
+                q_screen[k, 2] = S[_Z * B + i] if valid else nan
