@@ -330,6 +330,10 @@ def trace_row(
     a20, a21, a22 = r_sc[2, 0], r_sc[2, 1], r_sc[2, 2]
     bm = (r_ps[0, 0], r_ps[0, 1], r_ps[0, 2], r_ps[1, 0], r_ps[1, 1], r_ps[1, 2], r_ps[2, 0], r_ps[2, 1], r_ps[2, 2],
           t_ps[0], t_ps[1], t_ps[2])
+    sx_lo = s_gx[0]
+    sx_hi = s_gx[s_gx.shape[0] - 1]
+    sy_lo = s_gy[0]
+    sy_hi = s_gy[s_gy.shape[0] - 1]
     for col0 in range(0, m, B):
         n = min(B, m - col0)
         kc = kb + np.uint64(col0)
@@ -339,42 +343,73 @@ def trace_row(
         zs2 = zr[1][col0:]
         zq1 = zr[2][col0:]
         zq2 = zr[3][col0:]
-        # 1. The view ray in the sample frame, as a function of the height (eqs. 14-16).
-        for i in range(n):
-            k = kc + np.uint64(i)
-            a = d_cam[k, 0]
-            b = d_cam[k, 1]
-            c = d_cam[k, 2]
-            vx = a00 * a + a01 * b + a02 * c
-            vy = a10 * a + a11 * b + a12 * c
-            vz = a20 * a + a21 * b + a22 * c
-            g = 2.0 * zs1[i] - zs2[i]
-            if not np.isfinite(g):
-                g = zs1[i]
-            inv = 1.0 / vz
-            bx = vx * inv
-            by = vy * inv
-            S[_VX * B + i] = vx
-            S[_VY * B + i] = vy
-            S[_VZ * B + i] = vz
-            S[_QOX * B + i] = ox
-            S[_QOY * B + i] = oy
-            S[_QOZ * B + i] = oz
-            S[_AX * B + i] = ox - oz * bx
-            S[_AY * B + i] = oy - oz * by
-            S[_BX * B + i] = bx
-            S[_BY * B + i] = by
-            S[_INV * B + i] = inv
-            S[_ZG * B + i] = g
-            code = 0.0
-            if (vz == 0.0) | (not np.isfinite(vz)):
-                code = 1.0  # PARALLEL
-            if not ok[k]:
-                code = _FAILED
-            S[_C * B + i] = code
-        # 2. The sample intersection.
-        _intersect_block(n, s_kind, s_gx, s_gy, s_coef, s_dmax, tol, True, S, P)
-        _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, True, _VX, S)
+        if s_kind == _KIND_PLANE:
+            # 1.–2. The view ray and its intersection with the plane z = 0 (eqs. 9–12): the
+            # operations of intersect_kernel's plane path, one loop.
+            for i in range(n):
+                k = kc + np.uint64(i)
+                a = d_cam[k, 0]
+                b = d_cam[k, 1]
+                c = d_cam[k, 2]
+                vx = a00 * a + a01 * b + a02 * c
+                vy = a10 * a + a11 * b + a12 * c
+                vz = a20 * a + a21 * b + a22 * c
+                inv = 1.0 / vz
+                x = ox - oz * (vx * inv)
+                y = oy - oz * (vy * inv)
+                t = (0.0 - oz) * inv
+                outside = (x < sx_lo) | (x > sx_hi) | (y < sy_lo) | (y > sy_hi)
+                code = 1.0 if not t > 0.0 else (2.0 if outside else 0.0)
+                if (vz == 0.0) | (not np.isfinite(vz)):
+                    code = 1.0  # PARALLEL
+                if not ok[k]:
+                    code = _FAILED
+                S[_VX * B + i] = vx
+                S[_VY * B + i] = vy
+                S[_VZ * B + i] = vz
+                S[_X * B + i] = x
+                S[_Y * B + i] = y
+                S[_Z * B + i] = 0.0
+                S[_HX * B + i] = 0.0
+                S[_HY * B + i] = 0.0
+                S[_C * B + i] = code
+        else:
+            # 1. The view ray in the sample frame, as a function of the height (eqs. 14-16).
+            for i in range(n):
+                k = kc + np.uint64(i)
+                a = d_cam[k, 0]
+                b = d_cam[k, 1]
+                c = d_cam[k, 2]
+                vx = a00 * a + a01 * b + a02 * c
+                vy = a10 * a + a11 * b + a12 * c
+                vz = a20 * a + a21 * b + a22 * c
+                g = 2.0 * zs1[i] - zs2[i]
+                if not np.isfinite(g):
+                    g = zs1[i]
+                inv = 1.0 / vz
+                bx = vx * inv
+                by = vy * inv
+                S[_VX * B + i] = vx
+                S[_VY * B + i] = vy
+                S[_VZ * B + i] = vz
+                S[_QOX * B + i] = ox
+                S[_QOY * B + i] = oy
+                S[_QOZ * B + i] = oz
+                S[_AX * B + i] = ox - oz * bx
+                S[_AY * B + i] = oy - oz * by
+                S[_BX * B + i] = bx
+                S[_BY * B + i] = by
+                S[_INV * B + i] = inv
+                S[_ZG * B + i] = g
+                code = 0.0
+                if (vz == 0.0) | (not np.isfinite(vz)):
+                    code = 1.0  # PARALLEL
+                if not ok[k]:
+                    code = _FAILED
+                S[_C * B + i] = code
+            # 2. The sample intersection.
+            _intersect_block(n, s_kind, s_gx, s_gy, s_coef, s_dmax, tol, True, S, P)
+            _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, True, _VX, S)
         # 3. Grazing incidence, reflection (eq. 17), the reflected ray in the screen frame.
         for i in range(n):
             _to_screen(i, S[_C * B + i], S[_VX * B + i], S[_VY * B + i], S[_VZ * B + i], S[_X * B + i],
