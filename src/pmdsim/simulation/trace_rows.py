@@ -5,8 +5,9 @@ here. Such a row's pixels are warm started from the rows above and do not depend
 other, so the row is traced one stage at a time over a block of up to ``_BLK`` pixels, each
 stage a loop without calls that LLVM compiles to SIMD instructions (AVX2/AVX-512 lanes):
 
-1. view ray in the sample frame and its parametrisation by height (paper eqs. 10–16);
-2. sample intersection: the plane directly (eqs. 9–12); a spline surface by one Newton step
+1. view ray in the sample frame and its parametrisation by height (paper eqs. 10–16); a
+   planar sample is intersected in the same loop (eqs. 9–12);
+2. sample intersection of any other surface: a spline surface by one Newton step
    per pixel (:func:`pmdsim.geometry.surface._newton_step`), the pixels of the block grouped
    into runs that use the same bicubic patch, whose 16 coefficients are then loop-invariant
    scalars (no gathers);
@@ -33,7 +34,8 @@ from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, intersect_kernel, intersect_solve,
 )
 
-#: Pixels per block (the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 32 kB).
+#: Pixels per block (the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 26 kB,
+#: within a 32 kB L1 data cache).
 _BLK = 128
 
 # Scratch fields (float64; codes stored as small integers in float64). The intersection
@@ -41,9 +43,13 @@ _BLK = 128
 (_VX, _VY, _VZ, _PX, _PY, _PZ, _SC, _QOX, _QOY, _QOZ, _WX, _WY, _WZ,
  _AX, _AY, _BX, _BY, _INV, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(26)
 _NF = 26
+# As pmdsim.simulation.trace._trace_run: nothing is allocated (no reference counting), and
+# fastmath only fuses a·b + c into FMAs (no assumptions about NaN or infinity).
 _JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 
-_PID = 0  # int64 scratch: patch offset per pixel, then (scratch) the row index of the patch
+# int64 scratch (``_NI`` fields of ``_BLK``): the patch offset per pixel, and the patch's row index
+# while counting.
+_PID = 0
 _PIY = 1
 _NI = 2
 #: Grids with at most this many intervals (n_x − 1 + n_y − 1) find each pixel's patch by
