@@ -193,3 +193,150 @@ def test_partial_paraboloid_screen_closed_form():
     inside = (q[..., 0] >= 150.0) & (q[..., 0] <= 450.0)
     np.testing.assert_array_equal(m.valid, inside)
     np.testing.assert_allclose(m.screen_xy_mm[inside], q[inside], atol=1e-9, rtol=0)
+
+
+# ----------------------------------------------------------------------------- issue 15: row kernel
+# Rows after the first of each band are traced by the vectorised row kernel
+# (pmdsim.simulation.trace_rows); a flat list of rays (1-D d_cam) by the pixel-by-pixel loop.
+
+
+def _biquadratic(gx, gy, Z):
+    """Coefficients a[i, j] of h = Σ a_ij (x − gx[1])^i (y − gy[1])^j through a 3 × 3 grid: on
+    3 grid lines the not-a-knot spline is the parabola through them (an independent fit)."""
+    V = lambda g: np.vander(g - g[1], 3, increasing=True)  # noqa: E731
+    return np.linalg.solve(V(gx), np.linalg.solve(V(gy), Z).T)  # a[i, j]: x^i y^j
+
+
+def _first_root(o, w, height, t0):
+    """Ray o + t·w ∩ z = height(x, y) by Newton's method on g(t) = o_z + t w_z − h, the
+    derivative by central differences, iterated to a fixed point (a reference independent of
+    pmdsim's kernels)."""
+    t = t0
+    for _ in range(60):
+        p = o + t[..., None] * w
+        g = p[..., 2] - height(p[..., 0], p[..., 1])
+        dt = 1e-3
+        pp = o + (t + dt)[..., None] * w
+        pm = o + (t - dt)[..., None] * w
+        dg = ((pp[..., 2] - height(pp[..., 0], pp[..., 1])) - (pm[..., 2] - height(pm[..., 0], pm[..., 1]))) / (2 * dt)
+        t_new = t - g / dg
+        if np.array_equal(t_new, t):
+            break
+        t = t_new
+    return o + t[..., None] * w
+
+
+def test_row_kernel_screen_points_within_intersection_tolerance():
+    """Table 1, Δh = 3 mm, camera binned 8 × 8: screen points of the row kernel against an
+    independent intersection with the biquadratic the 3 × 3 spline screen equals, in the
+    screen frame, to the intersection tolerance 1e-11 mm (in z; x, y move by |b|·Δz)."""
+    setup = default_setup().with_bulge(3.0).binned(8)
+    cs = setup.cameras["left"]
+    m = trace_camera(cs.camera, cs.T_world_cam, setup.sample.T_world_sample, setup.sample.surface,
+                     setup.screen.T_world_screen, setup.screen.surface, store_points=True)
+    assert m.valid.all()
+    scr = setup.screen.surface
+    a = _biquadratic(scr.grid_x_mm, scr.grid_y_mm, scr.heights_mm)
+    height = lambda x, y: np.polynomial.polynomial.polyval2d(x - scr.grid_x_mm[1], y - scr.grid_y_mm[1], a)  # noqa: E731
+    # The view rays and the planar sample in closed form (world frame), then the screen frame.
+    o, d = _world_rays(cs.camera, cs.T_world_cam)
+    Ts = setup.sample.T_world_sample
+    n = Ts.rotation[:, 2]
+    p = _ray_plane(o, d, Ts.translation, n)
+    r = _reflect(d, n)
+    Tq = setup.screen.T_world_screen.inv()
+    o_q = Tq.apply(p)
+    w_q = Tq.apply_vector(r)
+    q = _first_root(o_q, w_q, height, -o_q[..., 2] / w_q[..., 2])
+    assert np.abs(q[..., 2]).max() > 2.0  # the bulge is seen
+    dz = np.abs(m.q_screen_mm[..., 2] - q[..., 2])
+    b = np.hypot(w_q[..., 0], w_q[..., 1]) / np.abs(w_q[..., 2])
+    dxy = np.linalg.norm(m.screen_xy_mm - q[..., :2], axis=-1)
+    assert dz.max() <= 1e-11, dz.max()
+    assert (dxy <= 1e-11 * (1.0 + b) + 1e-12).all(), dxy.max()
+
+
+@pytest.mark.parametrize("n_lines", [5, 14])  # 8 intervals: patches by counting; 26: by bisection
+def test_row_kernel_fine_spline_sample_and_screen_closed_form(n_lines):
+    """Cubic not-a-knot splines reproduce quadratics exactly: a paraboloid sample and a
+    paraboloid screen on fine, unevenly spaced grids against the closed forms (sample points,
+    gradient via the reflection, screen points), through the row kernel's Newton steps,
+    patch runs and scalar fallbacks."""
+    rng = np.random.default_rng(15)
+
+    def grid(lo, hi):
+        g = np.linspace(lo, hi, n_lines)
+        g[1:-1] += rng.uniform(-0.2, 0.2, n_lines - 2) * (g[1] - g[0])
+        return g
+
+    a_s, b_s, c_s = 3e-4, -2e-4, 0.4
+    gx, gy = grid(-150.0, 150.0), grid(-120.0, 120.0)
+    X, Y = np.meshgrid(gx, gy)
+    sample = SplineSurface(gx, gy, c_s + a_s * X**2 + b_s * Y**2)
+    T_world_sample = RigidTransform.from_origin_angles([30.0, -5.0, 0.0], [0.0, 0.0, 0.0])
+    a_q, b_q, c_q = -2e-5, -3e-5, 1.0
+    hx_, hy_ = grid(0.0, 708.0), grid(0.0, 398.0)
+    X, Y = np.meshgrid(hx_, hy_)
+    screen = SplineSurface(hx_, hy_, c_q + a_q * (X - 354) ** 2 + b_q * (Y - 199) ** 2)
+    m = trace_camera(SMALL, T_WORLD_CAM, T_world_sample, sample, T_WORLD_SCREEN, screen, store_points=True)
+    assert m.valid.all(), m.status_counts()
+    o, d = _world_rays(SMALL, T_WORLD_CAM)
+    o_s = T_world_sample.inv().apply(o)
+    d_s = T_world_sample.inv().apply_vector(d)
+    p_s = _ray_paraboloid_local(o_s, d_s, a_s, b_s, c_s)
+    np.testing.assert_allclose(m.p_sample_mm, p_s, atol=1e-9, rtol=0)
+    n_s = np.stack([-2 * a_s * p_s[..., 0], -2 * b_s * p_s[..., 1], np.ones(p_s.shape[:-1])], -1)
+    r_s = _reflect(d_s, n_s)
+    T_apex = T_WORLD_SCREEN @ RigidTransform(np.eye(3), [354.0, 199.0, 0.0])
+    q = _ray_paraboloid_local(T_apex.inv().apply(T_world_sample.apply(p_s)),
+                              T_apex.inv().apply_vector(T_world_sample.apply_vector(r_s)), a_q, b_q, c_q)
+    np.testing.assert_allclose(m.screen_xy_mm, q[..., :2] + [354.0, 199.0], atol=1e-9, rtol=0)
+
+
+def test_row_kernel_matches_pixel_loop_status_and_points():
+    """The same rays as an image (row kernel for all rows after a band's first) and as a flat
+    list (the pixel-by-pixel loop): identical status codes, several kinds in one image
+    (undistortion failures, rays missing sample and screen), and both against the closed
+    forms of a paraboloid sample (exact on its 5 × 3 spline grid) and a paraboloid strip of
+    screen. (Where an intersection has no converging fixed point the two warm-start orders
+    may end in different failure codes, SAMPLE_OUTSIDE or SAMPLE_NO_CONVERGENCE — as before
+    this kernel; this sample has none.)"""
+    from pmdsim.simulation.trace import trace_rays
+
+    folded = Camera(192, 120, 150.0, 150.0, 96.0, 60.0, k1=-1.2)  # outer part: UNDISTORT_FAILED
+    d_cam, ok = folded.sensor_rays()
+    a, b, c = -2e-5, -3e-5, 1.0
+    gx = np.array([150.0, 300.0, 450.0])
+    gy = np.array([0.0, 199.0, 398.0])
+    X, Y = np.meshgrid(gx, gy)
+    screen = SplineSurface(gx, gy, c + a * (X - 354) ** 2 + b * (Y - 199) ** 2)
+    a_s, b_s, c_s = 3e-4, -2e-4, 0.4
+    sgx = np.array([-150.0, -40.0, 0.0, 60.0, 150.0])
+    sgy = np.array([-120.0, 0.0, 120.0])
+    Xs, Ys = np.meshgrid(sgx, sgy)
+    sample = SplineSurface(sgx, sgy, c_s + a_s * Xs**2 + b_s * Ys**2)
+    T_world_sample = RigidTransform.from_origin_angles([30.0, -5.0, 0.0], [0.0, 0.0, 0.0])
+    T_sample_cam = T_world_sample.inv() @ T_WORLD_CAM
+    T_screen_sample = T_WORLD_SCREEN.inv() @ T_world_sample
+    img = trace_rays(d_cam, ok, T_sample_cam, T_screen_sample, sample, screen, store_points=True)
+    flat = trace_rays(d_cam.reshape(-1, 3), ok.reshape(-1), T_sample_cam, T_screen_sample, sample, screen,
+                      store_points=True)
+    counts = img.status_counts()
+    for name in ("VALID", "UNDISTORT_FAILED", "SAMPLE_OUTSIDE", "SCREEN_OUTSIDE"):
+        assert counts.get(name, 0) > 1000, counts
+    np.testing.assert_array_equal(img.status.reshape(-1), flat.status)
+    # Closed forms (in the sample frame, then the paraboloid screen's apex frame).
+    d_s = T_sample_cam.apply_vector(d_cam[ok])
+    o_s = np.broadcast_to(T_sample_cam.translation, d_s.shape)
+    p_s = _ray_paraboloid_local(o_s, d_s, a_s, b_s, c_s)
+    n_s = np.stack([-2 * a_s * p_s[..., 0], -2 * b_s * p_s[..., 1], np.ones(p_s.shape[:-1])], -1)
+    T_apex_sample = RigidTransform(np.eye(3), [-354.0, -199.0, 0.0]) @ T_screen_sample
+    q = _ray_paraboloid_local(T_apex_sample.apply(p_s), T_apex_sample.apply_vector(_reflect(d_s, n_s)), a, b, c)
+    q_xy = q[..., :2] + [354.0, 199.0]
+    for m in (img, flat):
+        st = m.status.reshape(-1)[ok.reshape(-1)]
+        hit = st != Status.SAMPLE_OUTSIDE
+        np.testing.assert_allclose(m.p_sample_mm.reshape(-1, 3)[ok.reshape(-1)][hit], p_s[hit], atol=1e-9, rtol=0)
+        v = st == Status.VALID
+        np.testing.assert_allclose(m.screen_xy_mm.reshape(-1, 2)[ok.reshape(-1)][v], q_xy[v], atol=1e-9, rtol=0)
+        assert np.isnan(m.screen_xy_mm.reshape(-1, 2)[m.status.reshape(-1) != Status.VALID]).all()

@@ -20,6 +20,7 @@ from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
 from ..geometry.transform import RigidTransform
+from .trace_rows import _BLK, _NF, _NI, trace_row
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
 
@@ -68,8 +69,11 @@ _SCREEN_CODES = np.array([Status.VALID, Status.SCREEN_PARALLEL, Status.SCREEN_OU
 
 
 #: Image rows per band of the tracer (bands are traced in parallel; each row of a band after the
-#: first is warm started from the rows above). Fixed: the results depend on it, not on threads.
-_BAND_ROWS = 16
+#: first is warm started from the rows above and traced by the vectorised row kernel,
+#: :mod:`pmdsim.simulation.trace_rows`; the first row pixel by pixel). Fixed: the results depend
+#: on it, not on threads. 32 (was 16): half as many pixel-by-pixel rows, still 38 bands for the
+#: threads at 1200 rows.
+_BAND_ROWS = 32
 
 
 # _nrt=False: the function allocates nothing, and without numba's reference counting the
@@ -79,7 +83,7 @@ _BAND_ROWS = 16
 # about NaN or infinity, so the validity checks are unaffected.
 @numba.njit(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 def _trace_run(
-    band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+    band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
@@ -120,6 +124,17 @@ def _trace_run(
     for row in range(row0, row_end):
         kb = np.uint64(row * run_length)
         above = row > row0  # not the first row of the band
+        if above:
+            # The pixels do not depend on each other: the vectorised row kernel.
+            trace_row(
+                kb, min(run_length, n - row * run_length), d_cam, ok, zr, scratch[band], pscratch[band],
+                r_sc, t_sc, r_ps, t_ps, _COS_MAX_INCIDENCE * _COS_MAX_INCIDENCE,
+                s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
+                tol, max_iter, sample_codes, screen_codes,
+                screen_xy, status, p_sample, q_screen, store,
+            )
+            continue
         zs_prev = nan  # sample height of the previous pixel
         # Screen heights of the previous three pixels (NaN where not valid).
         zp1 = nan
@@ -228,7 +243,7 @@ def _trace_run(
 
 @numba.njit(cache=True, parallel=True)
 def _trace_kernel(
-    d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+    d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
@@ -236,7 +251,7 @@ def _trace_kernel(
 ):
     for band in numba.prange(z_rows.shape[0]):
         _trace_run(
-            band, d_cam, ok, run_length, band_rows, z_rows, r_sc, t_sc, r_ps, t_ps,
+            band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
             p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
@@ -335,12 +350,14 @@ def trace_rays(
     band_rows = _BAND_ROWS if len(shape) >= 2 else 1
     n_runs = (n + run_length - 1) // run_length
     z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 4, run_length), np.nan)
+    scratch = np.empty((z_rows.shape[0], _NF * _BLK))
+    pscratch = np.empty((z_rows.shape[0], _NI * _BLK), dtype=np.int64)
     # Bands are handed to the threads one at a time: on a shared machine a thread that is
     # descheduled for a while does not hold up the others.
     old_chunksize = numba.set_parallel_chunksize(1)
     try:
         _trace_kernel(
-            df, okf, run_length, band_rows, z_rows,
+            df, okf, run_length, band_rows, z_rows, scratch, pscratch,
             np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
             np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
             s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
