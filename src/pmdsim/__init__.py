@@ -115,7 +115,102 @@ def _uncached_numba() -> None:
         sys.meta_path.insert(0, _UncachedNumba())
 
 
+#: The subpackages that hold numba kernels (``@njit(cache=True)``); their sources fingerprint the cache.
+_KERNEL_PACKAGES = ("geometry", "simulation", "evaluation", "calibration")
+_STAMP = "pmdsim-kernel-sources.sha256"
+
+
+def _kernel_sources_fingerprint(root: str) -> str:
+    """SHA-256 over the relative path and the bytes of every ``.py`` file of the kernel
+    subpackages (sorted): any edit of any kernel source changes it."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for pkg in _KERNEL_PACKAGES:
+        for dirpath, dirnames, filenames in os.walk(os.path.join(root, pkg)):
+            dirnames[:] = sorted(d for d in dirnames if d != "__pycache__")
+            for name in sorted(f for f in filenames if f.endswith(".py")):
+                path = os.path.join(dirpath, name)
+                h.update(os.path.relpath(path, root).encode() + b"\0")
+                with open(path, "rb") as f:
+                    h.update(f.read())
+                h.update(b"\0")
+    return h.hexdigest()
+
+
+def _numba_cache_dirs(root: str) -> list[str]:
+    """The directories numba caches pmdsim's kernels in, by numba's own rule: ``NUMBA_CACHE_DIR``
+    (``<dir>/<package>_<sha1 of the package path>``), else ``__pycache__`` next to the sources if
+    writable, else ``$XDG_CACHE_HOME/numba`` (``~/.cache/numba``) with the same sub-path."""
+    import hashlib
+
+    base = os.environ.get("NUMBA_CACHE_DIR")
+    xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    out = []
+    for pkg in _KERNEL_PACKAGES:
+        d = os.path.abspath(os.path.join(root, pkg))
+        sub = f"{os.path.basename(d)}_{hashlib.sha1(d.encode()).hexdigest()}"
+        if base:
+            out.append(os.path.join(base, sub))
+        elif _writable_dir(os.path.join(d, "__pycache__")):
+            out.append(os.path.join(d, "__pycache__"))
+        else:
+            out.append(os.path.join(xdg, "numba", sub))
+    return out
+
+
+def _drop_stale_kernel_cache(root: str | None = None) -> int:
+    """Remove numba cache files compiled from other versions of pmdsim's kernel sources.
+
+    numba validates a cached kernel only against its *own* source file (its size and mtime, or
+    a hash of it); a kernel that calls or inlines a function from another file (``trace`` calls
+    ``trace_rows``, most kernels call ``surface``'s) keeps its old machine code when only that
+    other file changes — after ``git pull`` or an upgrade that edits ``surface.py`` alone, the
+    tracer would run stale code (it has crashed with "corrupted size vs. prev_size" this way).
+    Each cache directory therefore holds a stamp, the SHA-256 of all kernel sources
+    (:func:`_kernel_sources_fingerprint`); where it is missing or differs, pmdsim's ``.nbi`` and
+    ``.nbc`` files there are deleted (recompiled on first use) and the stamp is written.
+    Imports nothing and compiles nothing; costs about a millisecond. Returns the number of files
+    removed. ``root``: the package directory (default pmdsim's own). ``PMDSIM_NO_CACHE_CHECK=1``
+    skips it (used to reproduce the hazard in the tests).
+    """
+    if os.environ.get("PMDSIM_NO_CACHE_CHECK"):
+        return 0
+    root = os.path.dirname(os.path.abspath(__file__)) if root is None else root
+    try:
+        fingerprint = _kernel_sources_fingerprint(root)
+    except OSError:
+        return 0
+    removed = 0
+    for cache in _numba_cache_dirs(root):
+        stamp = os.path.join(cache, _STAMP)
+        try:
+            with open(stamp, encoding="ascii") as f:
+                if f.read().strip() == fingerprint:
+                    continue
+        except (OSError, ValueError):
+            pass
+        if not _writable_dir(cache):
+            continue
+        try:
+            for name in os.listdir(cache):
+                if name.endswith((".nbi", ".nbc")):
+                    try:
+                        os.unlink(os.path.join(cache, name))
+                        removed += 1
+                    except FileNotFoundError:  # another process removed it first
+                        pass
+            tmp = f"{stamp}.{os.getpid()}.tmp"
+            with open(tmp, "w", encoding="ascii") as f:
+                f.write(fingerprint + "\n")
+            os.replace(tmp, stamp)
+        except OSError:
+            continue
+    return removed
+
+
 _numba_cache_fallback()
+_drop_stale_kernel_cache()
 
 _LAZY = {
     "Setup": "pmdsim.setup",

@@ -1,0 +1,87 @@
+"""numba's cache and kernels spread over several files (pmdsim/__init__.py, issue 11's "nothing
+silently wrong"): numba checks a cached kernel only against its own source file, so a kernel
+that calls a function from another file keeps the old machine code when only that file changes.
+Reproduced with real files and real numba caching in subprocesses, then repaired by the stamp."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pmdsim
+
+CALLEE = "import numba\n\n@numba.njit(cache=True)\ndef g(x):\n    return x + {value}\n"
+CALLER = textwrap.dedent("""
+    import numba
+    from .callee import g
+
+    @numba.njit(cache=True)
+    def f(x):
+        return g(x) * 1.0
+""")
+
+
+def _package(tmp_path: Path, value: float) -> Path:
+    """A package ``probe`` laid out like pmdsim (kernels in ``geometry``), caller and callee in
+    two files."""
+    root = tmp_path / "probe"
+    (root / "geometry").mkdir(parents=True, exist_ok=True)
+    (root / "__init__.py").write_text("")
+    (root / "geometry" / "__init__.py").write_text("")
+    (root / "geometry" / "callee.py").write_text(CALLEE.format(value=value))
+    (root / "geometry" / "caller.py").write_text(CALLER)
+    return root
+
+
+def _run(tmp_path: Path, *, check: bool) -> str:
+    code = ("import sys, pmdsim\n"
+            f"n = pmdsim._drop_stale_kernel_cache({str(tmp_path / 'probe')!r})\n"
+            "from probe.geometry.caller import f\n"
+            "print(f(1.0), n)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(pmdsim.__file__).parents[1])])}
+    env.pop("NUMBA_CACHE_DIR", None)
+    if check:
+        env.pop("PMDSIM_NO_CACHE_CHECK", None)
+    else:
+        env["PMDSIM_NO_CACHE_CHECK"] = "1"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.split()
+
+
+def test_an_edit_of_a_called_file_alone_recompiles_the_caller(tmp_path):
+    root = _package(tmp_path, 1.0)
+    # without the stamp: numba's own check serves the caller's stale code
+    assert _run(tmp_path, check=False)[0] == "2.0"
+    (root / "geometry" / "callee.py").write_text(CALLEE.format(value=10.0))
+    assert _run(tmp_path, check=False)[0] == "2.0"  # stale: the callee now adds 10
+    # with it: the cache compiled from other sources is dropped, the caller recompiled
+    value, removed = _run(tmp_path, check=True)
+    assert value == "11.0" and int(removed) >= 2
+    cache = root / "geometry" / "__pycache__"
+    assert (cache / "pmdsim-kernel-sources.sha256").read_text().strip() == \
+        pmdsim._kernel_sources_fingerprint(str(root))
+    # unchanged sources: the cache is kept (nothing removed) and still right
+    assert _run(tmp_path, check=True) == ["11.0", "0"]
+    assert any(p.suffix == ".nbi" for p in cache.iterdir())
+    # the next edit is caught the same way
+    (root / "geometry" / "callee.py").write_text(CALLEE.format(value=100.0))
+    value, removed = _run(tmp_path, check=True)
+    assert value == "101.0" and int(removed) >= 2
+
+
+def test_numba_cache_dir_is_checked_where_numba_puts_it(tmp_path, monkeypatch):
+    """With ``NUMBA_CACHE_DIR`` set, numba caches in ``<dir>/<package>_<sha1 of its path>``;
+    the stamp goes there (numba's own locator names the directory: compared with it)."""
+    from numba.core import caching
+
+    locator = getattr(caching, "UserProvidedCacheLocator", None) or caching._UserProvidedCacheLocator  # < 0.61
+    root = _package(tmp_path, 1.0)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "nc"))
+    dirs = pmdsim._numba_cache_dirs(str(root))
+    expected = os.path.join(str(tmp_path / "nc"),
+                            locator.get_suitable_cache_subpath(str(root / "geometry" / "callee.py")))
+    assert dirs[0] == expected
