@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from ..simulation.imaging import decoder_response
-from .. import __version__
+from .. import __version__, interrupts
 from ..io.outputs import partial_file
 from .experiment1 import CaseResult
 from .study_file import CaseSpec, Study, StudyError
@@ -357,6 +357,7 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
         if serial or not todo:
             for c in todo:
                 finished(run_case(c, study.metrics, None, maps[c.key]))
+                interrupts.check()
         else:
             _run_on_dask(todo, study.metrics, maps, finished, scheduler, n_workers, connect_timeout_s)
     finally:
@@ -367,9 +368,13 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
                     time.perf_counter() - t0)
 
 
+#: How often (s) the study loop looks for a signal that was recorded but not raised.
+_POLL_S = 0.5
+
+
 def _run_on_dask(todo: list[CaseSpec], metrics: tuple, maps: dict, finished, scheduler: str | None,
                  n_workers: int | None, connect_timeout_s: float) -> None:
-    from distributed import Client, as_completed
+    from distributed import Client, wait
 
     cluster, threads = (None, None) if scheduler else _local_cluster(n_workers)
     try:
@@ -382,13 +387,25 @@ def _run_on_dask(todo: list[CaseSpec], metrics: tuple, maps: dict, finished, sch
     try:
         futures = [client.submit(run_case, c, metrics, threads, maps[c.key], key=f"pmdsim-case-{c.key}", pure=False)
                    for c in todo]
-        for fut in as_completed(futures):
+        pending = set(futures)
+        while pending:
+            # A signal that landed in a finaliser (a Future's __del__, a weakref callback: dask
+            # runs many in this thread) is only recorded by pmdsim.interrupts, not raised: look
+            # for it at least every _POLL_S, not only when the study ends.
+            interrupts.check()
             try:
-                rec = fut.result()
-            except Exception:  # noqa: BLE001 — the worker died too often: left for the next run
+                done = wait(list(pending), timeout=_POLL_S, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
                 continue
-            finished(rec)
-            fut.release()
+            for fut in sorted(done, key=lambda f: f.key):
+                pending.discard(fut)
+                try:
+                    rec = fut.result()
+                except Exception:  # noqa: BLE001 — the worker died too often: left for the next run
+                    continue
+                finished(rec)
+                fut.release()
+        interrupts.check()
     finally:
         client.close()
         if cluster is not None:
