@@ -53,6 +53,12 @@ def _records(out) -> dict[str, dict]:
     return {p.stem: json.loads(p.read_text()) for p in (Path(out) / CASES_DIR).glob("*.json")}
 
 
+def _foreground() -> None:
+    """In the child, as an interactive shell starts a foreground job: SIGINT at its default (under
+    a background runner SIGINT is inherited ignored, and pmdsim, like Python, keeps it ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _write(tmp_path, text: str, name="study.toml") -> Path:
     p = tmp_path / name
     p.write_text(text, encoding="utf-8")
@@ -323,7 +329,7 @@ def test_signal_in_a_finaliser_still_stops_the_study(tmp_path, serial):
     script = tmp_path / "probe.py"
     script.write_text(FINALISER_SIGINT, encoding="utf-8")
     r = subprocess.run([sys.executable, str(script), str(study), str(out), "1" if serial else "0"], env=_env(),
-                       capture_output=True, text=True, timeout=300)
+                       capture_output=True, text=True, timeout=300, preexec_fn=_foreground)
     assert r.returncode == 0, r.stderr
     words = r.stdout.split()
     assert words[0] == "interrupted", r.stdout
@@ -334,7 +340,7 @@ def test_signal_in_a_finaliser_still_stops_the_study(tmp_path, serial):
 def test_interrupted_study_rerun_computes_only_missing(tmp_path):
     study, out = _write(tmp_path, SLOW16), tmp_path / "out"
     cmd = [sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(out), "--workers", "1", "--quiet"]
-    proc = subprocess.Popen(cmd, env=_env(), stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=_env(), stderr=subprocess.PIPE, text=True, preexec_fn=_foreground)
     _wait_for_records(out, 1, proc)
     proc.send_signal(signal.SIGINT)  # Ctrl-C
     _, err = proc.communicate(timeout=120)
