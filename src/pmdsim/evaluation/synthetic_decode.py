@@ -24,6 +24,7 @@ import numpy as np
 
 from ..geometry.fast_trig import MAX_FAST_PHASE as _MAX_FAST_PHASE
 from ..geometry.fast_trig import TIE_GUARD as _TIE_GUARD
+from ..geometry.fast_trig import libm_grey_level
 from ..geometry.fast_trig import sincos as _sincos_fast
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .phase import (
@@ -106,14 +107,8 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
             c = np.cos(phi)
             s = np.sin(phi)
             for k in range(n):
-                val = full_scale * (mean + amp * (c * cos_d[k] + s * sin_d[k]))
-                if has_noise:
-                    val += noise[k, v, u]
-                q = np.floor(val + 0.5)
-                if q < 0.0:
-                    q = 0.0
-                elif q > full_scale:
-                    q = full_scale
+                q = libm_grey_level(c, s, cos_d[k], sin_d[k], mean, amp, full_scale, has_noise,
+                                    noise[k, v, u] if has_noise else 0.0)
                 a += w_a[k] * q
                 c_acc += w_c[k] * q
                 s_acc += w_s[k] * q

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["sincos", "sincos_into", "MAX_FAST_PHASE", "TIE_GUARD"]
+__all__ = ["sincos", "sincos_into", "libm_grey_level", "MAX_FAST_PHASE", "TIE_GUARD"]
 
 _TWO_OVER_PI = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e+00
@@ -63,3 +63,22 @@ def sincos_into(phi, s, c):
     """Element-wise :func:`sincos` of the 1-D array ``phi`` into ``s`` and ``c``."""
     for i in range(phi.shape[0]):
         s[i], c[i] = sincos(phi[i])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def libm_grey_level(c, s, cos_dk, sin_dk, mean, amp, full_scale, has_noise, noise_value):
+    """The fringe renderer's quantised grey level with libm's cos φ = ``c`` and sin φ = ``s``:
+    round half up of F·(mean + amp·(cos φ·cos δ_k + sin φ·sin δ_k)) (+ noise), clipped to [0, F]
+    (F = ``full_scale``; docs/conventions.md, "Fringe patterns"). The exact reference that callers
+    of :func:`sincos` fall back to within :data:`TIE_GUARD` of a rounding boundary; one
+    definition for the renderer (:mod:`pmdsim.simulation.patterns`) and the fused
+    render-and-decode (:mod:`pmdsim.evaluation.synthetic_decode`), which must agree bit for bit."""
+    val = full_scale * (mean + amp * (c * cos_dk + s * sin_dk))
+    if has_noise:
+        val += noise_value
+    q = np.floor(val + 0.5)
+    if q < 0.0:
+        q = 0.0
+    elif q > full_scale:
+        q = full_scale
+    return q

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..geometry.fast_trig import MAX_FAST_PHASE, TIE_GUARD, sincos
+from ..geometry.fast_trig import MAX_FAST_PHASE, TIE_GUARD, libm_grey_level, sincos
 from ..setup.fringes import DIRECTIONS, FringeSequence, PatternFrame
 
 __all__ = ["PatternFrame", "FringeSequence", "render", "render_period", "render_sequence"]
@@ -143,15 +143,8 @@ def _render_stack_rows(v0, v1, screen_xy, valid, axis, period, cos_d, sin_d, mea
             c = np.cos(phi)
             s = np.sin(phi)
             for k in range(n):
-                val = full_scale * (mean + amp * (c * cos_d[k] + s * sin_d[k]))
-                if has_noise:
-                    val += noise[k, v, u]
-                q = np.floor(val + 0.5)
-                if q < 0.0:
-                    q = 0.0
-                elif q > full_scale:
-                    q = full_scale
-                out[k, v, u] = q
+                out[k, v, u] = libm_grey_level(c, s, cos_d[k], sin_d[k], mean, amp, full_scale, has_noise,
+                                               noise[k, v, u] if has_noise else 0.0)
 
 
 @numba.njit(cache=True, parallel=True)
