@@ -22,8 +22,8 @@ pixel-by-pixel loop does, so the accepted roots, error bounds and status codes a
 
 The arithmetic of stages 1–3 and 5 repeats that of :mod:`.trace`'s pixel loop (ray set-up,
 reflection, status) on purpose: there it runs one pixel at a time with a call per stage, here
-each stage is a call-free loop over a block, which is what lets LLVM vectorise it (a shared
-scalar helper kept the loops scalar). ``tests/test_trace.py`` checks the two against each other
+each stage is a call-free loop over a block (structure of arrays), which is what lets LLVM
+vectorise it; merging the two was not tried. ``tests/test_trace.py`` checks the two against each other
 (status identical, points within the intersection tolerance) and against closed forms.
 
 All intermediate values live in one scratch vector per band, field ``f`` of pixel ``i`` at
