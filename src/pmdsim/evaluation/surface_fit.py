@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..errors import ComputationError
@@ -85,17 +86,258 @@ class ParaboloidFit:
                 "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
 
 
-def _design(x, y):
-    z0 = np.zeros_like(x)
-    one = np.ones_like(x)
-    gx = np.stack([2 * x, y, z0, one, z0], axis=-1)
-    gy = np.stack([z0, x, 2 * y, z0, one], axis=-1)
-    return gx, gy
-
-
 #: Tukey bisquare tuning constant (95 % efficiency at the normal distribution) and MAD → σ.
 _TUKEY_C = 4.685
 _MAD_TO_SIGMA = 0.6745
+
+# The IRLS below streams over the points: each pass computes the two slope residuals of a point
+# on the fly (no (2M, 5) design matrix, no weighted copies of it). One iteration is the median
+# of the residuals, the median of their absolute deviations (both exact, by selection within a
+# bracket) and the weighted normal equations AᵀWA·c = AᵀWg (5×5, from 18 sums per point thanks
+# to the design's zeros), solved after Jacobi equilibration: with centred coordinates the system
+# is well conditioned, so the normal equations lose no accuracy that matters against lstsq
+# (tests/test_surface_fit_kernels.py: 1e-9 relative, weights included).
+# Brackets: a median is 1-Lipschitz in the sup norm, so when the coefficients change by Δc the
+# median of the residuals moves by at most δ = max_i |A_i·Δc| and their MAD by at most 2δ; one
+# pass then collects the few values in [m − δ, m + δ]. Without a previous value (or when the
+# bracket holds too many values) a strided sample gives a bracket, a histogram pass narrows it
+# to one bin and a second pass collects that bin; a full selection is the last resort.
+_SAMPLE_POINTS = 16_384
+_BRACKET_SIGMAS = 6.0
+_N_BINS_SELECT = 8192
+
+
+@numba.njit(cache=True, fastmath=False)
+def _sample_values(x, y, gx, gy, coef, mode, centre, stride):
+    """The residuals (``mode`` 1: their |r − centre|) of every ``stride``-th point, both rows."""
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    k = (x.size + stride - 1) // stride
+    out = np.empty(2 * k)
+    j = 0
+    for i in range(0, x.size, stride):
+        r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
+        r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
+        if mode == 1:
+            r0 = abs(r0 - centre)
+            r1 = abs(r1 - centre)
+        out[j] = r0
+        out[j + 1] = r1
+        j += 2
+    return out[:j]
+
+
+@numba.njit(cache=True, fastmath=False, inline="always")
+def _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre):
+    """The two residuals of point i (``mode`` 1: their |r − centre|)."""
+    r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
+    r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
+    if mode == 1:
+        r0 = abs(r0 - centre)
+        r1 = abs(r1 - centre)
+    return r0, r1
+
+
+@numba.njit(cache=True, fastmath=False, inline="always")
+def _bin(v, lo, inv, nbins):
+    """Histogram bin of v ∈ [lo, hi] (clamped; the float is clamped first: no integer overflow)."""
+    return int(min(max((v - lo) * inv, 0.0), nbins - 1.0))
+
+
+@numba.njit(cache=True, fastmath=False, inline="always")
+def _take(v, lo, hi, inv, nbins, kb):
+    """v in [lo, hi] and in bin kb or kb + 1 — as an integer, without branches (the comparisons
+    against lo are unpredictable: a branch per value costs ~10× the pass)."""
+    k = _bin(v, lo, inv, nbins)
+    return (v >= lo) * (v <= hi) * ((k == kb) + (k == kb + 1))
+
+
+@numba.njit(cache=True, fastmath=False)
+def _collect(x, y, gx, gy, coef, mode, centre, lo, hi, nbins, kb, buf):
+    """One pass over the 2M values (residuals, or ``mode`` 1: |r − centre|): the number of
+    values < lo, and the values in [lo, hi] whose bin (``nbins`` equal bins over [lo, hi]) is
+    ``kb`` or ``kb + 1`` copied to ``buf`` (as many as fit). Returns (below, inside); inside >
+    buf.size: the bracket held too many. Blocks are counted without branches and re-read only
+    where they hold a value to copy."""
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    below = 0
+    inside = 0
+    cap = buf.size
+    inv = nbins / (hi - lo) if hi > lo else 0.0
+    bs = 256
+    m = x.size
+    for start in range(0, m, bs):
+        stop = min(start + bs, m)
+        cnt = 0
+        for i in range(start, stop):
+            r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+            below += (r0 < lo) + (r1 < lo)
+            cnt += _take(r0, lo, hi, inv, nbins, kb) + _take(r1, lo, hi, inv, nbins, kb)
+        if cnt:
+            for i in range(start, stop):
+                r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+                if _take(r0, lo, hi, inv, nbins, kb):
+                    if inside < cap:
+                        buf[inside] = r0
+                    inside += 1
+                if _take(r1, lo, hi, inv, nbins, kb):
+                    if inside < cap:
+                        buf[inside] = r1
+                    inside += 1
+    return below, inside
+
+
+@numba.njit(cache=True, fastmath=False)
+def _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist):
+    """One pass: the number of values < lo, and the histogram (``hist.size`` bins) of those in [lo, hi]."""
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    nbins = hist.size
+    hist[:] = 0
+    inv = nbins / (hi - lo)
+    below = 0
+    for i in range(x.size):
+        r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+        below += (r0 < lo) + (r1 < lo)
+        hist[_bin(r0, lo, inv, nbins)] += (r0 >= lo) * (r0 <= hi)
+        hist[_bin(r1, lo, inv, nbins)] += (r1 >= lo) * (r1 <= hi)
+    return below
+
+
+@numba.njit(cache=True, fastmath=False)
+def _all_values(x, y, gx, gy, coef, mode, centre):
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    out = np.empty(2 * x.size)
+    for i in range(x.size):
+        r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
+        r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
+        if mode == 1:
+            r0 = abs(r0 - centre)
+            r1 = abs(r1 - centre)
+        out[2 * i] = r0
+        out[2 * i + 1] = r1
+    return out
+
+
+def _pick(vals, below, k1, k2, lo, hi):
+    """The values of rank k1 and k2 among all, given ``below`` values < lo and ``vals`` all
+    those in [lo, hi]; None if the ranks are not inside the bracket."""
+    if not (below <= k1 and k2 < below + vals.size):
+        return None
+    part = np.partition(vals, (k1 - below, k2 - below))
+    return part[k1 - below], part[k2 - below]
+
+
+def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None):
+    """Exact median (numpy's: mean of the two middle values for an even count) of the 2M
+    residuals (``mode`` 0) or of their absolute deviations from ``centre`` (``mode`` 1).
+    ``bracket``: (lo, hi) known to hold the median (the Lipschitz bound above), or None."""
+    n = 2 * x.size
+    k1, k2 = (n - 1) // 2, n // 2
+    got = None
+    stride = max(1, x.size // _SAMPLE_POINTS)
+    s = np.sort(_sample_values(x, y, gx, gy, coef, mode, centre, stride))
+    ns = s.size
+    if bracket is not None and bracket[0] <= bracket[1]:
+        lo, hi = bracket
+        # The sample tells how many values the bracket holds: one pass if they fit the buffer.
+        expected = (np.searchsorted(s, hi, side="right") - np.searchsorted(s, lo)) / ns * n
+        if expected <= 0.5 * buf.size:
+            below, inside = _collect(x, y, gx, gy, coef, mode, centre, lo, hi, 1, 0, buf)
+            if inside <= buf.size:
+                got = _pick(buf[:inside], below, k1, k2, lo, hi)
+    if got is None:
+        pos = k1 / max(n - 1, 1) * (ns - 1)
+        half = _BRACKET_SIGMAS * np.sqrt(0.25 * ns) + 2.0
+        i_lo, i_hi = int(np.floor(pos - half)), int(np.ceil(pos + half))
+        lo = s[i_lo] if i_lo >= 0 else -np.inf
+        hi = s[i_hi] if i_hi < ns else np.inf
+        if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
+            below = _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist)
+            cum = below + np.cumsum(hist)
+            if below <= k1 and k2 < cum[-1]:
+                kb = int(np.searchsorted(cum, k1, side="right"))  # the bin holding rank k1
+                first = cum[kb - 1] if kb > 0 else below
+                _, inside = _collect(x, y, gx, gy, coef, mode, centre, lo, hi, hist.size, kb, buf)
+                if inside <= buf.size:
+                    got = _pick(buf[:inside], first, k1, k2, lo, hi)
+    if got is None:  # the sample misled the bracket: select among all values
+        vals = np.partition(_all_values(x, y, gx, gy, coef, mode, centre), (k1, k2))
+        got = vals[k1], vals[k2]
+    v1, v2 = got
+    return float(v1) if n % 2 else float((v1 + v2) / 2.0)
+
+
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def _weighted_sums(x, y, gx, gy, coef, scale, robust):
+    """Σ w·(x², xy, y², x, y, 1, g·x, g·y, g) over the g_x rows (first 9) and the g_y rows (last
+    9), w the bisquare weights (1 − (r/scale)²)² (0 beyond) of the residuals at ``coef``, or 1
+    if not ``robust``."""
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    out = np.zeros(18)
+    bs = 4096
+    m = x.size
+    for start in range(0, m, bs):  # blocked partial sums: accurate and vectorisable
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
+        t0 = t1 = t2 = t3 = t4 = t5 = t6 = t7 = t8 = 0.0
+        for i in range(start, min(start + bs, m)):
+            xi = x[i]
+            yi = y[i]
+            gxi = gx[i]
+            gyi = gy[i]
+            wx = 1.0
+            wy = 1.0
+            if robust:
+                ux = (gxi - (a2 * xi + b * yi + d)) / scale
+                uy = (gyi - (b * xi + c2 * yi + e)) / scale
+                qx = 1.0 - ux * ux
+                qy = 1.0 - uy * uy
+                wx = qx * qx if abs(ux) < 1.0 else 0.0
+                wy = qy * qy if abs(uy) < 1.0 else 0.0
+            xx = xi * xi
+            xy = xi * yi
+            yy = yi * yi
+            s0 += wx * xx
+            s1 += wx * xy
+            s2 += wx * yy
+            s3 += wx * xi
+            s4 += wx * yi
+            s5 += wx
+            s6 += wx * gxi * xi
+            s7 += wx * gxi * yi
+            s8 += wx * gxi
+            t0 += wy * xx
+            t1 += wy * xy
+            t2 += wy * yy
+            t3 += wy * xi
+            t4 += wy * yi
+            t5 += wy
+            t6 += wy * gyi * xi
+            t7 += wy * gyi * yi
+            t8 += wy * gyi
+        out[0] += s0; out[1] += s1; out[2] += s2; out[3] += s3; out[4] += s4  # noqa: E702
+        out[5] += s5; out[6] += s6; out[7] += s7; out[8] += s8  # noqa: E702
+        out[9] += t0; out[10] += t1; out[11] += t2; out[12] += t3; out[13] += t4  # noqa: E702
+        out[14] += t5; out[15] += t6; out[16] += t7; out[17] += t8  # noqa: E702
+    return out
+
+
+def _solve_normal(s) -> np.ndarray:
+    """(a, b, c, d, e) from the sums of :func:`_weighted_sums`: rows g_x = [2x, y, 0, 1, 0],
+    g_y = [0, x, 2y, 0, 1] (module docstring)."""
+    X, Y = s[:9], s[9:]
+    xx, xy, yy, x1, y1, w1, gxx, gxy, g1 = X
+    xx2, xy2, yy2, x2, y2, w2, gyx, gyy, g2 = Y
+    M = np.array([
+        [4 * xx, 2 * xy, 0.0, 2 * x1, 0.0],
+        [2 * xy, yy + xx2, 2 * xy2, y1, x2],
+        [0.0, 2 * xy2, 4 * yy2, 0.0, 2 * y2],
+        [2 * x1, y1, 0.0, w1, 0.0],
+        [0.0, x2, 2 * y2, 0.0, w2],
+    ])
+    v = np.array([2 * gxx, gxy + gyx, 2 * gyy, g1, g2])
+    dg = np.sqrt(np.diag(M))
+    if not np.all(dg > 0):
+        raise ComputationError("the slope points do not determine a paraboloid (degenerate point set)")
+    return np.linalg.solve(M / dg[:, None] / dg[None, :], v / dg) / dg
 
 
 def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, robust: bool = True,
@@ -114,31 +356,50 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         the focal lengths' sign.
     robust : bool
         Tukey-bisquare IRLS (default) or plain least squares.
+
+    Notes
+    -----
+    Streamed (numba, one pass per reduction, no (2M, 5) design matrix): the weighted normal
+    equations and exact medians give the coefficients of ``np.linalg.lstsq`` on the reweighted
+    design to ~1e-12 relative (tests/test_surface_fit_kernels.py).
     """
     p = np.asarray(p_sample_mm, dtype=float)
     g = np.asarray(slopes, dtype=float)
-    ok = np.asarray(valid, dtype=bool) & np.isfinite(p[..., :2]).all(axis=-1) & np.isfinite(g).all(axis=-1)
-    n = int(ok.sum())
+    ok = (np.asarray(valid, dtype=bool) & np.isfinite(p[..., 0]) & np.isfinite(p[..., 1]) & np.isfinite(g[..., 0])
+          & np.isfinite(g[..., 1]))
+    n = int(np.count_nonzero(ok))
     if n < 6:
         raise ComputationError(f"only {n} points with slopes: a paraboloid over slopes needs at least 6")
-    x, y = p[ok, 0], p[ok, 1]
+    if n == ok.size:
+        x, y, gx, gy = (p[..., 0].ravel(), p[..., 1].ravel(), np.ascontiguousarray(g[..., 0]).ravel(),
+                        np.ascontiguousarray(g[..., 1]).ravel())
+    else:
+        x, y, gx, gy = p[..., 0][ok], p[..., 1][ok], g[..., 0][ok], g[..., 1][ok]
     # Centre the coordinates for conditioning; a, b, c do not depend on the origin.
     xc, yc = x.mean(), y.mean()
-    Dx, Dy = _design(x - xc, y - yc)
-    A = np.concatenate([Dx, Dy])
-    rhs = np.concatenate([g[ok, 0], g[ok, 1]])
-    coef, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    x = x - xc
+    y = y - yc
+    coef = _solve_normal(_weighted_sums(x, y, gx, gy, np.zeros(5), 1.0, False))
     if robust:
+        buf = np.empty(min(2 * n, max(4096, (2 * n) // 64)))
+        hist = np.empty(_N_BINS_SELECT, np.int64)
+        ax, ay = float(np.max(np.abs(x))), float(np.max(np.abs(y)))
+        reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
+        med = mad = delta = None
         for _ in range(max_iter):
-            r = rhs - A @ coef
-            s = np.median(np.abs(r - np.median(r))) / _MAD_TO_SIGMA
+            med = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
+                          None if delta is None else (med - delta, med + delta))
+            mad = _median(x, y, gx, gy, coef, 1, med, buf, hist,
+                          None if delta is None else (max(mad - 2.0 * delta, 0.0), mad + 2.0 * delta))
+            s = mad / _MAD_TO_SIGMA
             if not s > 0:
                 break
-            u = r / (_TUKEY_C * s)
-            w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
-            sw = np.sqrt(w)
-            new, *_ = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)
-            done = np.max(np.abs(new - coef)) <= 1e-12 * max(1.0, np.max(np.abs(coef)))
+            new = _solve_normal(_weighted_sums(x, y, gx, gy, coef, _TUKEY_C * s, True))
+            dc = np.abs(new - coef)
+            done = np.max(dc) <= 1e-12 * max(1.0, np.max(np.abs(coef)))
+            # max_i |A_i·Δc| (both rows), widened for rounding: the brackets of the next medians.
+            delta = (max(reach[0] * dc[0] + reach[1] * dc[1] + dc[3], reach[2] * dc[1] + reach[3] * dc[2] + dc[4])
+                     * (1.0 + 1e-6) + 1e-12 * (abs(med) + mad))
             coef = new
             if done:
                 break
@@ -146,10 +407,15 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
     e0 = e - b * xc - 2 * c * yc
-    res = np.full(g.shape, np.nan)
-    res[ok, 0] = g[ok, 0] - Dx @ coef
-    res[ok, 1] = g[ok, 1] - Dy @ coef
-    rms = float(np.sqrt(np.mean(res[ok] ** 2)))
+    rx = gx - (2.0 * a * x + b * y + d)
+    ry = gy - (b * x + 2.0 * c * y + e)
+    if n == ok.size:
+        res = np.stack([rx, ry], axis=-1).reshape(g.shape)
+    else:
+        res = np.full(g.shape, np.nan)
+        res[ok, 0] = rx
+        res[ok, 1] = ry
+    rms = float(np.sqrt((np.dot(rx, rx) + np.dot(ry, ry)) / (2 * n)))
     towards = -1.0 if camera_z_mm < 0 else 1.0
     with np.errstate(divide="ignore"):
         fx = float(1.0 / (4.0 * towards * a)) if a != 0 else float("inf")

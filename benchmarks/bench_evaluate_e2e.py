@@ -1,0 +1,145 @@
+"""`pmdsim evaluate` end to end, with a per-stage breakdown and peak memory (issue 25, item 1).
+
+Make a full-resolution image set once (Table 1: two cameras, 1920×1200) and pass its directory:
+
+    pmdsim simulate --bulge-mm 3 --out set3
+    python benchmarks/bench_evaluate_e2e.py set3 [--repeat 2] [--no-cli] [--json]
+
+Prints, for ``--repeat`` evaluations in this process (the first one also loads the cached numba
+kernels; the best is reported): wall time per stage — decode (reading the images + decoding),
+checks (nominal map + consistency checks), registration + reconstruction (with its
+``registration.register`` and ``RigidTransform.apply`` shares), surface fit, files
+(evaluation.h5, PNG figures, JSON) — and the rest; then, unless ``--no-cli``, the wall time and
+peak resident memory of one ``pmdsim evaluate IMAGE_DIR --out TMP`` subprocess (what a user
+waits for and what it needs, imports and kernel loading included). The load average is printed
+before and after. The setup is Table 1 (the default, planar screen model), as the CLI's default.
+
+Timings on the shared 2-vCPU machine: the two vCPUs share one core's vector units, so two numba
+threads are no faster than one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+from _common import dump_json, peak_rss_mb
+
+_T = defaultdict(float)
+_DEPTH = {"n": 0}
+
+
+def _timed(stage, fn, *, nested=False):
+    """``fn`` wrapped to add its wall time to ``_T[stage]`` (``nested``: a share of another stage,
+    counted also when called inside it)."""
+    @functools.wraps(fn)
+    def wrapper(*a, **k):
+        if not nested and _DEPTH["n"]:
+            return fn(*a, **k)
+        if not nested:
+            _DEPTH["n"] += 1
+        t = time.perf_counter()
+        try:
+            return fn(*a, **k)
+        finally:
+            _T[stage] += time.perf_counter() - t
+            if not nested:
+                _DEPTH["n"] -= 1
+    return wrapper
+
+
+def _instrument():
+    import pmdsim.evaluation.anchor as anchor
+    import pmdsim.evaluation.registration as registration
+    import pmdsim.evaluation.surface_fit as surface_fit
+    import pmdsim.geometry.camera as camera
+    import pmdsim.geometry.transform as transform
+    import pmdsim.studies.jobs as jobs
+    import pmdsim.studies.surface_figures as surface_figures
+
+    for name in ("load_camera_stacks", "decode_camera_images"):
+        setattr(jobs, name, _timed("decode", getattr(jobs, name)))
+    for name in ("nominal_screen_xy", "check_consistency", "with_consistency"):
+        setattr(jobs, name, _timed("checks", getattr(jobs, name)))
+    for name in ("register_model", "reconstruct_anchored"):
+        setattr(anchor, name, _timed("registration+reconstruction", getattr(anchor, name)))
+    registration.register = _timed("  of which registration.register", registration.register, nested=True)
+    transform.RigidTransform.apply = _timed("  of which RigidTransform.apply", transform.RigidTransform.apply,
+                                            nested=True)
+    camera.Camera.view_rays = _timed("  of which Camera.view_rays", camera.Camera.view_rays, nested=True)
+    surface_fit.surface_fit_summary = _timed("surface fit", surface_fit.surface_fit_summary)
+    surface_fit.fit_paraboloid_slopes = _timed("  of which fit_paraboloid_slopes",
+                                               surface_fit.fit_paraboloid_slopes, nested=True)
+    for name in ("write_evaluation_h5", "write_consistency_h5", "height_map_figure", "write_json"):
+        setattr(jobs, name, _timed("files", getattr(jobs, name)))
+    jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
+    surface_figures.slope_error_figure = _timed("files", surface_figures.slope_error_figure)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("image_dir")
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--no-cli", action="store_true")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+
+    import numba
+
+    from pmdsim import __version__
+    from pmdsim.setup import default_setup
+
+    _instrument()
+    from pmdsim.studies.jobs import evaluate_image_set
+
+    res = {"pmdsim_version": __version__, "threads": numba.get_num_threads(), "image_dir": args.image_dir,
+           "load_avg_1min_before": os.getloadavg()[0]}
+    setup = default_setup()
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(args.repeat):
+            _T.clear()
+            t = time.perf_counter()
+            evaluate_image_set(args.image_dir, setup, Path(tmp) / f"e{i}", progress=None)
+            total = time.perf_counter() - t
+            stages = dict(_T)
+            top = sum(v for k, v in stages.items() if not k.startswith(" "))
+            stages["rest"] = total - top
+            runs.append((total, stages))
+        res["in_process_peak_rss_mb"] = peak_rss_mb()
+        total, stages = min(runs, key=lambda r: r[0])
+        res["in_process_s"] = total
+        res["stages_s"] = stages
+        res["in_process_all_s"] = [r[0] for r in runs]
+        if not args.no_cli:
+            exe = Path(sys.executable).with_name("pmdsim")
+            cmd = [str(exe) if exe.exists() else "pmdsim", "evaluate", args.image_dir, "--out",
+                   str(Path(tmp) / "cli"), "--quiet"]
+            t = time.perf_counter()
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            res["cli_wall_s"] = time.perf_counter() - t
+            res["cli_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    res["load_avg_1min_after"] = os.getloadavg()[0]
+    if args.json:
+        dump_json(res)
+        return
+    print(f"pmdsim {res['pmdsim_version']}, {res['threads']} numba threads (the 2 vCPUs share one core's "
+          f"vector units), load {res['load_avg_1min_before']:.2f} → {res['load_avg_1min_after']:.2f}")
+    print(f"evaluate in process: best {res['in_process_s']:.2f} s of {['%.2f' % t for t in res['in_process_all_s']]}"
+          f", peak RSS {res['in_process_peak_rss_mb']:.0f} MB")
+    for k, v in stages.items():
+        print(f"  {k:40s} {v:7.2f} s")
+    if "cli_wall_s" in res:
+        print(f"pmdsim evaluate (subprocess): {res['cli_wall_s']:.2f} s wall, peak RSS {res['cli_peak_rss_mb']:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,98 @@
+"""The streamed robust paraboloid fit (issue 25, item 1) against an independent computation:
+numpy's lstsq on the explicit (2M, 5) design, reweighted with Tukey's bisquare from numpy's
+medians — the algorithm as documented in :mod:`pmdsim.evaluation.surface_fit`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pmdsim.evaluation import surface_fit as sf
+from pmdsim.evaluation.surface_fit import fit_paraboloid_slopes
+
+
+def _lstsq_irls(x, y, gx, gy, robust=True, max_iter=100):
+    """Reference: lstsq on the reweighted design, numpy medians (centred coordinates)."""
+    xc, yc = x.mean(), y.mean()
+    X, Y = x - xc, y - yc
+    z0, one = np.zeros_like(X), np.ones_like(X)
+    A = np.concatenate([np.stack([2 * X, Y, z0, one, z0], -1), np.stack([z0, X, 2 * Y, z0, one], -1)])
+    rhs = np.concatenate([gx, gy])
+    coef = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    n_iter = 0
+    if robust:
+        for n_iter in range(1, max_iter + 1):
+            r = rhs - A @ coef
+            s = np.median(np.abs(r - np.median(r))) / 0.6745
+            if not s > 0:
+                break
+            u = r / (4.685 * s)
+            sw = np.sqrt(np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0))
+            new = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)[0]
+            done = np.max(np.abs(new - coef)) <= 1e-12 * max(1.0, np.max(np.abs(coef)))
+            coef = new
+            if done:
+                break
+    a, b, c, d, e = coef
+    return np.array([a, b, c, d - 2 * a * xc - b * yc, e - b * xc - 2 * c * yc]), n_iter
+
+
+def _slopes(m, seed, outliers=0.05):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-150, 150, m) + 40
+    y = rng.uniform(-100, 100, m) - 25
+    a, b, c, d, e = 2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3
+    gx = 2 * a * x + b * y + d + rng.normal(0, 2e-5, m)
+    gy = b * x + 2 * c * y + e + rng.normal(0, 2e-5, m)
+    bad = rng.random(m) < outliers
+    gx[bad] += rng.normal(0, 1e-3, bad.sum())  # edge defects / outliers the weights must remove
+    gy[bad] -= 5e-4
+    return x, y, gx, gy
+
+
+@pytest.mark.parametrize("m, robust", [(5000, True), (5000, False), (120_000, True)])
+def test_streamed_fit_matches_lstsq_irls(m, robust):
+    """Coefficients identical to 1e-9 relative, the robust reweighting included (120 000 points:
+    sampled brackets and histogram selection; 5000: one-pass brackets)."""
+    x, y, gx, gy = _slopes(m, seed=m)
+    ref, n_iter = _lstsq_irls(x, y, gx, gy, robust=robust)
+    assert not robust or n_iter > 3  # the reweighting really iterates
+    fit = fit_paraboloid_slopes(np.stack([x, y, np.zeros(m)], -1), np.stack([gx, gy], -1), np.ones(m, bool),
+                                camera_z_mm=1.0, robust=robust)
+    np.testing.assert_allclose(fit.coefficients, ref, rtol=1e-9, atol=0)
+    xc, yc = x.mean(), y.mean()
+    res = np.stack([gx - (2 * ref[0] * x + ref[1] * y + ref[3]), gy - (ref[1] * x + 2 * ref[2] * y + ref[4])], -1)
+    np.testing.assert_allclose(fit.residual_slopes, res, rtol=0, atol=1e-12)
+    assert fit.slope_residual_rms_mrad == pytest.approx(np.sqrt(np.mean(res**2)) * 1e3, rel=1e-9)
+    assert fit.n_points == m and (xc, yc) != (0.0, 0.0)
+
+
+def test_masked_points_are_ignored():
+    """A (H, W) map with invalid and non-finite pixels fits exactly the valid points."""
+    x, y, gx, gy = _slopes(40 * 50, seed=7)
+    valid = np.random.default_rng(8).random(x.size) > 0.2
+    gx_nan = np.where(np.arange(x.size) % 97 == 0, np.nan, gx)
+    ok = valid & np.isfinite(gx_nan)
+    ref, _ = _lstsq_irls(x[ok], y[ok], gx[ok], gy[ok])
+    p = np.stack([x, y, np.zeros_like(x)], -1).reshape(40, 50, 3)
+    g = np.stack([gx_nan, gy], -1).reshape(40, 50, 2)
+    fit = fit_paraboloid_slopes(p, g, valid.reshape(40, 50), camera_z_mm=1.0)
+    np.testing.assert_allclose(fit.coefficients, ref, rtol=1e-9, atol=0)
+    assert np.isnan(fit.residual_slopes.reshape(-1, 2)[~ok]).all() and fit.n_points == ok.sum()
+
+
+@pytest.mark.parametrize("mode", [0, 1])
+def test_exact_median_selection(mode):
+    """The streamed median is numpy's median exactly: with a tight, a wrong and no bracket, with
+    ties (quantised slopes) and with the sampled-bracket (histogram) path."""
+    x, y, gx, gy = _slopes(50_000, seed=11)
+    gx = np.round(gx, 5)  # many equal residuals
+    coef = np.array([2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3])
+    r = np.concatenate([gx - (2 * coef[0] * x + coef[1] * y + coef[3]), gy - (coef[1] * x + 2 * coef[2] * y + coef[4])])
+    centre = float(np.median(r))
+    v = np.abs(r - centre) if mode == 1 else r
+    expected = np.median(v)
+    buf, hist = np.empty(4096), np.empty(sf._N_BINS_SELECT, np.int64)
+    for bracket in (None, (expected - 1e-7, expected + 1e-7), (expected + 1.0, expected + 2.0)):
+        got = sf._median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket)
+        assert got == expected
