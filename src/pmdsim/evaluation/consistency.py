@@ -244,6 +244,152 @@ def _stack_stats(stack):
     return (*out, worst)
 
 
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _sigma2_kernel(a_map, lines, given2, tested, out):
+    """σ_I²(A) = max(min_s (a_s + b_s·A), σ_given²) per pixel, A = clip(nan_to_num(A), 0); returns
+    the largest σ_I² over the tested pixels (0 if none): the arithmetic of the numpy expression
+    in :func:`check_consistency`, without its (S, H, W) temporary."""
+    h, w = a_map.shape
+    big = np.finfo(np.float64).max
+    top = 0.0
+    for v in range(h):
+        for u in range(w):
+            a = a_map[v, u]
+            if np.isnan(a):
+                a = 0.0
+            elif a > big:
+                a = big
+            elif a < -big:
+                a = -big
+            if a < 0.0:
+                a = 0.0
+            est = lines[0, 0] + lines[0, 1] * a
+            for k in range(1, lines.shape[0]):
+                e = lines[k, 0] + lines[k, 1] * a
+                if e < est or np.isnan(e):
+                    est = e
+            g = given2[v, u]
+            s2 = est if (est > g or np.isnan(est)) else g
+            out[v, u] = s2
+            if tested[v, u] and s2 > top:
+                top = s2
+    return top
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _fit_level_kernel(rss, s2, thr, worst, first, tested, fit_ratio, worst_image, bad):
+    """The FIT_RESIDUAL test of one stack: ratio = RSS/σ_I²/threshold; keeps the largest ratio
+    (and its worst image) per pixel; ``bad`` = tested & ratio > 1. Returns the count of bad."""
+    h, w = rss.shape
+    n_bad = 0
+    for v in range(h):
+        for u in range(w):
+            if not tested[v, u]:
+                bad[v, u] = False
+                continue
+            ratio = rss[v, u] / s2[v, u] / thr
+            cur = fit_ratio[v, u]
+            if np.isnan(cur) or ratio > cur:
+                fit_ratio[v, u] = ratio
+                worst_image[v, u] = first + worst[v, u]
+            b = ratio > 1.0
+            bad[v, u] = b
+            n_bad += b
+    return n_bad
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _sigma_kernel(s2, b_map, k, out):
+    """σ of the coordinate, k·√σ_I²/B (the decoder's σ model, module docstring)."""
+    h, w = s2.shape
+    for v in range(h):
+        for u in range(w):
+            out[v, u] = k * math.sqrt(s2[v, u]) / b_map[v, u]
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _coarse_kernel(phi, p0, origin, upper, out):
+    """The coarsest period's coordinate p₀·φ/2π in [origin, upper] (minus one period above it)."""
+    h, w = phi.shape
+    two_pi = 2.0 * math.pi
+    for v in range(h):
+        for u in range(w):
+            r = p0 * (phi[v, u] / two_pi) - origin
+            c = origin + (r - p0 * math.floor(r / p0))
+            out[v, u] = c - p0 if c > upper else c
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _period_level_kernel(c, phi, p, sig_prev, sig, z, tested, mis_ratio, bad):
+    """The PERIOD_MISMATCH test of one finer period: c_k from the coarser c (updated in place),
+    ratio = |c − c_k|/(z·hypot(σ_prev, σ)); keeps the largest ratio; ``bad`` = tested & ratio
+    > 1. Returns the count of bad."""
+    h, w = c.shape
+    two_pi = 2.0 * math.pi
+    n_bad = 0
+    for v in range(h):
+        for u in range(w):
+            fine = p * phi[v, u] / two_pi
+            cc = c[v, u]
+            ck = fine + p * math.floor((cc - fine) / p + 0.5)
+            ratio = abs(cc - ck) / (z * math.hypot(sig_prev[v, u], sig[v, u]))
+            c[v, u] = ck
+            if not tested[v, u]:
+                bad[v, u] = False
+                continue
+            if not (ratio <= mis_ratio[v, u]):
+                mis_ratio[v, u] = ratio
+            b = ratio > 1.0
+            bad[v, u] = b
+            n_bad += b
+    return n_bad
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _grad(xy, v, u, d, axis):
+    """np.gradient of component d along ``axis`` (1: u, 0: v) at (v, u): central inside,
+    one-sided at the border."""
+    h, w = xy.shape[0], xy.shape[1]
+    if axis == 1:
+        if u == 0:
+            return (xy[v, 1, d] - xy[v, 0, d]) / 1.0
+        if u == w - 1:
+            return (xy[v, w - 1, d] - xy[v, w - 2, d]) / 1.0
+        return (xy[v, u + 1, d] - xy[v, u - 1, d]) / 2.0
+    if v == 0:
+        return (xy[1, u, d] - xy[0, u, d]) / 1.0
+    if v == h - 1:
+        return (xy[h - 1, u, d] - xy[h - 2, u, d]) / 1.0
+    return (xy[v + 1, u, d] - xy[v - 1, u, d]) / 2.0
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _orientation_kernel(measured, expected, out):
+    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`)."""
+    h, w = measured.shape[0], measured.shape[1]
+    nan = np.nan
+    for v in range(h):
+        for u in range(w):
+            # J[i, k] = ∂xy_i/∂(u, v)_k (k = 0: along u, 1: along v); NaN where an axis has one pixel.
+            j00 = _grad(measured, v, u, 0, 1) if w >= 2 else nan
+            j10 = _grad(measured, v, u, 1, 1) if w >= 2 else nan
+            j01 = _grad(measured, v, u, 0, 0) if h >= 2 else nan
+            j11 = _grad(measured, v, u, 1, 0) if h >= 2 else nan
+            e00 = _grad(expected, v, u, 0, 1) if w >= 2 else nan
+            e10 = _grad(expected, v, u, 1, 1) if w >= 2 else nan
+            e01 = _grad(expected, v, u, 0, 0) if h >= 2 else nan
+            e11 = _grad(expected, v, u, 1, 0) if h >= 2 else nan
+            det0 = e00 * e11 - e01 * e10
+            a00, a11, a01, a10 = e11, e00, -e01, -e10
+            m00 = (a00 * j00 + a01 * j10) / det0
+            m01 = (a00 * j01 + a01 * j11) / det0
+            m10 = (a10 * j00 + a11 * j10) / det0
+            m11 = (a10 * j01 + a11 * j11) / det0
+            det_m = m00 * m11 - m01 * m10
+            tr_m = m00 + m11
+            out[v, u] = (det_m < 0) or (tr_m < 0)
+
+
 def _noise_model(stats_list, mask, given2: np.ndarray):
     """Fit σ_I² = a + b·A to the residual variances (see the module docstring)."""
     from scipy import stats as sst
@@ -280,12 +426,6 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     if not lines:
         return None
     return np.asarray(lines)  # (S, 2): one (a, b) per stack
-
-
-def _coarse(phi, p0, origin, upper):
-    r = p0 * (phi / (2.0 * math.pi)) - origin
-    c = origin + (r - p0 * np.floor(r / p0))
-    return np.where(c > upper, c - p0, c)
 
 
 def check_consistency(
@@ -388,12 +528,14 @@ def check_consistency(
     lines = _noise_model(all_items, mask, given2)
 
     def sigma2(a_map):
-        """σ_I² at offset A: the median over the stacks' lines (robust to a bad stack)."""
+        """σ_I² at offset A — the lowest of the stacks' lines (robust to bad stacks), at least
+        the given σ² — and its largest value over the tested pixels."""
         if lines is None:
-            return given2
-        a = np.clip(np.nan_to_num(a_map), 0.0, None)
-        est = np.min(lines[:, 0, None, None] + lines[:, 1, None, None] * a, axis=0)
-        return np.maximum(est, given2)
+            return given2, float(np.nanmax(np.where(tested, given2, 0.0)))
+        out = np.empty((h, w))
+        top = _sigma2_kernel(np.asarray(a_map, dtype=np.float64), np.ascontiguousarray(lines, dtype=np.float64),
+                             given2, tested, out)
+        return out, top
 
     flags = np.zeros((h, w), np.uint8)
     fit_ratio = np.full((h, w), np.nan, np.float32)
@@ -418,46 +560,41 @@ def check_consistency(
             c = None
             sig_prev = None
             dir_bad = np.zeros((h, w), bool)
+            bad = np.empty((h, w), bool)
             for level, it in enumerate(items):
-                s2 = sigma2(it["A"])
-                noise_max = max(noise_max, float(np.sqrt(np.nanmax(np.where(tested, s2, 0.0)))))
+                s2, top = sigma2(it["A"])
+                noise_max = max(noise_max, float(np.sqrt(top)))
                 if it["n"] > 3:
                     thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3))
-                    ratio = it["rss"] / s2 / thr
-                    better = tested & (np.isnan(fit_ratio) | (ratio > fit_ratio))
-                    fit_ratio[better] = ratio[better]
-                    worst_image[better] = it["first"] + it["worst"][better]
-                    bad = tested & (ratio > 1.0)
-                    if n_tested and np.count_nonzero(bad) > limit:
+                    n_bad = _fit_level_kernel(it["rss"], s2, thr, it["worst"], it["first"], tested, fit_ratio,
+                                              worst_image, bad)
+                    if n_tested and n_bad > limit:
                         # A frame of this stack is bad as a whole: its other pixels agree by chance.
                         k = int(np.bincount(it["worst"][bad], minlength=it["n"] + 1).argmax())
                         defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
-                                       f"sinusoid in {np.count_nonzero(bad) / n_tested:.0%} of the pixels")
+                                       f"sinusoid in {n_bad / n_tested:.0%} of the pixels")
                         escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
-                        bad = tested
-                    fit_bad |= bad
-                sig = it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]) * np.sqrt(s2) / it["B"]
+                        fit_bad |= tested
+                    else:
+                        fit_bad |= bad
+                sig = np.empty((h, w))
+                _sigma_kernel(s2, it["B"], it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]), sig)
                 if level == 0:
-                    c = _coarse(it["phi"], p0, origin[axis], origin[axis] + ext + margin)
+                    c = np.empty((h, w))
+                    _coarse_kernel(it["phi"], p0, float(origin[axis]), float(origin[axis] + ext + margin), c)
                 else:
-                    fine = it["p"] * it["phi"] / (2.0 * math.pi)
-                    ck = fine + it["p"] * np.floor((c - fine) / it["p"] + 0.5)
-                    ratio = np.abs(c - ck) / (z * np.hypot(sig_prev, sig))
-                    better = tested & ~(ratio <= mis_ratio)
-                    mis_ratio[better] = ratio[better]
-                    bad = tested & (ratio > 1.0)
-                    if n_tested and np.count_nonzero(bad) > limit:
+                    n_bad = _period_level_kernel(c, it["phi"], it["p"], sig_prev, sig, z, tested, mis_ratio, bad)
+                    if n_tested and n_bad > limit:
                         # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
                         # where it agrees, it does so by chance.
                         defects.append(f"direction {direction}, period {it['p']:g} mm disagrees with the "
                                        f"{items[level - 1]['p']:g} mm period in "
-                                       f"{np.count_nonzero(bad) / n_tested:.0%} of the pixels")
-                        bad = tested
-                    new = bad & ~dir_bad
-                    if np.any(new):
-                        period_counts[(direction, it["p"])] = int(np.count_nonzero(new))
+                                       f"{n_bad / n_tested:.0%} of the pixels")
+                        bad = tested.copy()
+                    new = np.count_nonzero(bad & ~dir_bad)
+                    if new:
+                        period_counts[(direction, it["p"])] = int(new)
                     dir_bad |= bad
-                    c = ck
                 sig_prev = sig
             final[..., axis] = c
             flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
@@ -491,35 +628,16 @@ def check_consistency(
     )
 
 
-def _jacobian(xy: np.ndarray) -> np.ndarray:
-    """Finite-difference Jacobian ∂(x, y)/∂(u, v), (H, W, 2, 2): central differences, one-sided
-    at the border; NaN where a neighbour is NaN."""
-    h, w, _ = xy.shape
-    jac = np.full((h, w, 2, 2), np.nan)
-    if w >= 2:
-        jac[..., 0] = np.gradient(xy, axis=1)
-    if h >= 2:
-        jac[..., 1] = np.gradient(xy, axis=0)
-    return jac
-
-
 def _orientation_flipped(measured_xy: np.ndarray, expected_xy: np.ndarray) -> np.ndarray:
     """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 (see the module docstring), (H, W) bool."""
     if expected_xy.shape != measured_xy.shape:
         raise PhaseDecodingError(f"expected_xy_mm: shape {expected_xy.shape}, expected {measured_xy.shape}")
-    j = _jacobian(measured_xy)
-    j0 = _jacobian(expected_xy)
-    det0 = j0[..., 0, 0] * j0[..., 1, 1] - j0[..., 0, 1] * j0[..., 1, 0]
-    # J₀⁻¹ = adj(J₀)/det J₀
-    adj = np.empty_like(j0)
-    adj[..., 0, 0] = j0[..., 1, 1]
-    adj[..., 1, 1] = j0[..., 0, 0]
-    adj[..., 0, 1] = -j0[..., 0, 1]
-    adj[..., 1, 0] = -j0[..., 1, 0]
-    m = np.einsum("...ij,...jk->...ik", adj, j) / det0[..., None, None]
-    det_m = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
-    tr_m = m[..., 0, 0] + m[..., 1, 1]
-    return (det_m < 0) | (tr_m < 0)  # NaN compares False: untested
+    # J (and J₀) = ∂(x, y)/∂(u, v) by np.gradient's differences (central; one-sided at the border), M = adj(J₀)·J/det J₀,
+    # per pixel in one pass; NaN compares False: untested.
+    out = np.empty(measured_xy.shape[:2], bool)
+    _orientation_kernel(np.ascontiguousarray(measured_xy, dtype=np.float64),
+                        np.ascontiguousarray(expected_xy, dtype=np.float64), out)
+    return out
 
 
 def with_consistency(decoded: ScreenCoordinates, result: ConsistencyResult, *,
@@ -555,19 +673,38 @@ def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sampl
     distortion cannot be inverted).
     """
     d_cam, ok = camera.sensor_rays()
-    o = T_world_cam.translation
-    d = T_world_cam.apply_vector(d_cam)
     n = T_world_sample.apply_vector(np.array([0.0, 0.0, 1.0]))
-    p0 = T_world_sample.translation
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dn = d @ n
-        t = ((p0 - o) @ n) / dn
-        hit = o + t[..., None] * d
-        r = d - 2.0 * dn[..., None] * n
-        m = T_world_screen.apply_vector(np.array([0.0, 0.0, 1.0]))
-        t2 = ((T_world_screen.translation - hit) @ m) / (r @ m)
-        q = hit + t2[..., None] * r
-    xy = T_world_screen.inv().apply(q)[..., :2]
-    bad = ~ok | ~(t > 0) | ~(t2 > 0)
-    xy[bad] = np.nan
+    m = T_world_screen.apply_vector(np.array([0.0, 0.0, 1.0]))
+    inv = T_world_screen.inv()
+    xy = np.empty(d_cam.shape[:-1] + (2,))
+    _nominal_kernel(np.ascontiguousarray(d_cam), np.ascontiguousarray(ok), np.ascontiguousarray(T_world_cam.rotation),
+                    np.ascontiguousarray(T_world_cam.translation), n, np.ascontiguousarray(T_world_sample.translation),
+                    m, np.ascontiguousarray(T_world_screen.translation), np.ascontiguousarray(inv.rotation),
+                    np.ascontiguousarray(inv.translation), xy)
     return xy
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _nominal_kernel(d_cam, ok, r_wc, o, n, p0, m, t_scr, r_sw, t_sw, out):
+    """Per pixel of :func:`nominal_screen_xy`: the view ray d = R·d_cam from o, reflected at the
+    plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw)."""
+    h, w = d_cam.shape[0], d_cam.shape[1]
+    for v in range(h):
+        for u in range(w):
+            dc0, dc1, dc2 = d_cam[v, u, 0], d_cam[v, u, 1], d_cam[v, u, 2]
+            d0 = dc0 * r_wc[0, 0] + dc1 * r_wc[0, 1] + dc2 * r_wc[0, 2]
+            d1 = dc0 * r_wc[1, 0] + dc1 * r_wc[1, 1] + dc2 * r_wc[1, 2]
+            d2 = dc0 * r_wc[2, 0] + dc1 * r_wc[2, 1] + dc2 * r_wc[2, 2]
+            dn = d0 * n[0] + d1 * n[1] + d2 * n[2]
+            t = ((p0[0] - o[0]) * n[0] + (p0[1] - o[1]) * n[1] + (p0[2] - o[2]) * n[2]) / dn
+            h0, h1, h2 = o[0] + t * d0, o[1] + t * d1, o[2] + t * d2
+            r0, r1, r2 = d0 - 2.0 * dn * n[0], d1 - 2.0 * dn * n[1], d2 - 2.0 * dn * n[2]
+            t2 = (((t_scr[0] - h0) * m[0] + (t_scr[1] - h1) * m[1] + (t_scr[2] - h2) * m[2])
+                  / (r0 * m[0] + r1 * m[1] + r2 * m[2]))
+            q0, q1, q2 = h0 + t2 * r0, h1 + t2 * r1, h2 + t2 * r2
+            if ok[v, u] and t > 0 and t2 > 0:
+                out[v, u, 0] = q0 * r_sw[0, 0] + q1 * r_sw[0, 1] + q2 * r_sw[0, 2] + t_sw[0]
+                out[v, u, 1] = q0 * r_sw[1, 0] + q1 * r_sw[1, 1] + q2 * r_sw[1, 2] + t_sw[1]
+            else:
+                out[v, u, 0] = np.nan
+                out[v, u, 1] = np.nan
