@@ -123,3 +123,24 @@ def test_opencv_vector_lengths():
 def test_invalid_new_coefficients_rejected(kw):
     with pytest.raises(ValueError):
         Camera(10, 10, 10.0, 10.0, 5.0, 5.0, **kw)
+
+
+@pytest.mark.parametrize("dist", [{}, DIST])
+def test_sensor_rays_kernel_matches_opencv(dist):
+    """The fused ray kernel (issue 25): every pixel of a small sensor against
+    cv2.undistortPoints (1e-9 px), and view_rays of arbitrary (…, 2) pixels equal to the sensor
+    rays of the same pixels."""
+    cam = Camera(96, 64, 80.0, 81.0, 47.2, 31.6, **dist)
+    d, ok = cam.sensor_rays()
+    assert d.shape == (64, 96, 3) and ok.all() and not d.flags.writeable
+    K, dv = cam.as_opencv()
+    v, u = np.mgrid[0:64, 0:96]
+    uv = np.stack([u, v], -1).astype(float)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dv, criteria=crit).reshape(64, 96, 2)
+    np.testing.assert_allclose(d[..., :2] * 80.0, ref * 80.0, atol=1e-9, rtol=0)
+    np.testing.assert_array_equal(d[..., 2], 1.0)
+    sub = uv[5:9, 10:13]
+    d_sub, ok_sub = cam.view_rays(sub)
+    assert d_sub.shape == (4, 3, 3) and ok_sub.all()
+    np.testing.assert_array_equal(d_sub, d[5:9, 10:13])

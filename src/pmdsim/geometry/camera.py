@@ -221,6 +221,32 @@ def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
         ok[i] = conv
 
 
+@numba.njit(cache=True, parallel=True)
+def _rays_kernel(uv, grid_w, fx, fy, ppx, ppy, coeffs, distorted, tol, max_iter, d, ok):
+    """View rays (x, y, 1) of pixels: ``uv`` (N, 2), or with ``grid_w`` > 0 the pixel centres
+    of a sensor ``grid_w`` wide (u = i mod w, v = i div w; ``uv`` unused) — one pass, no
+    pixel grid, normalised-coordinate or concatenated temporaries. Same arithmetic as
+    :meth:`Camera.pixel_to_normalized` + :func:`_undistort_one`."""
+    c, rational, prism = _unpack(coeffs)
+    n = d.shape[0]
+    for i in numba.prange(n):
+        if grid_w > 0:
+            u = float(i % grid_w)
+            v = float(i // grid_w)
+        else:
+            u = uv[i, 0]
+            v = uv[i, 1]
+        x = (u - ppx) / fx
+        y = (v - ppy) / fy
+        conv = True
+        if distorted:
+            x, y, conv = _undistort_one(x, y, c, rational, prism, tol, max_iter)
+        d[i, 0] = x
+        d[i, 1] = y
+        d[i, 2] = 1.0
+        ok[i] = conv
+
+
 @numba.njit(cache=True)
 def _jacobian_kernel(xy, coeffs, out):
     c, rational, prism = _unpack(coeffs)
@@ -234,7 +260,7 @@ def _jacobian_kernel(xy, coeffs, out):
 
 @functools.lru_cache(maxsize=4)
 def _sensor_rays_cached(camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
-    d, ok = camera.view_rays(camera.pixel_grid())
+    d, ok = camera._rays(None)
     d.setflags(write=False)
     ok.setflags(write=False)
     return d, ok
@@ -496,9 +522,23 @@ class Camera:
             Direction vectors, not normalised (z = 1).
         converged : ndarray of bool, shape (...)
         """
-        xy, ok = self.pixel_to_normalized(uv_px)
-        d = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
-        return d, ok
+        return self._rays(np.asarray(uv_px, dtype=float))
+
+    def _rays(self, uv) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`view_rays` of pixels ``uv`` (..., 2), or of every sensor pixel (None): one
+        compiled pass (:func:`_rays_kernel`)."""
+        if uv is None:
+            shape, flat, grid_w = (self.height_px, self.width_px), np.empty((1, 2)), self.width_px
+        else:
+            shape, grid_w = uv.shape[:-1], 0
+            flat = np.ascontiguousarray(uv.reshape(-1, 2))
+        coeffs = self._coefficients()
+        n = int(np.prod(shape))
+        d = np.empty((n, 3))
+        ok = np.empty(n, dtype=np.bool_)
+        _rays_kernel(flat, grid_w, float(self.fx_px), float(self.fy_px), float(self.ppx_px), float(self.ppy_px), coeffs,
+                     bool(np.any(coeffs)), UNDISTORT_TOL, _UNDISTORT_MAX_ITER, d, ok)
+        return d.reshape(shape + (3,)), ok.reshape(shape)
 
     def pixel_grid(self) -> np.ndarray:
         """Integer pixel centres (H, W, 2) as (u, v)."""
