@@ -96,3 +96,25 @@ def test_exact_median_selection(mode):
     for bracket in (None, (expected - 1e-7, expected + 1e-7), (expected + 1.0, expected + 2.0)):
         got = sf._median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket)
         assert got == expected
+
+
+def test_piston_tilt_matches_lstsq_with_mask():
+    """The streamed plane removal against lstsq on [1, x, y]: coefficients to 1e-9 relative,
+    heights to 1e-12 mm, NaN off the mask; collinear points fail explicitly."""
+    rng = np.random.default_rng(12)
+    x = rng.uniform(-100, 100, (30, 40)) + 300.0
+    y = rng.uniform(-80, 80, (30, 40)) - 200.0
+    z = 5.0 + 2e-3 * x - 1e-3 * y + rng.normal(0, 1e-3, x.shape)
+    z[0, 0] = np.nan
+    p = np.stack([x, y, z], -1)
+    ok = rng.random(x.shape) > 0.2
+    use = ok & np.isfinite(z)
+    A = np.stack([np.ones(use.sum()), x[use], y[use]], -1)
+    ref = np.linalg.lstsq(A, z[use], rcond=None)[0]
+    h, coef = sf.remove_piston_tilt(p, ok)
+    np.testing.assert_allclose(coef, ref, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(h[use], z[use] - A @ ref, rtol=0, atol=1e-12)
+    assert np.isnan(h[~use]).all()
+    line = np.stack([x, 2 * x, z], -1)
+    with pytest.raises(sf.ComputationError):
+        sf.remove_piston_tilt(line, np.ones(x.shape, bool))

@@ -40,17 +40,62 @@ def remove_piston_tilt(p_sample_mm, valid) -> tuple[np.ndarray, np.ndarray]:
     """Heights (H, W) with the least-squares plane removed, and the plane's (c₀, c₁, c₂) mm, mm/mm.
 
     ``p_sample_mm`` (H, W, 3) points in the sample frame; ``valid`` (H, W) the points to use
-    (NaN elsewhere in the result)."""
+    (NaN elsewhere in the result). Solved by centred normal equations in two compiled passes
+    (the plane z = c₀ + c₁x + c₂y: its 2×2 slope system on centred coordinates is well
+    conditioned; equal to lstsq to ~1e-12, tests/test_surface_fit_kernels.py)."""
     p = np.asarray(p_sample_mm, dtype=float)
     ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
-    if ok.sum() < 3:
+    n = int(np.count_nonzero(ok))
+    if n < 3:
         raise ComputationError("fewer than 3 reconstructed points: cannot remove piston and tilt")
-    x, y, z = p[ok, 0], p[ok, 1], p[ok, 2]
-    A = np.stack([np.ones_like(x), x, y], axis=-1)
-    coef, *_ = np.linalg.lstsq(A, z, rcond=None)
-    out = np.full(p.shape[:2], np.nan)
-    out[ok] = z - A @ coef
-    return out, coef
+    shape = p.shape[:-1]
+    flat = np.ascontiguousarray(p.reshape(-1, 3))
+    okf = np.ascontiguousarray(ok.reshape(-1))
+    out = np.empty(okf.size)
+    coef = np.empty(3)
+    if not _plane_kernel(flat, okf, out, coef):
+        raise ComputationError("the reconstructed points are collinear: cannot remove piston and tilt")
+    return out.reshape(shape), coef
+
+
+@numba.njit(cache=True, fastmath=False)
+def _plane_kernel(p, ok, out, coef):
+    """Least-squares plane z = c₀ + c₁x + c₂y through the points ``p`` (N, 3) where ``ok``;
+    ``out`` the residual heights (NaN where not ok). False if the 2×2 system is singular."""
+    n = 0
+    sx = sy = sz = 0.0
+    for i in range(p.shape[0]):
+        if ok[i]:
+            n += 1
+            sx += p[i, 0]
+            sy += p[i, 1]
+            sz += p[i, 2]
+    xm, ym, zm = sx / n, sy / n, sz / n
+    sxx = sxy = syy = sxz = syz = 0.0
+    for i in range(p.shape[0]):
+        if ok[i]:
+            dx = p[i, 0] - xm
+            dy = p[i, 1] - ym
+            dz = p[i, 2] - zm
+            sxx += dx * dx
+            sxy += dx * dy
+            syy += dy * dy
+            sxz += dx * dz
+            syz += dy * dz
+    det = sxx * syy - sxy * sxy
+    if not (det > 1e-14 * sxx * syy):
+        return False
+    c1 = (syy * sxz - sxy * syz) / det
+    c2 = (sxx * syz - sxy * sxz) / det
+    coef[0] = zm - c1 * xm - c2 * ym
+    coef[1] = c1
+    coef[2] = c2
+    for i in range(p.shape[0]):
+        if ok[i]:
+            out[i] = p[i, 2] - zm - c1 * (p[i, 0] - xm) - c2 * (p[i, 1] - ym)
+        else:
+            out[i] = np.nan
+    return True
 
 
 @dataclass(frozen=True)
