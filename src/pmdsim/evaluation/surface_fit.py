@@ -391,7 +391,7 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
 
     Parameters
     ----------
-    p_sample_mm : array (H, W, 3) or (M, 3)
+    p_sample_mm : array (H, W, 3) or (M, 3) (or (…, 2): x, y)
         Points (x, y used) in the sample frame, mm.
     slopes : array (..., 2)
         (∂z/∂x, ∂z/∂y) at those points (rad).
@@ -415,15 +415,17 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     n = int(np.count_nonzero(ok))
     if n < 6:
         raise ComputationError(f"only {n} points with slopes: a paraboloid over slopes needs at least 6")
+    # Centre the coordinates for conditioning (a, b, c do not depend on the origin); one
+    # contiguous copy per column.
     if n == ok.size:
-        x, y, gx, gy = (p[..., 0].ravel(), p[..., 1].ravel(), np.ascontiguousarray(g[..., 0]).ravel(),
-                        np.ascontiguousarray(g[..., 1]).ravel())
+        xc, yc = float(p[..., 0].mean()), float(p[..., 1].mean())
+        x, y = (p[..., 0] - xc).reshape(-1), (p[..., 1] - yc).reshape(-1)
+        gx, gy = np.ascontiguousarray(g[..., 0]).reshape(-1), np.ascontiguousarray(g[..., 1]).reshape(-1)
     else:
         x, y, gx, gy = p[..., 0][ok], p[..., 1][ok], g[..., 0][ok], g[..., 1][ok]
-    # Centre the coordinates for conditioning; a, b, c do not depend on the origin.
-    xc, yc = x.mean(), y.mean()
-    x = x - xc
-    y = y - yc
+        xc, yc = x.mean(), y.mean()
+        x -= xc
+        y -= yc
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, np.zeros(5), 1.0, False))
     if robust:
         buf = np.empty(min(2 * n, max(4096, (2 * n) // 64)))
@@ -478,13 +480,15 @@ def surface_fit_summary(recs, camera_z_mm) -> tuple[ParaboloidFit, dict]:
     pts, gs, oks, extras = [], [], [], []
     for rec in recs:
         g = sample_slopes(rec.n_sample)
-        ok = rec.reconstructed & np.isfinite(g).all(axis=-1)
-        pts.append(rec.p_sample_mm[ok])
+        ok = rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1])
+        pts.append(rec.p_sample_mm[..., :2][ok])  # x, y: all the fit uses
         gs.append(g[ok])
         oks.append(ok)
         extras.append({"slopes": g})
-    fit = fit_paraboloid_slopes(np.concatenate(pts), np.concatenate(gs), np.ones(sum(len(p) for p in pts), bool),
-                                camera_z_mm=camera_z_mm)
+    xy, gxy = np.concatenate(pts), np.concatenate(gs)
+    del pts, gs  # the per-camera copies are not needed during the fit
+    fit = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=camera_z_mm)
+    del xy, gxy
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
         k = int(ok.sum())
