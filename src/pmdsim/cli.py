@@ -44,6 +44,20 @@ def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
     return setup
 
 
+def _inputs(setup_path: str | None, setup: Setup | None = None) -> list[str]:
+    """The files a setup brings in (the setup file, a ``[sample] height_map`` file relative to
+    it): outputs must not touch them (:func:`pmdsim.io.outputs.check_output_target`)."""
+    from pathlib import Path
+
+    out = [setup_path] if setup_path else []
+    shape = None if setup is None else setup.sample.shape
+    f = getattr(shape, "file", None)
+    if f:
+        p = Path(f)
+        out.append(str(p if p.is_absolute() or not setup_path else Path(setup_path).parent / p))
+    return out
+
+
 class _Group(click.Group):
     """Turns pmdsim's own errors into a one-line message (no traceback): exit code 2 for bad
     input, 1 for a computation that failed (:class:`~pmdsim.errors.ComputationError`)."""
@@ -171,7 +185,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
     steps = simulation_steps(setup if calibration_pose is None else setup.with_mirror_pose(calibration_pose))
     with _bar(steps, "simulating", quiet) as bar:
         summary = simulate_to_dir(setup, out_dir, force=force, command=_command(), calibration_pose=calibration_pose,
-                                  progress=lambda msg: bar.update(1), inputs=[setup_path])
+                                  progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup))
     click.echo(summary.as_text(out_dir), err=True)
 
 
@@ -224,6 +238,9 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
     anchor = DistanceAnchor(anchor_pixel, anchor_distance_mm, anchor_point_mm) if all(given) else None
     setup = _load(setup_path, None)
+    from .io.outputs import check_output_target
+
+    check_output_target(out_dir, force=force, inputs=[image_dir, *_inputs(setup_path, setup)], kind="dir")
     if stereo:
         if seed_pixel is not None or seed_height_mm is not None or anchor is not None:
             raise JobInputError("--stereo needs no seed or anchor: drop --seed-pixel/--seed-height-mm/--anchor-*")
@@ -231,7 +248,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
             summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
                                                 search_range_mm=search_range_mm, noise_std=noise_std, force=force,
                                                 command=_command(), progress=lambda msg: bar.update(1),
-                                                inputs=[setup_path])
+                                                inputs=_inputs(setup_path, setup))
         for line in summary.lines():
             click.echo(line)
         click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
@@ -242,7 +259,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
                                      noise_std=noise_std, force=force, command=_command(),
-                                     progress=lambda msg: bar.update(1), inputs=[setup_path],
+                                     progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup),
                                      min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path))
     for line in summary.lines():
         click.echo(line)
@@ -313,8 +330,8 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     nominal = _load(setup_path, None)
     with _bar(len(image_dirs), "decoding", quiet) as bar:
         run = calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                   command=_command(), progress=lambda msg: bar.update(1), inputs=[setup_path],
-                                   setup_source=_setup_source(setup_path))
+                                   command=_command(), progress=lambda msg: bar.update(1),
+                                   inputs=_inputs(setup_path, nominal), setup_source=_setup_source(setup_path))
     for name, c in run.summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
@@ -368,7 +385,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     from .io.outputs import check_output_target
 
     base = _load(setup_path, None)
-    check_output_target(out_dir, force=force, inputs=[setup_path], kind="dir")  # before hours of computing
+    check_output_target(out_dir, force=force, inputs=_inputs(setup_path, base), kind="dir")  # before hours of computing
     from .studies.checks import check_memory
 
     check_memory(base.binned(downsample), "evaluate")

