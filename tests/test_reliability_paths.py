@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pmdsim.io.outputs import MARKER_NAME
@@ -111,3 +112,78 @@ def test_output_containing_or_through_a_link_to_an_input(tmp_path, pose_dirs):
     r = run("calibrate", pose_dirs[0], "--out", link / "cal.toml", "--force", "--quiet")
     assert r.returncode == 2 and "inside an input" in one_error_line(r.stderr)
     assert snapshot(ours) == before
+
+
+# ----------------------------------------------------------------------------- item 2: stereo
+@pytest.fixture(scope="module")
+def stereo_set(tmp_path_factory):
+    """A simulated two-camera image set of the Table 1 setup binned 12× (160 × 100 px)."""
+    from pmdsim.setup import default_setup
+
+    d = tmp_path_factory.mktemp("stereo")
+    setup_file = d / "setup.toml"
+    setup_file.write_text(default_setup().binned(12).to_toml(), encoding="utf-8")
+    r = run("simulate", "--setup", setup_file, "--out", d / "img", "--quiet")
+    assert r.returncode == 0, r.stderr
+    return d, setup_file
+
+
+def test_stereo_runs_the_consistency_checks(tmp_path, stereo_set):
+    """Issue 24: with one black frame mono exited 1, stereo exited 0 with heights off by up to
+    1236 µm. Now stereo checks each camera like mono: the frame is named, exit 1, nothing
+    written; the clean set still passes (its flat sample's heights within 1 µm: the truth is
+    the plane z = 0)."""
+    import shutil
+
+    import h5py
+
+    d, setup_file = stereo_set
+    img = tmp_path / "img"
+    shutil.copytree(d / "img", img)
+    manifest = json.loads((img / "manifest.json").read_text())
+    victim = next(e["file"] for e in manifest["images"] if e["camera"] == manifest["images"][0]["camera"]
+                  and e["direction"] == "x" and e.get("shift_index", 1) == 1)
+    from pmdsim.io.images import read_image, write_png
+
+    a = read_image(img / victim)
+    write_png(img / victim, np.zeros_like(a))
+    for extra in ([], ["--stereo"]):
+        r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / f"ev{len(extra)}", *extra, "--quiet")
+        line = one_error_line(r.stderr)
+        assert r.returncode == 1 and victim.rsplit("_s", 1)[0] in line, r.stderr
+        assert not (tmp_path / f"ev{len(extra)}").exists()
+    r = run("evaluate", d / "img", "--setup", setup_file, "--out", tmp_path / "ok", "--stereo", "--quiet")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "ok" / "evaluation.h5") as f:
+        for cam in f.attrs.get("cameras", []) or [k for k in f if isinstance(f[k], h5py.Group) and "overlap" in f[k]]:
+            assert "consistency_flags" in f[cam]
+            ov = f[cam]["overlap"][()]
+            assert np.nanmax(np.abs(f[cam]["height_mm"][()][ov])) * 1e3 <= 1.0
+
+
+def test_stereo_refuses_method_and_honours_min_valid_fraction(tmp_path, stereo_set):
+    d, setup_file = stereo_set
+    r = run("evaluate", d / "img", "--setup", setup_file, "--out", tmp_path / "a", "--stereo", "--method",
+            "stepwise", "--quiet")
+    assert r.returncode == 2 and "--method stepwise does not apply to --stereo" in one_error_line(r.stderr)
+    # A band of 10 % of one frame's columns black: those pixels are flagged (FIT_RESIDUAL), the
+    # camera's valid fraction drops to ≈ 90 %: a warning by default, exit 1 below a 95 % minimum.
+    import shutil
+
+    from pmdsim.io.images import read_image, write_png
+
+    img = tmp_path / "img"
+    shutil.copytree(d / "img", img)
+    manifest = json.loads((img / "manifest.json").read_text())
+    e = next(e for e in manifest["images"] if e["direction"] == "y")
+    a = read_image(img / e["file"])
+    w = a.shape[1]
+    a[:, w // 2: w // 2 + w // 10] = 0
+    write_png(img / e["file"], a)
+    r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / "b", "--stereo", "--quiet")
+    assert r.returncode == 0 and "pmdsim: warning: " + e["camera"] in r.stderr, r.stderr
+    r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / "c", "--stereo", "--min-valid-fraction",
+            "0.95", "--quiet")
+    line = one_error_line(r.stderr)
+    assert r.returncode == 1 and "minimum 95%" in line and e["camera"] in line, r.stderr
+    assert (tmp_path / "c" / "evaluation.h5").exists()  # outputs kept for inspection, as for mono

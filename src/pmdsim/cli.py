@@ -244,14 +244,25 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     if stereo:
         if seed_pixel is not None or seed_height_mm is not None or anchor is not None:
             raise JobInputError("--stereo needs no seed or anchor: drop --seed-pixel/--seed-height-mm/--anchor-*")
+        if method is not None:
+            raise JobInputError(f"--method {method} does not apply to --stereo (stereo fits each camera's heights "
+                                "to the anchors it finds, docs/stereo.md): drop --method")
         with _bar(len(setup.cameras), "evaluating (stereo)", quiet) as bar:
             summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
                                                 search_range_mm=search_range_mm, noise_std=noise_std, force=force,
                                                 command=_command(), progress=lambda msg: bar.update(1),
-                                                inputs=_inputs(setup_path, setup))
+                                                inputs=_inputs(setup_path, setup),
+                                                min_valid_fraction=min_valid_fraction)
         for line in summary.lines():
             click.echo(line)
+        for w in summary.data_warnings():
+            click.echo(f"pmdsim: warning: {w}", err=True)
         click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+        failures = summary.failures()
+        if failures:
+            click.echo(f"pmdsim: error: {' | '.join(failures)} (outputs kept in {out_dir} for inspection; "
+                       f"--min-valid-fraction sets the limit)", err=True)
+            sys.exit(1)
         return
     if search_range_mm is not None:
         raise JobInputError("--search-range-mm is an option of --stereo")

@@ -555,6 +555,38 @@ def _frame_from_z(z: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=-1)
 
 
+#: The largest angle (deg) between the display's normal and its line of sight to the optic that an
+#: import accepts: a deflectometry screen faces the sample (the SOFAST facet: 5.7°); an orientation
+#: whose display faces elsewhere is a mistake (a rotation vector in degrees: 68°; negated: 45°).
+MAX_SCREEN_VIEW_ANGLE_DEG = 30.0
+
+
+def _screen_view_angle_deg(r_cs: np.ndarray, s_world: np.ndarray, p_opt: np.ndarray) -> float:
+    """Angle (deg) between the display's normal towards the sample — SOFAST's display +z,
+    ``R(r_cam_screen)ᵀ·e_z`` in the camera frame — and the direction from the display origin
+    ``s_world`` to the optic ``p_opt`` (both mm, camera frame)."""
+    n = RigidTransform.from_rotvec(r_cs, np.zeros(3)).rotation.T @ np.array([0.0, 0.0, 1.0])
+    u = (p_opt - s_world) / np.linalg.norm(p_opt - s_world)
+    return float(np.degrees(np.arccos(np.clip(n @ u, -1.0, 1.0))))
+
+
+def _check_screen_faces_optic(r_cs: np.ndarray, s_world: np.ndarray, p_opt: np.ndarray, orientation) -> None:
+    """Refuse an orientation whose display does not face the optic (the likely mistakes named:
+    a rotation vector in degrees, a negated one, the inverse rotation)."""
+    angle = _screen_view_angle_deg(r_cs, s_world, p_opt)
+    if angle <= MAX_SCREEN_VIEW_ANGLE_DEG:
+        return
+    guesses = {"written in degrees (radians expected)": np.radians(r_cs), "negated (the inverse rotation)": -r_cs}
+    a_best, what = min((_screen_view_angle_deg(r, s_world, p_opt), what) for what, r in guesses.items())
+    fits = [f"{what}: read so, it would face the optic at {a_best:.1f}°"] if a_best <= 0.5 * MAX_SCREEN_VIEW_ANGLE_DEG else []
+    raise SofastImportError(
+        f"{str(orientation)!r}: SpatialOrientation/r_cam_screen = {r_cs.tolist()} turns the display "
+        f"{angle:.1f}° away from its line of sight to the optic (at most {MAX_SCREEN_VIEW_ANGLE_DEG:g}° expected: a "
+        f"deflectometry screen faces the sample); "
+        + (f"the rotation vector looks {fits[0]}" if fits else
+           "is it a rotation vector in radians mapping camera to display coordinates (SOFAST's convention)?"))
+
+
 def import_sofast(*, measurement, camera, display, orientation, calibration, facet=None, out_dir,
                   force: bool = False, command: str | None = None) -> SofastImportSummary:
     """Import a SOFAST fringe measurement (module docstring) into ``out_dir``.
@@ -691,6 +723,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     c = s_world @ s_world - (1e3 * dist_m) ** 2
     t = (-b + math.sqrt(max(b * b - 4 * c, 0.0))) / 2.0
     p_opt = t * d
+    _check_screen_faces_optic(r_cs, s_world, p_opt, orientation)
     z_s = -((-p_opt) / np.linalg.norm(p_opt) + (s_world - p_opt) / np.linalg.norm(s_world - p_opt))
     R_s = _frame_from_z(z_s, np.array([1.0, 0.0, 0.0]))
     half = 1000.0
