@@ -187,3 +187,55 @@ def test_stereo_refuses_method_and_honours_min_valid_fraction(tmp_path, stereo_s
     line = one_error_line(r.stderr)
     assert r.returncode == 1 and "minimum 95%" in line and e["camera"] in line, r.stderr
     assert (tmp_path / "c" / "evaluation.h5").exists()  # outputs kept for inspection, as for mono
+
+
+# ----------------------------------------------------------------------------- item 7: curved samples
+@pytest.mark.parametrize("kind, radius_mm", [("sphere", 300.0), ("sphere", -300.0), ("sphere", 1000.0),
+                                             ("sphere", -1000.0), ("cylinder", 500.0)])
+def test_curved_samples_are_not_masked_as_folds(tmp_path, kind, radius_mm):
+    """Issue 24: a 1 m sphere through the CLI masked 210 px as folded geometry that reconstruct
+    correctly; a concave R = 300 mm sphere (seen beyond its focal distance, the image inverts)
+    was refused as "a reversed shift order". The orientation reference is now the mapping
+    traced through the declared sample: no pixel is flagged GEOMETRY, every usable pixel is
+    reconstructed, and their decoded screen coordinates are the traced ones (truth: the tracer's
+    mapping through the closed-form surface) within 6 σ."""
+    from pmdsim.setup import default_setup
+    from pmdsim.studies.jobs import evaluate_image_set, simulate_to_dir
+
+    setup = default_setup().binned(16).with_sample_shape(kind, radius_mm=radius_mm)
+    simulate_to_dir(setup, tmp_path / "img")
+    s = evaluate_image_set(tmp_path / "img", setup, tmp_path / "ev")
+    import h5py
+
+    from pmdsim.simulation.render import trace_setup_camera
+
+    for cam, c in s.cameras.items():
+        assert c["consistency_counts"]["GEOMETRY"] == 0, (cam, c["consistency_counts"])
+        assert c["reconstructed"] == c["usable"]
+        with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
+            xy = f[cam]["screen_xy_mm"][()]
+            sd = f[cam]["std_xy_mm"][()]
+        truth = trace_setup_camera(setup, cam).screen_xy_mm
+        ok = np.isfinite(xy).all(axis=-1)
+        z = np.abs(xy[ok] - truth[ok]) / sd[ok]
+        assert ok.sum() > 0 and np.nanmax(z) < 6.0, (cam, np.nanmax(z))  # the kept pixels' data are right
+
+
+def test_reversed_shift_order_on_a_concave_sample_is_still_caught(tmp_path):
+    """The traced reference keeps the orientation test's power on a curved sample."""
+    import shutil
+
+    from pmdsim.setup import default_setup
+    from pmdsim.studies.jobs import ConsistencyFailure, evaluate_image_set, simulate_to_dir
+
+    setup = default_setup().binned(16).with_sample_shape("sphere", radius_mm=-300.0)
+    simulate_to_dir(setup, tmp_path / "img")
+    m = json.loads((tmp_path / "img" / "manifest.json").read_text())
+    for e in m["images"]:
+        if e["shift_index"] in (1, 3):
+            e["shift_index"] = 4 - e["shift_index"]
+    (tmp_path / "img" / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ConsistencyFailure, match="orientation is flipped"):
+        evaluate_image_set(tmp_path / "img", setup, tmp_path / "ev")
+    assert not (tmp_path / "ev").exists()
+    shutil.rmtree(tmp_path / "img")
