@@ -239,3 +239,84 @@ def test_reversed_shift_order_on_a_concave_sample_is_still_caught(tmp_path):
         evaluate_image_set(tmp_path / "img", setup, tmp_path / "ev")
     assert not (tmp_path / "ev").exists()
     shutil.rmtree(tmp_path / "img")
+
+
+# ----------------------------------------------------------------------------- item 4: setups
+def _show() -> str:
+    r = run("setup", "--show")
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def test_bulge_and_heights_must_agree(tmp_path):
+    """Issue 24: `setup --show` writes bulge_mm = 0.0; a user who added heights_mm had its centre
+    silently overwritten by bulge_mm, and `setup` said "setup OK". Now the two must agree or
+    the setup is refused naming both keys; the shown file says to delete bulge_mm; without it
+    the centre height is the one written (truth: the user's matrix, read back by tomllib)."""
+    import tomllib
+
+    text = _show()
+    assert "delete bulge_mm" in text
+    doc = tomllib.loads(text)
+    nx, ny = len(doc["screen"]["grid_x_mm"]), len(doc["screen"]["grid_y_mm"])
+    rows = [[0.0] * nx for _ in range(ny)]
+    rows[ny // 2][nx // 2] = 2.5
+    heights = "heights_mm = [" + ", ".join("[" + ", ".join(map(str, r)) + "]" for r in rows) + "]\n"
+    both = text.replace("bulge_mm = 0.0\n", "bulge_mm = 0.0\n" + heights, 1)
+    f = tmp_path / "both.toml"
+    f.write_text(both, encoding="utf-8")
+    r = run("setup", "--setup", f)
+    line = one_error_line(r.stderr)
+    assert r.returncode == 2 and "screen.bulge_mm = 0" in line and "heights_mm" in line and "2.5" in line
+    r = run("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
+    assert r.returncode == 2 and not (tmp_path / "sim").exists()
+
+    f.write_text(text.replace("bulge_mm = 0.0\n", heights, 1), encoding="utf-8")  # bulge_mm deleted
+    r = run("setup", "--setup", f, "--show")
+    assert r.returncode == 0, r.stderr
+    back = tomllib.loads(r.stdout)["screen"]
+    assert back["heights_mm"][ny // 2][nx // 2] == 2.5 and "bulge_mm" not in back
+    # --bulge-mm on top of heights_mm: written so that the two keys agree, and it loads again
+    r = run("setup", "--setup", f, "--bulge-mm", "3", "--show")
+    g = tmp_path / "again.toml"
+    g.write_text(r.stdout, encoding="utf-8")
+    r2 = run("setup", "--setup", g, "--show")
+    assert r2.returncode == 0 and tomllib.loads(r2.stdout)["screen"]["heights_mm"][ny // 2][nx // 2] == 3.0, r2.stderr
+
+
+def test_simulate_runs_the_setup_checks(tmp_path):
+    """Issue 24: simulate accepted setups that `setup --setup` refuses (a coarsest period
+    shorter than the screen) or warns about (clipping); the failure came later in evaluate.
+    Now simulate gives the same error line (exit 2, nothing written) and the same warning."""
+    text = _show()
+    import tomllib
+
+    p = tomllib.loads(text)["patterns"]
+    short = text.replace(f"periods_x_mm = [{p['periods_x_mm'][0]}", "periods_x_mm = [100.0", 1)
+    f = tmp_path / "short.toml"
+    f.write_text(short, encoding="utf-8")
+    a, b = run("setup", "--setup", f), run("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
+    assert a.returncode == b.returncode == 2
+    assert one_error_line(a.stderr) == one_error_line(b.stderr) and "coarsest period 100 mm" in one_error_line(b.stderr)
+    assert not (tmp_path / "sim").exists()
+
+
+@pytest.mark.parametrize("args, expect", [
+    (["1", "--grids", "3"], "--grids does not apply to experiment 1"),
+    (["4", "--bulges-mm", "1"], "--bulges-mm does not apply to experiment 4"),
+    (["4", "--grids", "5"], "--grids does not apply to experiment 4"),
+    (["5", "--effects", "ideal"], "--effects does not apply to experiment 5"),
+    (["4", "--effects", "ideal,ideal"], "--effects lists ideal more than once"),
+    (["1", "--bulges-mm", "1,1"], "--bulges-mm lists 1 more than once"),
+])
+def test_experiment_options_apply_or_are_refused(tmp_path, args, expect):
+    r = run("experiment", *args, "--out", tmp_path / "e", "--downsample", "16", "--quiet")
+    assert r.returncode == 2 and expect in one_error_line(r.stderr), r.stderr
+    assert not (tmp_path / "e").exists()
+
+
+def test_nan_seed_height_is_named_nan(tmp_path, pose_dirs):
+    """Issue 24: `--seed-height-mm nan` said "behind the camera"."""
+    r = run("evaluate", pose_dirs[0], "--out", tmp_path / "ev", "--seed-height-mm", "nan", "--quiet")
+    line = one_error_line(r.stderr)
+    assert r.returncode == 2 and "--seed-height-mm must be finite, got nan" in line

@@ -712,3 +712,72 @@ def test_broken_fringes_fail_evaluate_naming_the_cause(tmp_path, what, reason):
             tmp_path / "ev", "--quiet")
     assert r.returncode == 1 and reason in r.stderr, r.stderr
     assert not (tmp_path / "ev").exists()
+
+
+# ----------------------------------------------------------------------------- issue 24, item 3
+def _edited(tmp_path, key, fn):
+    """A copy of one of the fixture's files with ``fn(h5 file)`` applied; returns {key: path}."""
+    src = files()[key]
+    dst = tmp_path / src.name
+    shutil.copy(src, dst)
+    dst.chmod(0o644)
+    with h5py.File(dst, "r+") as h:
+        fn(h)
+    return {key: dst}
+
+
+def _replace(h, name, value):
+    del h[name]
+    h[name] = value
+
+
+def _cal(fn):
+    def edit(h):
+        d = h["ImageCalibration/display_values"][()]
+        c = h["ImageCalibration/camera_values"][()]
+        d, c = fn(d, c)
+        _replace(h, "ImageCalibration/display_values", d)
+        _replace(h, "ImageCalibration/camera_values", c)
+    return edit
+
+
+def _fringes_16_bit(h):
+    g = "MeasurementSofastFringe/"
+    _replace(h, g + "fringe_images", h[g + "fringe_images"][()].astype(np.uint16) * 257)
+    _replace(h, g + "mask_images", h[g + "mask_images"][()].astype(np.uint16) * 257)
+
+
+def _focal(h):
+    K = h["Camera/intrinsic_mat"][()]
+    K[0, 0] = K[1, 1] = 0.69  # px (OpenCV reads K as it stands)
+    _replace(h, "Camera/intrinsic_mat", K)
+
+
+def _dark_mask(h):
+    m = h["MeasurementSofastFringe/mask_images"][()]
+    m[..., 1] = m[..., 0]  # the "light" image is the dark one: no pixel lit
+    _replace(h, "MeasurementSofastFringe/mask_images", m)
+
+
+@pytest.mark.parametrize("key, edit, expect", [
+    ("measurement", _fringes_16_bit, "ImageCalibration/camera_values reach 234.408, but the fringe images of"),
+    ("calibration", _cal(lambda d, c: (d, c * 256)), "ImageCalibration/camera_values reach 60008.4, beyond the 8-bit"),
+    ("calibration", _cal(lambda d, c: (d[:1], c[:1])), "1 finite level(s); at least two expected"),
+    ("calibration", _cal(lambda d, c: (d[::-1], c[::-1])), "are they reversed?"),
+    ("camera", _focal, "fx = 0.69 px, fy = 0.69 px: a field of view of 179."),
+    ("measurement", _dark_mask, "mask_images has 0 lit pixel(s)"),
+], ids=["16-bit-fringes-8-bit-calibration", "calibration-x256", "one-level", "reversed-levels", "focal-0.69px",
+        "no-lit-pixel"])
+def test_import_refuses_what_evaluate_cannot_use(tmp_path, key, edit, expect):
+    """Issue 24: five broken imports exited 0 and failed later in `evaluate` with errors naming
+    pmdsim's own files; a dark mask gave an `All-NaN slice` traceback. Each now fails at import
+    (exit 2, one line) naming the input file and the key; nothing is written."""
+    over = _edited(tmp_path, key, edit)
+    f = files(**over)
+    r = cli("import", "sofast", "--measurement", f["measurement"], "--camera", f["camera"], "--display", f["display"],
+            "--orientation", f["orientation"], "--calibration", f["calibration"], "--facet", f["facet"],
+            "--out", tmp_path / "imp")
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("pmdsim: error:")]
+    assert r.returncode == 2 and len(errors) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert str(over[key]) in errors[0] and expect in errors[0], errors[0]
+    assert not (tmp_path / "imp").exists()

@@ -142,18 +142,26 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
                 else f"{shape.kind} (closed form, exact: no interpolation)" if hasattr(shape, "kind")
                 else f"height map {shape.file!r}")
         click.echo(f"sample: {what}", err=True)
-    from .studies.checks import setup_findings  # coverage, clipping, periods (issue 11)
+    n_warn = _setup_checks(setup)
+    click.echo(f"setup OK: cameras {', '.join(setup.cameras)}"
+               + (f" ({n_warn} warning{'s' if n_warn > 1 else ''} above)" if n_warn else "")
+               + "; use --show to print it", err=True)
+
+
+def _setup_checks(setup: Setup, info: bool = True) -> int:
+    """The setup's findings (coverage, clipping, periods; issue 11) — the same for `setup --setup`
+    and `simulate`: printed, exit 2 on a fatal one. Returns the number of warnings."""
+    from .studies.checks import setup_findings
 
     findings = setup_findings(setup)
     for f in findings:
+        if f.level == "info" and not info:
+            continue
         prefix = {"fatal": "pmdsim: error: ", "warning": "pmdsim: warning: ", "info": "  "}[f.level]
         click.echo(prefix + f.message, err=True)
     if any(f.level == "fatal" for f in findings):
         sys.exit(2)
-    n_warn = sum(f.level == "warning" for f in findings)
-    click.echo(f"setup OK: cameras {', '.join(setup.cameras)}"
-               + (f" ({n_warn} warning{'s' if n_warn > 1 else ''} above)" if n_warn else "")
-               + "; use --show to print it", err=True)
+    return sum(f.level == "warning" for f in findings)
 
 
 def _setup_source(setup_path: str | None) -> str:
@@ -182,6 +190,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
     from .studies.jobs import simulate_to_dir, simulation_steps
 
     setup = _load(setup_path, bulge_mm)
+    _setup_checks(setup, info=False)  # as `setup --setup` does: refuse before writing, warn
     steps = simulation_steps(setup if calibration_pose is None else setup.with_mirror_pose(calibration_pose))
     with _bar(steps, "simulating", quiet) as bar:
         summary = simulate_to_dir(setup, out_dir, force=force, command=_command(), calibration_pose=calibration_pose,
@@ -233,6 +242,14 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
 
+    import math
+
+    for opt, v in (("--seed-height-mm", seed_height_mm), ("--anchor-distance-mm", anchor_distance_mm),
+                   ("--anchor-pixel", anchor_pixel), ("--anchor-point-mm", anchor_point_mm),
+                   ("--noise-std", noise_std), ("--search-range-mm", search_range_mm)):
+        if v is not None and not all(math.isfinite(x) for x in (v if isinstance(v, tuple) else (v,))):
+            raise click.BadParameter(f"{opt} must be finite, got {' '.join(str(x) for x in (v if isinstance(v, tuple) else (v,)))} "
+                                     "(NaN or infinity is no height, distance or noise)")
     given = [anchor_distance_mm is not None, anchor_pixel is not None, anchor_point_mm is not None]
     if any(given) and not all(given):
         raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
@@ -395,6 +412,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 
     from .io.outputs import check_output_target
 
+    _refuse_inapplicable(number)
     base = _load(setup_path, None)
     check_output_target(out_dir, force=force, inputs=_inputs(setup_path, base), kind="dir")  # before hours of computing
     from .studies.checks import check_memory
@@ -494,10 +512,33 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
         sys.exit(1)
 
 
+#: The experiment options and the experiments they apply to (the others refuse them, issue 24).
+_EXPERIMENT_OPTIONS = {"bulges_mm": ("1", "2", "3", "5"), "seed": ("2", "4", "5"), "write_images": ("1",),
+                       "grids": ("3",), "deformations": ("3",), "mirror_sags_um": ("3",), "sag_bulge_mm": ("3",),
+                       "effects": ("4",)}
+
+
+def _refuse_inapplicable(number: str) -> None:
+    """Refuse an option given on the command line that experiment ``number`` does not use
+    (e.g. ``experiment 1 --grids 3``): it would be silently ignored."""
+    ctx = click.get_current_context()
+    if number not in {n for ns in _EXPERIMENT_OPTIONS.values() for n in ns}:
+        return  # an experiment this table does not describe
+    for name, applies in _EXPERIMENT_OPTIONS.items():
+        if number in applies or ctx.get_parameter_source(name) in (None, click.core.ParameterSource.DEFAULT):
+            continue
+        opt = "--" + name.replace("_", "-")
+        raise click.UsageError(f"{opt} does not apply to experiment {number} (it is an option of experiment"
+                               f"{'s' if len(applies) > 1 else ''} {', '.join(applies)}); drop it")
+
+
 def _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet) -> None:
     from .studies.experiment4 import EFFECTS, experiment4_steps, write_experiment4
 
     names = list(EFFECTS) if effects is None else [e.strip() for e in effects.split(",") if e.strip()]
+    twice = sorted({e for e in names if names.count(e) > 1})
+    if twice:
+        raise click.BadParameter(f"--effects lists {', '.join(twice)} more than once; give each effect once")
     bad = [e for e in names if e not in EFFECTS]
     if bad or not names:
         raise click.BadParameter(f"--effects: unknown {bad}; expected some of {list(EFFECTS)}" if bad
@@ -518,6 +559,10 @@ def _parse_list(text: str, kind, option: str) -> list:
         raise click.BadParameter(f"{option} must be comma-separated {what}, got {text!r}") from None
     if not values:
         raise click.BadParameter(f"{option} lists no value")
+    twice = sorted({v for v in values if values.count(v) > 1})
+    if twice:
+        raise click.BadParameter(f"{option} lists {', '.join(f'{v:g}' for v in twice)} more than once "
+                                 f"(each would be a duplicate row); give each value once")
     return values
 
 

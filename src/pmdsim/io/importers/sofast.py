@@ -63,6 +63,9 @@ CAMERA_NAME = "camera"
 #: Plausible SOFAST lengths (metres): a display 0.05 … 100 m wide, distances below 1 km.
 _DISPLAY_RANGE_M = (0.05, 100.0)
 _MAX_DISTANCE_M = 1000.0
+#: The widest field of view (deg, per image axis) an imported camera may have: pmdsim's pinhole
+#: + Brown–Conrady model is not a fisheye's, and a focal length of a pixel or less is a unit mistake.
+_MAX_FIELD_OF_VIEW_DEG = 150.0
 
 
 class SofastImportError(PmdsimError, ValueError):
@@ -153,6 +156,13 @@ def read_sofast_camera(path, *, image_size_px=None) -> tuple[Camera, list[str]]:
             f"{src}: the camera model is for {w}×{h} px images, but the measurement's images are "
             f"{image_size_px[0]}×{image_size_px[1]} px; use the camera file at the measurement's resolution "
             f"(SOFAST's camera_sofast_downsampled.h5 for downsampled measurements)")
+    fov = [2.0 * math.degrees(math.atan(0.5 * n / f)) if f > 0 else 180.0 for n, f in ((w, K[0, 0]), (h, K[1, 1]))]
+    if max(fov) > _MAX_FIELD_OF_VIEW_DEG:
+        raise SofastImportError(
+            f"{src}: Camera/intrinsic_mat has fx = {K[0, 0]:g} px, fy = {K[1, 1]:g} px: a field of view of "
+            f"{fov[0]:.1f}° × {fov[1]:.1f}° over the {w}×{h} px image (at most {_MAX_FIELD_OF_VIEW_DEG:g}° "
+            f"expected of a pinhole camera with OpenCV's distortion); focal lengths are in pixels — was it given in "
+            f"millimetres or for another resolution?")
     cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                  float(k[0]), float(k[1]), float(k[2]), float(k[3]), float(k[4]))
     return cam, warn
@@ -266,6 +276,8 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
     from scipy import ndimage
 
     delta = light.astype(float) - dark.astype(float)
+    if not np.all(np.isfinite(delta)) or np.ptp(delta) <= 0:  # no pixel lighter than another: none lit
+        return np.zeros(delta.shape, bool)
     hist, edges = np.histogram(delta, bins=256)
     centres = 0.5 * (edges[:-1] + edges[1:])
     w0 = np.cumsum(hist)
@@ -275,6 +287,8 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
         mu0 = m0 / w0
         mu1 = (m0[-1] - m0) / w1
         between = w0 * w1 * (mu0 - mu1) ** 2
+    if not np.any(np.isfinite(between)):
+        return np.zeros(delta.shape, bool)
     otsu = centres[int(np.nanargmax(between))]
     # A pixel is lit when the light covers more than half of it: threshold halfway between the
     # dark and the lit level (the means of the two Otsu classes), so that the region's edge is
@@ -587,6 +601,53 @@ def _check_screen_faces_optic(r_cs: np.ndarray, s_world: np.ndarray, p_opt: np.n
            "is it a rotation vector in radians mapping camera to display coordinates (SOFAST's convention)?"))
 
 
+#: The fewest lit pixels a measurement's mask may have (a surface fit needs a region, not a point).
+_MIN_LIT_PIXELS = 16
+
+
+def _check_calibration(calibration, dv: np.ndarray, cv: np.ndarray, fringes: np.ndarray, measurement) -> None:
+    """Refuse an image calibration ``evaluate`` cannot use, naming the file and the key: fewer
+    than two levels, levels that decrease (reversed), display values outside 0…255, or camera
+    values on another scale than the fringe images (an 8-bit calibration for 16-bit fringes, or
+    one scaled ×256: the fringes' lit level far beyond or far below its brightest camera value)."""
+    src = f"{str(calibration)!r}"
+    if dv.size != cv.size:
+        raise SofastImportError(f"{src}: ImageCalibration/display_values has {dv.size} levels but camera_values "
+                                f"{cv.size}; one camera value per display value expected")
+    if dv.size < 2 or not (np.all(np.isfinite(dv)) and np.all(np.isfinite(cv))):
+        raise SofastImportError(f"{src}: ImageCalibration/display_values, camera_values hold {dv.size} finite "
+                                f"level(s); at least two expected (the display → camera response is interpolated "
+                                f"between them)")
+    if np.all(np.diff(dv) < 0) or (np.all(np.diff(cv) < 0) and np.all(np.diff(dv) <= 0)):
+        raise SofastImportError(f"{src}: ImageCalibration/display_values and camera_values decrease "
+                                f"({dv[0]:g} … {dv[-1]:g}, {cv[0]:g} … {cv[-1]:g}); SOFAST writes them in increasing "
+                                f"order — are they reversed?")
+    if np.any(np.diff(dv) <= 0):
+        raise SofastImportError(f"{src}: ImageCalibration/display_values must increase, got {dv.tolist()}")
+    if np.count_nonzero(np.diff(cv) > 0) < 1:
+        raise SofastImportError(f"{src}: ImageCalibration/camera_values do not increase with the display value "
+                                f"({cv.tolist()}); a camera that does not respond to the display cannot be linearised")
+    if dv.min() < 0 or dv.max() > 255:
+        raise SofastImportError(f"{src}: ImageCalibration/display_values span {dv.min():g} … {dv.max():g}; SOFAST's "
+                                f"display levels are 0 … 255")
+    full = 255.0 if fringes.dtype == np.uint8 else 65535.0
+    if cv.max() > full:
+        raise SofastImportError(f"{src}: ImageCalibration/camera_values reach {cv.max():g}, beyond the "
+                                f"{'8' if full == 255 else '16'}-bit fringe images' full scale {full:g}: a calibration "
+                                f"of another camera setting, or scaled (×256)?")
+    lit_level = float(np.percentile(fringes.max(axis=-1), 99))  # the brightest fringe samples
+    top = float(cv.max())
+    if lit_level > 4.0 * top and lit_level > 255:
+        raise SofastImportError(
+            f"{src}: ImageCalibration/camera_values reach {top:g}, but the fringe images of "
+            f"{str(measurement)!r} (MeasurementSofastFringe/fringe_images) reach {lit_level:g} ({fringes.dtype}): the calibration is on another scale (an 8-bit calibration "
+            f"for 16-bit images?); every fringe sample would be above its brightest level (saturated)")
+    if top > 4.0 * max(lit_level, 1.0):
+        raise SofastImportError(
+            f"{src}: ImageCalibration/camera_values reach {top:g}, but the fringe images of "
+            f"{str(measurement)!r} (MeasurementSofastFringe/fringe_images) reach only {lit_level:g}: the calibration is on another scale (scaled ×256, or for 16-bit images?)")
+
+
 def import_sofast(*, measurement, camera, display, orientation, calibration, facet=None, out_dir,
                   force: bool = False, command: str | None = None) -> SofastImportSummary:
     """Import a SOFAST fringe measurement (module docstring) into ``out_dir``.
@@ -636,6 +697,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     ctype = _optional(calibration, "ImageCalibration/calibration_type")
     dv = np.asarray(cal["d"], dtype=float).ravel()
     cv = np.asarray(cal["c"], dtype=float).ravel()
+    _check_calibration(calibration, dv, cv, fr, measurement)
     keep = np.concatenate([[True], np.diff(cv) > 0])
     if not keep.all():
         warn.append(f"{str(calibration)!r}: dropped {int((~keep).sum())} grey level(s) whose camera value does not "
@@ -680,6 +742,10 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
         raise SofastImportError(f"{src_m}: mask_images must be (H, W, 2) (dark, light) like the fringes, got "
                                 f"{mask_imgs.shape}")
     mask = _mask(mask_imgs[..., 0], mask_imgs[..., 1])
+    if mask.sum() < _MIN_LIT_PIXELS:
+        raise SofastImportError(f"{src_m}: MeasurementSofastFringe/mask_images has {int(mask.sum())} lit pixel(s) "
+                                f"(light − dark above the dark level); at least {_MIN_LIT_PIXELS} expected: are the "
+                                f"dark and light images (…, 0) and (…, 1) in that order, and was the display on?")
     vv, uu = np.nonzero(mask)
     pix = (float(vv.mean()), float(uu.mean()))
     anchor_how = "the mask centroid (no --facet)"
