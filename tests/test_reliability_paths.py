@@ -320,3 +320,110 @@ def test_nan_seed_height_is_named_nan(tmp_path, pose_dirs):
     r = run("evaluate", pose_dirs[0], "--out", tmp_path / "ev", "--seed-height-mm", "nan", "--quiet")
     line = one_error_line(r.stderr)
     assert r.returncode == 2 and "--seed-height-mm must be finite, got nan" in line
+
+
+# ----------------------------------------------------------------------------- item 5: signals, long paths
+def _defaults() -> None:
+    """In the child: SIGINT, SIGTERM and SIGHUP at their defaults (as in an interactive shell;
+    a background runner may start a child with some of them ignored)."""
+    import signal
+
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
+
+
+def _caught(pid: int, sig: int) -> bool:
+    """``sig`` among the caught signals of ``pid`` (/proc/PID/status SigCgt): pmdsim's handler is in."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) >> (sig - 1) & 1)
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return False
+
+
+def _wait(pred, timeout: float = 90.0) -> bool:
+    import time
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+@pytest.fixture(scope="module")
+def mid_setup(tmp_path_factory):
+    """Table 1 binned 4× (480 × 300 px): a simulate run of a few seconds."""
+    from pmdsim.setup import default_setup
+
+    p = tmp_path_factory.mktemp("mid") / "mid.toml"
+    p.write_text(default_setup().binned(4).to_toml(), encoding="utf-8")
+    return p
+
+
+def test_sighup_is_handled_like_sigterm(tmp_path, mid_setup):
+    """Issue 24: SIGHUP (the terminal closed) left `.o.lock` and `.o.partial-*`. Sent to a
+    `pmdsim simulate` that is writing images: exit 129, one line, nothing left beside the output."""
+    import signal
+
+    out = tmp_path / "o"
+    p = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "simulate", "--setup", str(mid_setup), "--out",
+                          str(out), "--quiet"], stderr=subprocess.PIPE, text=True, preexec_fn=_defaults)
+    try:
+        assert _wait(lambda: any(d.is_dir() and any(d.glob("*.png")) for d in tmp_path.glob(".o.partial-*"))
+                     or p.poll() is not None)
+        assert p.poll() is None
+        p.send_signal(signal.SIGHUP)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 129, err
+    assert err.strip().splitlines() == ["pmdsim: interrupted (SIGHUP): no output written, an existing output is "
+                                        "unchanged"], err
+    assert sorted(q.name for q in tmp_path.iterdir()) == []  # no .o.lock, no .o.partial-*, no o
+
+
+def test_ctrl_c_while_kernels_load_gives_one_line(tmp_path, mid_setup):
+    """Issue 24: Ctrl-C while numba loads its kernels printed "Exception ignored …" in 1 of 25
+    runs. SIGINT at seeded random times in the first second after the handlers are in (imports,
+    kernel loading): every run ends 130 with exactly one line, nothing left behind."""
+    import random
+    import signal
+    import time
+
+    rng = random.Random(24)
+    for k in range(8):
+        work = tmp_path / f"t{k}"
+        work.mkdir()
+        p = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "simulate", "--setup", str(mid_setup), "--out",
+                              str(work / "o"), "--quiet"], stderr=subprocess.PIPE, text=True, preexec_fn=_defaults)
+        try:
+            assert _wait(lambda: _caught(p.pid, signal.SIGINT) or p.poll() is not None)
+            time.sleep(rng.uniform(0.0, 1.0))
+            p.send_signal(signal.SIGINT)
+            _, err = p.communicate(timeout=120)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+        assert p.returncode == 130 and len(err.strip().splitlines()) == 1, (k, err)
+        assert "Exception ignored" not in err and "Traceback" not in err
+        assert list(work.iterdir()) == []
+
+
+@pytest.mark.parametrize("how", ["name", "path"])
+def test_over_long_output_names_and_paths(tmp_path, how):
+    """Issue 24: an --out name over 255 bytes or a path over 4096 gave a traceback. Now one line
+    naming the limit, for every command that writes (simulate, calibrate, import, experiment)."""
+    out = tmp_path / ("é" * 130 if how == "name" else "/".join(["d" * 200] * 21))  # 260 bytes / 4200+ bytes
+    expect = "is 260 bytes long" if how == "name" else "output path is"
+    for args in (["simulate", "--out", out], ["calibrate", tmp_path, "--out", out],
+                 ["experiment", "1", "--out", out], ["evaluate", tmp_path, "--out", out]):
+        r = run(*args, "--quiet")
+        assert r.returncode == 2 and expect in one_error_line(r.stderr), (args, r.stderr)
+    assert list(tmp_path.iterdir()) == []

@@ -9,8 +9,8 @@
     pmdsim experiment 1|2|3|4|5 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
-Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT and SIGTERM
-abort cleanly (:mod:`pmdsim.interrupts`): exit code 130 / 143, no output written. Nothing
+Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT, SIGTERM and
+SIGHUP abort cleanly (:mod:`pmdsim.interrupts`): exit code 130 / 143 / 129, no output written. Nothing
 heavy (numba, numpy kernels) is imported before a command runs: ``--version`` and ``--help``
 compile nothing. The work is done by
 :mod:`pmdsim.studies.jobs` (one measurement, disk to disk) and :mod:`pmdsim.studies.runs`
@@ -74,7 +74,7 @@ class _Group(click.Group):
         # the previous handlers back; the command-line process keeps them until it exits, so
         # that a signal during the interpreter's shutdown is not reported as "Exception ignored".
         interrupts.reset()
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        old = {s: signal.getsignal(s) for s in interrupts.SIGNALS}
         interrupts.install()
         log = logging.getLogger("pmdsim")
         note = logging.StreamHandler(sys.stderr)

@@ -174,6 +174,41 @@ def _check_writable_location(target: Path) -> None:
                               "choose another output path")
 
 
+#: Room a name needs beside it for the hidden partial/lock names: ``.{name}.partial-{pid}-{8 hex}``.
+_PARTIAL_EXTRA = len(".") + len(".partial-") + 10 + 1 + 8
+
+
+def _check_path_length(target: Path) -> None:
+    """Refuse a name or path the file system cannot hold, before anything is created: a name
+    (with its hidden partial's suffix) longer than the file system's NAME_MAX bytes (255 on
+    Linux) or a path longer than PATH_MAX (4096) — instead of an ``OSError`` traceback later."""
+    name_max, path_max = 255, 4096  # Linux's; the file system's own where it can be asked
+    a = _parent(target).absolute()
+    while a != a.parent:
+        try:
+            if a.is_dir():
+                name_max = os.pathconf(a, "PC_NAME_MAX")
+                path_max = os.pathconf(a, "PC_PATH_MAX")
+                break
+        except (OSError, ValueError):  # a component too long to even look up
+            pass
+        a = a.parent
+    full = os.fsencode(str(target.absolute()))
+    if len(full) + _PARTIAL_EXTRA >= path_max:
+        raise OutputPathError(f"output path is {len(full)} bytes long ({str(target)[:60]!r}…); the file system takes "
+                              f"paths of at most {path_max} bytes (with room for pmdsim's hidden partial names: "
+                              f"{path_max - _PARTIAL_EXTRA - 1}) — choose a shorter output path")
+    for part in target.absolute().parts:
+        n = len(os.fsencode(part))
+        limit = name_max - _PARTIAL_EXTRA if part == target.name else name_max
+        if n > limit:
+            raise OutputPathError(f"output name {part[:40]!r}… is {n} bytes long; the file system takes names of at "
+                                  f"most {name_max} bytes"
+                                  + (f", and pmdsim needs {_PARTIAL_EXTRA} of them for its hidden partial output "
+                                     f"beside it: at most {limit}" if part == target.name else "")
+                                  + " — choose a shorter output name")
+
+
 def check_output_target(target: str | Path, *, force: bool = False, inputs: Iterable[str | Path] = (),
                         kind: str = "file") -> None:
     """Check an output path before a long computation, so that it does not fail only when writing.
@@ -196,6 +231,7 @@ def check_output_target(target: str | Path, *, force: bool = False, inputs: Iter
         ``target`` cannot be created (under a regular file, read-only or unwritable directory).
     """
     target = Path(target)
+    _check_path_length(target)
     if target.name in ("", ".", "..") or Path.cwd().resolve().is_relative_to(target.resolve()):
         raise OutputExistsError(
             f"output {str(target)!r} is the current directory or one of its parents; name a new "
@@ -422,6 +458,7 @@ def reused_output_dir(target: str | Path, *, inputs: Iterable[str | Path] = (),
     """
     target = Path(target)
     inputs = list(inputs)
+    _check_path_length(target)
     if target.exists() and not target.is_dir():
         raise OutputExistsError(f"output {str(target)!r} exists and is not a directory; choose another output path")
     if target.is_dir() and any(target.iterdir()) and read_marker(target) is None:
