@@ -427,3 +427,50 @@ def test_over_long_output_names_and_paths(tmp_path, how):
         r = run(*args, "--quiet")
         assert r.returncode == 2 and expect in one_error_line(r.stderr), (args, r.stderr)
     assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- item 6: messages
+def _edited_manifest(tmp_path, src, edit):
+    import shutil
+
+    d = tmp_path / "img"
+    shutil.copytree(src, d)
+    m = json.loads((d / "manifest.json").read_text())
+    for e in m["images"]:
+        edit(e)
+    (d / "manifest.json").write_text(json.dumps(m))
+    return d
+
+
+def test_swapped_directions_and_reversed_order_are_named(tmp_path, stereo_set):
+    """Issue 24: x/y swapped said only "the coarsest period 420 mm is shorter than the screen's
+    width"; one period's shifts in reverse order said "period 2 mm disagrees with the 48 mm
+    period". Each message now names the likely mistake (checked: the hint for the reversed order
+    is given only when that period agrees in reverse order)."""
+    d, setup_file = stereo_set
+
+    def swap(e):
+        e["direction"] = {"x": "y", "y": "x"}[e["direction"]]
+
+    img = _edited_manifest(tmp_path / "a", d / "img", swap)
+    r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / "ev_a", "--quiet")
+    assert r.returncode == 2 and "the x and y directions look swapped" in one_error_line(r.stderr), r.stderr
+
+    finest = max(e["period_index"] for e in json.loads((d / "img" / "manifest.json").read_text())["images"])
+
+    def reverse(e):
+        if e["direction"] == "x" and e["period_index"] == finest and e["shift_index"] in (1, 3):
+            e["shift_index"] = 4 - e["shift_index"]
+
+    img = _edited_manifest(tmp_path / "b", d / "img", reverse)
+    r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / "ev_b", "--quiet")
+    line = one_error_line(r.stderr)
+    assert r.returncode == 1 and "disagrees" in line and "shift order (shift_index in the manifest) looks reversed" in line
+
+    def shuffle(e):  # a wrong period, not a reversed order: no such hint
+        if e["direction"] == "x" and e["period_index"] == finest:
+            e["period_mm"] = e["period_mm"] * 1.5
+
+    img = _edited_manifest(tmp_path / "c", d / "img", shuffle)
+    r = run("evaluate", img, "--setup", setup_file, "--out", tmp_path / "ev_c", "--quiet")
+    assert r.returncode == 1 and "looks reversed" not in r.stderr, r.stderr

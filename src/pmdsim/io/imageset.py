@@ -797,10 +797,15 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     for i, direction in enumerate(DIRECTIONS):
         p0 = images.periods_mm(direction)[0]
         if p0 < size[i]:
+            other = images.periods_mm(DIRECTIONS[1 - i])[0]
+            swapped = p0 >= size[1 - i] and other >= size[i]  # each would cover the other extent
             raise ImageSetError(
                 f"camera {images.camera!r}, direction {direction!r}: the coarsest period {p0:g} mm is shorter "
                 f"than the screen's {'width' if i == 0 else 'height'} {size[i]:g} mm; absolute (hierarchical) "
                 f"unwrapping needs a coarsest period of at least the screen extent"
+                + (f" — the x and y directions look swapped: the {direction} periods fit the screen's "
+                   f"{'height' if i == 0 else 'width'} and the {DIRECTIONS[1 - i]} periods ({other:g} mm coarsest) its "
+                   f"{'width' if i == 0 else 'height'}; check each image's direction in the manifest" if swapped else "")
             )
     if response is None:
         return decode_screen_coordinates(

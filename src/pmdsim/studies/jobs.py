@@ -45,7 +45,7 @@ from ..io import (
 )
 from ..io.hdf5 import write_consistency_h5
 from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
-from ..io.imageset_instrument import apply_mask_and_map
+from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
 from ..calibration.diagnostics import residual_report
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
 from .checks import check_memory
@@ -328,8 +328,6 @@ def _decode_checked(manifest, setup: Setup, cam: str, noise_std, image_dir, run_
 
     Raises :class:`ConsistencyFailure` when pixels were tested and none passed.
     """
-    from ..io.imageset_instrument import consistency_stacks
-
     inst = manifest.instrument
     c = setup.cameras[cam].camera
     images = load_camera_stacks(manifest, cam, expected_size_px=(c.width_px, c.height_px))
@@ -345,11 +343,40 @@ def _decode_checked(manifest, setup: Setup, cam: str, noise_std, image_dir, run_
                              expected_xy_mm=expected)
     decoded = with_consistency(decoded, cons)
     if not decoded.valid.any() and cons.tested.any():
+        hint = _reversed_order_hint(images, inst, setup, cons, noise_std, expected, lit=(decoded.flags & photometric) == 0)
         raise ConsistencyFailure(
             f"{cam}: no pixel of {image_dir} passed the consistency checks; "
             + "; ".join(_name_files(r, manifest, cam, cons.images) for r in cons.reasons(2))
-            + "; nothing written")
+            + hint + "; nothing written")
     return decoded, cons
+
+
+def _reversed_order_hint(images, inst, setup: Setup, cons, noise_std, expected, lit) -> str:
+    """For each period that disagrees with the coarser one as a whole: does it agree with its
+    shifts taken in reverse order (δ_k → −δ_k negates its phase)? Then say so — a reversed shift
+    order, not a wrong period. Runs only on the failure path (one more decode and check)."""
+    import dataclasses
+    import re
+
+    out = []
+    for m in re.finditer(r"direction (x|y), period ([0-9.e+-]+) mm disagrees", " ".join(cons.defects)):
+        direction, period = m.group(1), float(m.group(2))
+        periods = list(getattr(images, f"{direction}_periods_mm"))
+        k = min(range(len(periods)), key=lambda j: abs(periods[j] - period))
+        stacks = list(getattr(images, f"{direction}_stacks"))
+        st = np.asarray(stacks[k])
+        stacks[k] = np.concatenate([st[:1], st[:0:-1]])  # shifts 0, N−1, …, 1: the reverse order
+        trial = dataclasses.replace(images, **{f"{direction}_stacks": tuple(stacks)})
+        dec = decode_camera_images(trial, setup.screen.size_mm, noise_std, response=inst.response)
+        if inst.mask is not None or inst.screen_map is not None:
+            dec = apply_mask_and_map(dec, mask=inst.mask, screen_map=inst.screen_map)
+        xs, ys, noise, _ = consistency_stacks(trial, inst.response, noise_std, lit)
+        again = check_consistency(xs, trial.x_periods_mm, ys, trial.y_periods_mm, dec, setup.screen.size_mm, noise,
+                                  expected_xy_mm=expected)
+        if not any(f"direction {direction}, period {period:g} mm disagrees" in d for d in again.defects):
+            out.append(f"the {period:g} mm period of direction {direction} agrees when its shifts are taken in "
+                       f"reverse order: its images' shift order (shift_index in the manifest) looks reversed")
+    return ("; " + "; ".join(out)) if out else ""
 
 
 def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str | None = None,
