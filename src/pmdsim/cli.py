@@ -205,7 +205,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default=None,
               help="Surface integration. Default: the manifest's method (least_squares for imported real "
-                   "measurements), else stepwise.")
+                   "measurements), else stepwise. Not with --stereo.")
 @click.option("--screen-model", type=click.Choice(["planar", "setup"]), default=None,
               help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface. "
                    "Default: the manifest's screen_model, else planar.")
@@ -226,7 +226,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
               help="--stereo: heights searched along the view rays, sample frame (default: -20 20).")
 @click.option("--min-valid-fraction", type=click.FloatRange(0.0, 1.0), default=0.5, show_default=True,
               help="Fail (exit 1, outputs kept for inspection) when fewer of the pixels that see fringes are "
-                   "reconstructed (consistency checks: docs/reliability.md).")
+                   "reconstructed (consistency checks: docs/reliability.md); per camera, also with --stereo.")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
