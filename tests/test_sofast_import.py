@@ -781,3 +781,18 @@ def test_import_refuses_what_evaluate_cannot_use(tmp_path, key, edit, expect):
     assert r.returncode == 2 and len(errors) == 1 and "Traceback" not in r.stderr, r.stderr
     assert str(over[key]) in errors[0] and expect in errors[0], errors[0]
     assert not (tmp_path / "imp").exists()
+
+
+def test_import_out_holding_its_files_is_refused(tmp_path):
+    """Issue 24, item 1: the SOFAST files are the import's inputs; an output directory pmdsim
+    wrote (so --force would replace it) that holds one of them is refused, the file kept."""
+    out = tmp_path / "prev"
+    do_import(out)  # a pmdsim output
+    meas = out / "measurement_facet.h5"
+    shutil.copy(files()["measurement"], meas)
+    before = meas.read_bytes()
+    f = files(measurement=meas)
+    r = cli("import", "sofast", "--measurement", f["measurement"], "--camera", f["camera"], "--display", f["display"],
+            "--orientation", f["orientation"], "--calibration", f["calibration"], "--out", out, "--force")
+    assert r.returncode == 2 and "a parent of an input" in r.stderr and str(meas) in r.stderr, r.stderr
+    assert meas.read_bytes() == before
