@@ -1,9 +1,11 @@
 """Reliability on the paths added since issue 11 (issue 24; docs/reliability.md, "Issue 24").
 
-Each case is met the way a user meets it: a real ``python -m pmdsim.cli`` subprocess, real
-files and directories (their bytes are the truth: a refused command must leave them
-unchanged), real signals. The cases: outputs that touch an input (item 1), over-long paths
-and SIGHUP (item 5).
+Each case is met the way a user meets it: real files and directories (their bytes are the
+truth: a refused command must leave them unchanged), a real ``python -m pmdsim.cli``
+subprocess for the data-loss case, the stereo and curved-sample runs and real signals; refusals
+that happen before anything heavy run the CLI in-process (the same parsing and one-line error,
+no interpreter start-up). Items: outputs vs inputs (1), stereo (2), setups and options (4),
+signals and long paths (5), messages (6), curved samples (7).
 """
 
 from __future__ import annotations
@@ -23,6 +25,25 @@ from pmdsim.io.outputs import MARKER_NAME
 def run(*args, timeout: float = 120, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "pmdsim.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=cwd)
+
+
+class _Run:
+    def __init__(self, returncode: int, stdout: str, stderr: str):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+def cli(*args) -> _Run:
+    """``pmdsim ARGS`` in-process (parsing, checks and one-line errors; no interpreter start-up):
+    for the refusals, which happen before anything heavy. Signals and exit codes of a real
+    process are tried with :func:`run`."""
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return _Run(r.exit_code, r.stdout, r.stderr)
 
 
 def snapshot(d: Path) -> dict[str, bytes]:
@@ -67,7 +88,7 @@ def test_calibrate_out_inside_an_input_directory_is_refused(tmp_path, pose_dirs,
 
 def test_evaluate_out_inside_its_image_set_is_refused(tmp_path, pose_dirs):
     before = snapshot(tmp_path / "calx")
-    r = run("evaluate", pose_dirs[0], "--out", pose_dirs[0] / "ev", "--quiet")
+    r = cli("evaluate", pose_dirs[0], "--out", pose_dirs[0] / "ev", "--quiet")
     assert r.returncode == 2 and "inside an input" in one_error_line(r.stderr)
     assert snapshot(tmp_path / "calx") == before and not (pose_dirs[0] / "ev").exists()
 
@@ -78,19 +99,19 @@ def test_force_is_suggested_only_where_it_is_accepted(tmp_path, pose_dirs):
     user = tmp_path / "mine"
     user.mkdir()
     (user / "notes.txt").write_text("keep\n", encoding="utf-8")
-    r = run("evaluate", pose_dirs[0], "--out", user, "--quiet")
+    r = cli("evaluate", pose_dirs[0], "--out", user, "--quiet")
     line = one_error_line(r.stderr)
     assert r.returncode == 2 and "--force" in line and "pass --force" not in line and "not a pmdsim output" in line
-    r = run("evaluate", pose_dirs[0], "--out", user, "--quiet", "--force")  # and indeed --force is refused
+    r = cli("evaluate", pose_dirs[0], "--out", user, "--quiet", "--force")  # and indeed --force is refused
     assert r.returncode == 2 and (user / "notes.txt").read_text() == "keep\n"
 
     ours = tmp_path / "ours"
     ours.mkdir()
     (ours / MARKER_NAME).write_text(json.dumps({"format": "pmdsim-output"}), encoding="utf-8")
-    r = run("evaluate", pose_dirs[0], "--out", ours, "--quiet")
+    r = cli("evaluate", pose_dirs[0], "--out", ours, "--quiet")
     assert r.returncode == 2 and "pass --force to replace it" in one_error_line(r.stderr)
 
-    r = run("evaluate", pose_dirs[0], "--out", pose_dirs[0], "--quiet")  # the input itself
+    r = cli("evaluate", pose_dirs[0], "--out", pose_dirs[0], "--quiet")  # the input itself
     line = one_error_line(r.stderr)
     assert r.returncode == 2 and "is an input" in line and "pass --force" not in line
 
@@ -102,14 +123,14 @@ def test_output_containing_or_through_a_link_to_an_input(tmp_path, pose_dirs):
     ours.mkdir()
     (ours / MARKER_NAME).write_text(json.dumps({"format": "pmdsim-output"}), encoding="utf-8")
     setup = ours / "setup.toml"
-    r = run("setup", "--show")
+    r = cli("setup", "--show")
     setup.write_text(r.stdout, encoding="utf-8")
     before = snapshot(ours)
-    r = run("evaluate", pose_dirs[0], "--setup", setup, "--out", ours, "--force", "--quiet")
+    r = cli("evaluate", pose_dirs[0], "--setup", setup, "--out", ours, "--force", "--quiet")
     assert r.returncode == 2 and "a parent of an input" in one_error_line(r.stderr)
     link = tmp_path / "link"
     link.symlink_to(pose_dirs[0])
-    r = run("calibrate", pose_dirs[0], "--out", link / "cal.toml", "--force", "--quiet")
+    r = cli("calibrate", pose_dirs[0], "--out", link / "cal.toml", "--force", "--quiet")
     assert r.returncode == 2 and "inside an input" in one_error_line(r.stderr)
     assert snapshot(ours) == before
 
@@ -243,7 +264,7 @@ def test_reversed_shift_order_on_a_concave_sample_is_still_caught(tmp_path):
 
 # ----------------------------------------------------------------------------- item 4: setups
 def _show() -> str:
-    r = run("setup", "--show")
+    r = cli("setup", "--show")
     assert r.returncode == 0, r.stderr
     return r.stdout
 
@@ -265,22 +286,22 @@ def test_bulge_and_heights_must_agree(tmp_path):
     both = text.replace("bulge_mm = 0.0\n", "bulge_mm = 0.0\n" + heights, 1)
     f = tmp_path / "both.toml"
     f.write_text(both, encoding="utf-8")
-    r = run("setup", "--setup", f)
+    r = cli("setup", "--setup", f)
     line = one_error_line(r.stderr)
     assert r.returncode == 2 and "screen.bulge_mm = 0" in line and "heights_mm" in line and "2.5" in line
-    r = run("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
+    r = cli("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
     assert r.returncode == 2 and not (tmp_path / "sim").exists()
 
     f.write_text(text.replace("bulge_mm = 0.0\n", heights, 1), encoding="utf-8")  # bulge_mm deleted
-    r = run("setup", "--setup", f, "--show")
+    r = cli("setup", "--setup", f, "--show")
     assert r.returncode == 0, r.stderr
     back = tomllib.loads(r.stdout)["screen"]
     assert back["heights_mm"][ny // 2][nx // 2] == 2.5 and "bulge_mm" not in back
     # --bulge-mm on top of heights_mm: written so that the two keys agree, and it loads again
-    r = run("setup", "--setup", f, "--bulge-mm", "3", "--show")
+    r = cli("setup", "--setup", f, "--bulge-mm", "3", "--show")
     g = tmp_path / "again.toml"
     g.write_text(r.stdout, encoding="utf-8")
-    r2 = run("setup", "--setup", g, "--show")
+    r2 = cli("setup", "--setup", g, "--show")
     assert r2.returncode == 0 and tomllib.loads(r2.stdout)["screen"]["heights_mm"][ny // 2][nx // 2] == 3.0, r2.stderr
 
 
@@ -295,7 +316,7 @@ def test_simulate_runs_the_setup_checks(tmp_path):
     short = text.replace(f"periods_x_mm = [{p['periods_x_mm'][0]}", "periods_x_mm = [100.0", 1)
     f = tmp_path / "short.toml"
     f.write_text(short, encoding="utf-8")
-    a, b = run("setup", "--setup", f), run("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
+    a, b = cli("setup", "--setup", f), cli("simulate", "--setup", f, "--out", tmp_path / "sim", "--quiet")
     assert a.returncode == b.returncode == 2
     assert one_error_line(a.stderr) == one_error_line(b.stderr) and "coarsest period 100 mm" in one_error_line(b.stderr)
     assert not (tmp_path / "sim").exists()
@@ -310,14 +331,14 @@ def test_simulate_runs_the_setup_checks(tmp_path):
     (["1", "--bulges-mm", "1,1"], "--bulges-mm lists 1 more than once"),
 ])
 def test_experiment_options_apply_or_are_refused(tmp_path, args, expect):
-    r = run("experiment", *args, "--out", tmp_path / "e", "--downsample", "16", "--quiet")
+    r = cli("experiment", *args, "--out", tmp_path / "e", "--downsample", "16", "--quiet")
     assert r.returncode == 2 and expect in one_error_line(r.stderr), r.stderr
     assert not (tmp_path / "e").exists()
 
 
 def test_nan_seed_height_is_named_nan(tmp_path, pose_dirs):
     """Issue 24: `--seed-height-mm nan` said "behind the camera"."""
-    r = run("evaluate", pose_dirs[0], "--out", tmp_path / "ev", "--seed-height-mm", "nan", "--quiet")
+    r = cli("evaluate", pose_dirs[0], "--out", tmp_path / "ev", "--seed-height-mm", "nan", "--quiet")
     line = one_error_line(r.stderr)
     assert r.returncode == 2 and "--seed-height-mm must be finite, got nan" in line
 
@@ -425,7 +446,7 @@ def test_over_long_output_names_and_paths(tmp_path, how):
     expect = "is 260 bytes long" if how == "name" else "output path is"
     for args in (["simulate", "--out", out], ["calibrate", tmp_path, "--out", out],
                  ["experiment", "1", "--out", out], ["evaluate", tmp_path, "--out", out]):
-        r = run(*args, "--quiet")
+        r = cli(*args, "--quiet")
         assert r.returncode == 2 and expect in one_error_line(r.stderr), (args, r.stderr)
     assert list(tmp_path.iterdir()) == []
 
