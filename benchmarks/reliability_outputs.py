@@ -14,7 +14,7 @@ files) and is classified:
 
 Usage (about 3–4 minutes on 2 loaded cores)::
 
-    PYTHONPATH=src nice python benchmarks/reliability_outputs.py [--trials N] [--seed S]
+    PYTHONPATH=src nice python benchmarks/reliability_outputs.py [--trials N] [--seed S] [--only issue24]
 
 Prints one line per case and the counts per category (docs/reliability.md).
 """
@@ -319,10 +319,214 @@ def environment_cases(c: Cases, w: Path, small: Path) -> None:
                   r.stderr.strip().splitlines()[0] if r.stderr else "")
 
 
+# ============================================================================ issue 24: the paths added since
+SOFAST = ROOT / "tests" / "data" / "sofast"
+
+
+def _sofast_files(w: Path, edit_measurement=None, edit_orientation=None, edit_calibration=None, edit_camera=None):
+    """The SOFAST fixture's files, with one of them edited in a copy (h5py)."""
+    import h5py
+
+    f = {"measurement": SOFAST / "measurement_facet.h5", "camera": SOFAST / "camera_sofast_downsampled.h5",
+         "display": SOFAST / "display_distorted_2d.h5", "orientation": SOFAST / "spatial_orientation.h5",
+         "calibration": SOFAST / "image_calibration.h5", "facet": SOFAST / "Facet_NSTTF.json"}
+    for key, fn in (("measurement", edit_measurement), ("orientation", edit_orientation),
+                    ("calibration", edit_calibration), ("camera", edit_camera)):
+        if fn is not None:
+            dst = w / f[key].name
+            shutil.copy(f[key], dst)
+            dst.chmod(0o644)
+            with h5py.File(dst, "r+") as h:
+                fn(h)
+            f[key] = dst
+    return f
+
+
+def _import(f, out):
+    return pmdsim("import", "sofast", *[a for k in ("measurement", "camera", "display", "orientation", "calibration",
+                                                    "facet") for a in (f"--{k}", f[k])], "--out", out)
+
+
+def _put(h, name, value):
+    del h[name]
+    h[name] = value
+
+
+def issue24_cases(c: Cases, w: Path, small: Path, mid: Path) -> None:
+    """Issue 24's cases: calibrate/evaluate outputs inside inputs, stereo with a black frame,
+    real SOFAST data with broken files, setups, experiment options, long paths, SIGHUP."""
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "src"))
+    from pmdsim.io.images import read_image, write_png
+    from pmdsim.setup import default_setup
+
+    def row(cat, case, good, r, ok_word="clear"):
+        c.add(cat, case, ok_word if good else "BAD", r.stderr.strip().splitlines()[-1] if r.stderr.strip() else "")
+
+    # --- item 1: no output touches an input
+    cat = "issue 24: outputs vs inputs"
+    for k in (0, 3):
+        d = w / "calx" / f"pose{k}"
+        d.mkdir(parents=True)
+        (d / "left_x_p0_s0.png").write_bytes(b"\x89PNG fake")
+        (d / "manifest.json").write_text("{}")
+    before = snapshot(w / "calx")
+    for victim in ("pose0/left_x_p0_s0.png", "pose3/manifest.json"):
+        r = pmdsim("calibrate", w / "calx" / "pose0", w / "calx" / "pose3", "--out", w / "calx" / victim, "--force",
+                   "--quiet")
+        row(cat, f"calibrate … --out calx/{victim} --force", r.returncode == 2 and "inside an input" in r.stderr
+            and snapshot(w / "calx") == before, r, "refused")
+    user = w / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep\n")
+    r = pmdsim("evaluate", w / "calx" / "pose0", "--out", user, "--quiet")
+    row(cat, "evaluate --out USERDIR (no --force): no --force hint", r.returncode == 2 and "pass --force" not in
+        r.stderr, r)
+
+    # --- item 2: stereo runs the checks; --method refused
+    cat = "issue 24: stereo"
+    s12 = w / "s12.toml"
+    s12.write_text(default_setup().binned(12).to_toml())
+    img = w / "st"
+    assert pmdsim("simulate", "--setup", s12, "--out", img, "--quiet").returncode == 0
+    m = json.loads((img / "manifest.json").read_text())
+    victim = next(e["file"] for e in m["images"] if e["camera"] == "left" and e["direction"] == "x")
+    write_png(img / victim, np.zeros_like(read_image(img / victim)))
+    for extra in ([], ["--stereo"]):
+        r = pmdsim("evaluate", img, "--setup", s12, "--out", w / f"ev{len(extra)}", *extra, "--quiet")
+        row(cat, f"evaluate {' '.join(extra) or '(mono)'} with one black frame", r.returncode == 1 and
+            one_line_error(r) and not (w / f"ev{len(extra)}").exists(), r)
+    r = pmdsim("evaluate", img, "--setup", s12, "--out", w / "evm", "--stereo", "--method", "stepwise", "--quiet")
+    row(cat, "evaluate --stereo --method stepwise", r.returncode == 2 and "does not apply" in r.stderr, r)
+
+    # --- items 2, 3: real SOFAST data with broken files
+    cat = "issue 24: SOFAST import"
+    g = "MeasurementSofastFringe/"
+
+    def swap(h):
+        fr = h[g + "fringe_images"][()]
+        ny = 4 * h[g + "fringe_periods_y"].size
+        _put(h, g + "fringe_images", np.concatenate([fr[..., ny:], fr[..., :ny]], -1))
+
+    def rot(fn):
+        def edit(h):
+            r_ = h["SpatialOrientation/r_cam_screen"]
+            r_[...] = fn(r_[()])
+        return edit
+
+    def cal(fn):
+        def edit(h):
+            d_, c_ = fn(h["ImageCalibration/display_values"][()], h["ImageCalibration/camera_values"][()])
+            _put(h, "ImageCalibration/display_values", d_)
+            _put(h, "ImageCalibration/camera_values", c_)
+        return edit
+
+    def bits16(h):
+        for k in ("fringe_images", "mask_images"):
+            _put(h, g + k, h[g + k][()].astype(np.uint16) * 257)
+
+    def focal(h):
+        K = h["Camera/intrinsic_mat"][()]
+        K[0, 0] = K[1, 1] = 0.69
+        _put(h, "Camera/intrinsic_mat", K)
+
+    def dark(h):
+        mi = h[g + "mask_images"][()]
+        mi[..., 1] = mi[..., 0]
+        _put(h, g + "mask_images", mi)
+
+    k = 0
+    for case, kw in (("rotation vector in degrees", {"edit_orientation": rot(np.degrees)}),
+                     ("r_cam_screen negated", {"edit_orientation": rot(lambda v: -v)}),
+                     ("16-bit fringes, 8-bit calibration", {"edit_measurement": bits16}),
+                     ("calibration ×256", {"edit_calibration": cal(lambda d_, c_: (d_, c_ * 256))}),
+                     ("one calibration level", {"edit_calibration": cal(lambda d_, c_: (d_[:1], c_[:1]))}),
+                     ("calibration levels reversed", {"edit_calibration": cal(lambda d_, c_: (d_[::-1], c_[::-1]))}),
+                     ("focal length 0.69 px", {"edit_camera": focal}),
+                     ("mask without a lit pixel", {"edit_measurement": dark})):
+        k += 1
+        (w / f"sf{k}").mkdir()
+        f = _sofast_files(w / f"sf{k}", **kw)
+        r = _import(f, w / f"sf{k}" / "imp")
+        row(cat, f"import: {case}", r.returncode == 2 and one_line_error(r) and
+            any(str(p) in r.stderr for p in f.values() if str(p).startswith(str(w))), r)
+    for case, kw in (("x/y fringe blocks swapped", {"edit_measurement": swap}), ("clean", {})):
+        k += 1
+        (w / f"sf{k}").mkdir()
+        f = _sofast_files(w / f"sf{k}", **kw)
+        assert _import(f, w / f"sf{k}" / "imp").returncode == 0
+        r = pmdsim("evaluate", w / f"sf{k}" / "imp" / "images", "--setup", w / f"sf{k}" / "imp" / "setup.toml",
+                   "--out", w / f"sf{k}" / "ev", "--quiet")
+        good = (r.returncode == 0 and "not run" not in r.stdout + r.stderr) if case == "clean" else (
+            r.returncode == 1 and "swapped x/y" in r.stderr)
+        row(cat, f"evaluate: {case}", good, r, "ok" if case == "clean" else "clear")
+
+    # --- item 4: setups and experiment options
+    cat = "issue 24: setups, options"
+    t = default_setup().to_toml()
+    both = w / "both.toml"
+    both.write_text(t.replace("bulge_mm = 0.0\n", "bulge_mm = 0.0\nheights_mm = [[0.0, 0.0, 0.0], [0.0, 2.5, 0.0], "
+                                                  "[0.0, 0.0, 0.0]]\n", 1))
+    r = pmdsim("setup", "--setup", both)
+    row(cat, "bulge_mm = 0 with heights_mm centre 2.5", r.returncode == 2 and "disagree" in r.stderr, r)
+    short = w / "short.toml"
+    short.write_text(small.read_text().replace("periods_x_mm = [720.0", "periods_x_mm = [100.0", 1))
+    r = pmdsim("simulate", "--setup", short, "--out", w / "sim_short", "--quiet")
+    row(cat, "simulate with a coarsest period shorter than the screen", r.returncode == 2 and one_line_error(r) and
+        not (w / "sim_short").exists(), r)
+    for args in (["1", "--grids", "3"], ["4", "--bulges-mm", "1"], ["4", "--grids", "5"], ["5", "--effects", "ideal"],
+                 ["4", "--effects", "ideal,ideal"]):
+        r = pmdsim("experiment", *args, "--out", w / "e", "--downsample", "16", "--quiet")
+        row(cat, f"experiment {' '.join(args)}", r.returncode == 2 and one_line_error(r), r)
+
+    # --- items 5, 6: long paths, SIGHUP, messages
+    cat = "issue 24: paths, signals, messages"
+    for case, out in (("--out name of 300 bytes", w / ("a" * 300)), ("--out path of 5000 bytes",
+                                                                      w / "/".join(["b" * 200] * 25))):
+        r = pmdsim("simulate", "--setup", small, "--out", out, "--quiet")
+        row(cat, case, r.returncode == 2 and one_line_error(r), r)
+    hup = w / "hup"
+    hup.mkdir()
+    p = subprocess.Popen([PY, "-m", "pmdsim.cli", "simulate", "--setup", mid, "--out", hup / "o", "--quiet"],
+                         stderr=subprocess.PIPE, text=True, preexec_fn=lambda: [signal.signal(s, signal.SIG_DFL) for s in
+                                                                               (signal.SIGINT, signal.SIGHUP)])
+    t0 = time.time()
+    while time.time() - t0 < 90 and p.poll() is None and not any(
+            d.is_dir() and any(d.glob("*.png")) for d in hup.glob(".o.partial-*")):
+        time.sleep(0.01)
+    p.send_signal(signal.SIGHUP)
+    _, err = p.communicate(timeout=120)
+    c.add(cat, "SIGHUP while writing", "clear" if p.returncode == 129 and list(hup.iterdir()) == [] else "BAD",
+          err.strip().splitlines()[-1] if err.strip() else "")
+    r = pmdsim("evaluate", img, "--setup", s12, "--out", w / "evn", "--seed-height-mm", "nan", "--quiet")
+    row(cat, "--seed-height-mm nan", r.returncode == 2 and "finite, got nan" in r.stderr, r)
+    sw = w / "sw"
+    shutil.copytree(w / "st", sw)
+    m = json.loads((sw / "manifest.json").read_text())
+    for e in m["images"]:
+        e["direction"] = {"x": "y", "y": "x"}[e["direction"]]
+    (sw / "manifest.json").write_text(json.dumps(m))
+    r = pmdsim("evaluate", sw, "--setup", s12, "--out", w / "evs", "--quiet")
+    row(cat, "x/y directions swapped in the manifest", r.returncode == 2 and "look swapped" in r.stderr, r)
+
+    # --- item 7: curved samples through the CLI
+    cat = "issue 24: curved samples"
+    for kind, radius in (("sphere", 1000.0), ("sphere", -300.0), ("cylinder", 500.0)):
+        f = w / f"{kind}{radius:g}.toml"
+        f.write_text(default_setup().binned(8).with_sample_shape(kind, radius_mm=radius).to_toml())
+        d = w / f"{kind}{radius:g}"
+        assert pmdsim("simulate", "--setup", f, "--out", d, "--quiet").returncode == 0
+        r = pmdsim("evaluate", d, "--setup", f, "--out", w / f"ev_{kind}{radius:g}", "--quiet")
+        row(cat, f"{kind} R = {radius:g} mm: no pixel masked as a fold", r.returncode == 0 and "GEOMETRY" not in
+            r.stderr, r, "ok")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--trials", type=int, default=12)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--only", choices=["issue24"], default=None, help="run only issue 24's cases")
     a = ap.parse_args()
     w = Path(tempfile.mkdtemp(prefix="pmdsim-reliability-"))
     small, mid = w / "small.toml", w / "mid.toml"
@@ -331,12 +535,14 @@ def main() -> None:
     c = Cases()
     t0 = time.time()
     try:
-        for d in "olse":
+        for d in "olsei":
             (w / d).mkdir()
-        output_cases(c, w / "o", small)
-        lock_cases(c, w / "l", small, mid)
-        signal_cases(c, w / "s", mid, a.trials, random.Random(a.seed))
-        environment_cases(c, w / "e", small)
+        issue24_cases(c, w / "i", small, mid)
+        if a.only is None:
+            output_cases(c, w / "o", small)
+            lock_cases(c, w / "l", small, mid)
+            signal_cases(c, w / "s", mid, a.trials, random.Random(a.seed))
+            environment_cases(c, w / "e", small)
     finally:
         shutil.rmtree(w, ignore_errors=True)
     counts = defaultdict(Counter)

@@ -368,3 +368,65 @@ def test_image_sets(tmp_path_factory, noisy):
     run()
     _report("images", outcomes)
     assert sum(outcomes.values()) >= 1
+
+
+# ----------------------------------------------------------------------------- outputs vs inputs (issue 24)
+@st.composite
+def output_placements(draw):
+    """Where an output goes relative to the command's inputs: which command, which input it
+    relates to, how (the input, inside it at some depth, its parent, a sibling, through a
+    symbolic link), whether --force is given, and whether the target exists."""
+    command = draw(st.sampled_from(["calibrate", "evaluate", "simulate"]))
+    relation = draw(st.sampled_from(["is", "inside", "parent", "sibling", "link-inside"]))
+    depth = draw(st.integers(1, 3))
+    name = draw(st.text(string.ascii_lowercase + "_.-", min_size=1, max_size=12).filter(lambda s: s not in (".", "..")))
+    return command, relation, depth, name, draw(st.booleans()), draw(st.booleans())
+
+
+@settings(max_examples=_n(40), **SETTINGS)
+@given(case=output_placements())
+def test_no_output_touches_an_input(tmp_path_factory, small_toml, case):
+    """Whatever the output path, a command never writes into, over or around one of its inputs:
+    when the path touches an input (truth: the placement drawn, not the code's answer) it is
+    refused with exit 2 naming the input, and the inputs' bytes are unchanged; a path that does
+    not touch one is never refused as an input."""
+    command, relation, depth, name, force, exists = case
+    w = tmp_path_factory.mktemp("place")
+    data = w / "data" / "pose0"
+    data.mkdir(parents=True)
+    (data / "left_x_p0_s0.png").write_bytes(b"\x89PNG fake")
+    (data / "manifest.json").write_text("{}")
+    setup = w / "data" / "s.toml"
+    setup.write_text(small_toml, encoding="utf-8")
+    inputs = {"calibrate": data, "evaluate": data, "simulate": setup}[command]
+    if relation == "is":
+        out = inputs
+    elif relation == "inside":
+        out = inputs.joinpath(*[name] * depth) if inputs.is_dir() else inputs.parent / name
+    elif relation == "parent":
+        out = inputs.parent
+    elif relation == "sibling":
+        out = inputs.parent / f"{name}_out"
+    else:
+        link = w / f"link_{name}"
+        link.symlink_to(inputs.parent)
+        out = link / inputs.name / name if inputs.is_dir() else link / name
+    touches = relation in ("is", "parent") or (relation in ("inside", "link-inside") and inputs.is_dir())
+    if exists and not out.exists() and not touches:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text("x") if command == "calibrate" else out.mkdir()
+    before = {p: p.read_bytes() for p in (w / "data").rglob("*") if p.is_file()}
+    args = {"calibrate": ["calibrate", str(data), "--out", str(out)],
+            "evaluate": ["evaluate", str(data), "--out", str(out)],
+            "simulate": ["simulate", "--setup", str(setup), "--out", str(out)]}[command]
+    r = CliRunner().invoke(main, args + ["--quiet"] + (["--force"] if force else []))
+    assert r.exception is None or isinstance(r.exception, SystemExit), r.output
+    assert "Traceback" not in r.output
+    if touches:
+        # refused by pmdsim's input check, or already by click's check of the --out type
+        # (calibrate --out DIR: "is a directory") — either way before anything is read or written
+        refused = "input of this command" in r.output or "Invalid value for '--out'" in r.output
+        assert r.exit_code == 2 and refused and "pass --force" not in r.output, r.output
+    else:
+        assert "input of this command" not in r.output, r.output
+    assert {p: p.read_bytes() for p in before} == before  # every input file still there, unchanged

@@ -109,7 +109,8 @@ def test_toml_round_trip_nondefault_values(default_toml):
     left = doc["cameras"]["left"]
     left["distortion"] = {"k1": -0.1234567890123, "k2": 1.5e-07, "p1": 2e-4, "p2": -1e-4, "k3": 1e20}
     left["principal_point_px"] = [959.5, 0.1 + 0.2]
-    doc["screen"]["heights_mm"] = [[0.0, 0.25, 0.0], [-0.5, 0.0, 1.0 / 3.0], [0.0, 0.0, 0.0]]
+    # bulge_mm and the centre of heights_mm must agree (issue 24: disagreeing ones are refused)
+    doc["screen"]["heights_mm"] = [[0.0, 0.25, 0.0], [-0.5, -1.75, 1.0 / 3.0], [0.0, 0.0, 0.0]]
     doc["screen"]["bulge_mm"] = -1.75
     doc["sample"]["grid_x_mm"] = [0.0, 100.0, 250.0, 400.0]
     doc["sample"]["heights_mm"] = [[0.0, 0.001, -0.002, 0.0], [0.0, 0.0, 0.0, 0.003]]
@@ -125,7 +126,7 @@ def test_toml_round_trip_nondefault_values(default_toml):
     assert back["screen"]["heights_mm"][1][2] == 1.0 / 3.0
     assert back["screen"]["bulge_mm"] == -1.75
     assert back["patterns"]["bit_depth"] == 16 and back["patterns"]["n_shifts"] == 8
-    # bulge overrides the central control height
+    # the bulge is the central control height
     assert s.screen.control_heights()[1][1] == -1.75
 
 

@@ -302,7 +302,10 @@ def test_display_y_flipped_warns(tmp_path):
     imp2 = tmp_path / "imp2"
     do_import(imp2)
     r2 = cli("evaluate", imp2 / "images", "--setup", imp2 / "setup.toml", "--out", tmp_path / "ev2", "--quiet")
-    assert "likely flipped" not in r2.stderr and "warning" not in r2.stderr, r2.stderr
+    assert "likely flipped" not in r2.stderr, r2.stderr
+    # The only warning left is the consistency checks' (issue 24): the facet's edge pixels whose
+    # mapping is not a mirror's (see test_consistency_checks_run_on_the_real_measurement).
+    assert [ln for ln in r2.stderr.splitlines() if "warning" in ln and "GEOMETRY" not in ln] == [], r2.stderr
 
 
 def test_display_in_millimetres_refused(tmp_path):
@@ -636,3 +639,160 @@ def test_facet_file_that_does_not_fit_the_outline_warns(tmp_path):
         warnings.simplefilter("always")
         import_sofast(out_dir=tmp_path / "b", **files())
     assert not any("do not match its outline" in str(x.message) for x in w)
+
+
+# ----------------------------------------------------------------------------- issue 24, item 2
+def test_consistency_checks_run_on_the_real_measurement(imported):
+    """The image set declares a display response: the checks now run on the linearised images
+    (they used to be skipped). On the real facet they flag no residual or period defect, and the
+    few GEOMETRY pixels are the facet's edge, which SOFAST's own processing leaves out too
+    (independent reference: SOFAST's processed mask): at most 5 % of them inside it."""
+    d, r = imported
+    assert "not run" not in r.stdout + r.stderr
+    with h5py.File(d / "ev" / "evaluation.h5") as f:
+        flags = f["camera/consistency_flags"][()]
+    assert not np.any(flags & (32 | 64))  # FIT_RESIDUAL, PERIOD_MISMATCH
+    geo = (flags & 128) > 0
+    assert geo.sum() < 0.01 * EXP["mask_processed"].sum()
+    assert (geo & EXP["mask_processed"]).sum() <= 0.05 * geo.sum()
+
+
+def _broken_copy(tmp_path, what):
+    """The fixture's measurement or orientation with one of issue 24's mistakes written in."""
+    f = files()
+    if what in ("swap", "black", "reverse"):
+        dst = tmp_path / "measurement.h5"
+        shutil.copy(f["measurement"], dst)
+        dst.chmod(0o644)
+        with h5py.File(dst, "r+") as h:
+            g = h["MeasurementSofastFringe"]
+            fr = g["fringe_images"][()]
+            ny = 4 * g["fringe_periods_y"].size
+            if what == "swap":  # the x block first, then y (SOFAST writes y first)
+                fr = np.concatenate([fr[..., ny:], fr[..., :ny]], axis=-1)
+            elif what == "black":
+                fr[..., ny + 5] = 0
+            else:  # every period's shifts in reverse order
+                for b in range(fr.shape[-1] // 4):
+                    fr[..., 4 * b:4 * b + 4] = fr[..., 4 * b:4 * b + 4][..., [0, 3, 2, 1]]
+            del g["fringe_images"]
+            g["fringe_images"] = fr
+        return {"measurement": dst}
+    dst = tmp_path / "orientation.h5"
+    shutil.copy(f["orientation"], dst)
+    dst.chmod(0o644)
+    with h5py.File(dst, "r+") as h:
+        r = h["SpatialOrientation/r_cam_screen"]
+        r[...] = np.degrees(r[()]) if what == "degrees" else -r[()]
+    return {"orientation": dst}
+
+
+@pytest.mark.parametrize("what, names", [("degrees", "written in degrees"), ("negate", "negated")])
+def test_wrong_orientation_is_refused_at_import(tmp_path, what, names):
+    """Issue 24: a rotation vector in degrees gave f = 16 mm instead of 120 m, a negated one
+    f = 15 m, both exit 0. Now the import refuses them: the display would not face the optic
+    (the true orientation: 5.7°), and the message names the file, the key and the likely
+    mistake (checked by reading the value so: it then faces the optic)."""
+    over = _broken_copy(tmp_path, what)
+    with pytest.raises(SofastImportError) as e:
+        do_import(tmp_path / "imp", **over)
+    msg = str(e.value)
+    assert str(over["orientation"]) in msg and "r_cam_screen" in msg and names in msg, msg
+    assert not (tmp_path / "imp").exists()
+
+
+@pytest.mark.parametrize("what, reason", [("swap", "swapped x/y"), ("reverse", "reversed shift order"),
+                                          ("black", "camera_x_p1_s")])
+def test_broken_fringes_fail_evaluate_naming_the_cause(tmp_path, what, reason):
+    """Issue 24: the x and y blocks swapped gave slopes off by 79 mrad and f = 5 m, exit 0. With
+    the checks on the linearised images the evaluation fails (exit 1), naming the cause."""
+    over = _broken_copy(tmp_path, what)
+    do_import(tmp_path / "imp", **over)
+    r = cli("evaluate", tmp_path / "imp" / "images", "--setup", tmp_path / "imp" / "setup.toml", "--out",
+            tmp_path / "ev", "--quiet")
+    assert r.returncode == 1 and reason in r.stderr, r.stderr
+    assert not (tmp_path / "ev").exists()
+
+
+# ----------------------------------------------------------------------------- issue 24, item 3
+def _edited(tmp_path, key, fn):
+    """A copy of one of the fixture's files with ``fn(h5 file)`` applied; returns {key: path}."""
+    src = files()[key]
+    dst = tmp_path / src.name
+    shutil.copy(src, dst)
+    dst.chmod(0o644)
+    with h5py.File(dst, "r+") as h:
+        fn(h)
+    return {key: dst}
+
+
+def _replace(h, name, value):
+    del h[name]
+    h[name] = value
+
+
+def _cal(fn):
+    def edit(h):
+        d = h["ImageCalibration/display_values"][()]
+        c = h["ImageCalibration/camera_values"][()]
+        d, c = fn(d, c)
+        _replace(h, "ImageCalibration/display_values", d)
+        _replace(h, "ImageCalibration/camera_values", c)
+    return edit
+
+
+def _fringes_16_bit(h):
+    g = "MeasurementSofastFringe/"
+    _replace(h, g + "fringe_images", h[g + "fringe_images"][()].astype(np.uint16) * 257)
+    _replace(h, g + "mask_images", h[g + "mask_images"][()].astype(np.uint16) * 257)
+
+
+def _focal(h):
+    K = h["Camera/intrinsic_mat"][()]
+    K[0, 0] = K[1, 1] = 0.69  # px (OpenCV reads K as it stands)
+    _replace(h, "Camera/intrinsic_mat", K)
+
+
+def _dark_mask(h):
+    m = h["MeasurementSofastFringe/mask_images"][()]
+    m[..., 1] = m[..., 0]  # the "light" image is the dark one: no pixel lit
+    _replace(h, "MeasurementSofastFringe/mask_images", m)
+
+
+@pytest.mark.parametrize("key, edit, expect", [
+    ("measurement", _fringes_16_bit, "ImageCalibration/camera_values reach 234.408, but the fringe images of"),
+    ("calibration", _cal(lambda d, c: (d, c * 256)), "ImageCalibration/camera_values reach 60008.4, beyond the 8-bit"),
+    ("calibration", _cal(lambda d, c: (d[:1], c[:1])), "1 finite level(s); at least two expected"),
+    ("calibration", _cal(lambda d, c: (d[::-1], c[::-1])), "are they reversed?"),
+    ("camera", _focal, "fx = 0.69 px, fy = 0.69 px: a field of view of 179."),
+    ("measurement", _dark_mask, "mask_images has 0 lit pixel(s)"),
+], ids=["16-bit-fringes-8-bit-calibration", "calibration-x256", "one-level", "reversed-levels", "focal-0.69px",
+        "no-lit-pixel"])
+def test_import_refuses_what_evaluate_cannot_use(tmp_path, key, edit, expect):
+    """Issue 24: five broken imports exited 0 and failed later in `evaluate` with errors naming
+    pmdsim's own files; a dark mask gave an `All-NaN slice` traceback. Each now fails at import
+    (exit 2, one line) naming the input file and the key; nothing is written."""
+    over = _edited(tmp_path, key, edit)
+    f = files(**over)
+    r = cli("import", "sofast", "--measurement", f["measurement"], "--camera", f["camera"], "--display", f["display"],
+            "--orientation", f["orientation"], "--calibration", f["calibration"], "--facet", f["facet"],
+            "--out", tmp_path / "imp")
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("pmdsim: error:")]
+    assert r.returncode == 2 and len(errors) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert str(over[key]) in errors[0] and expect in errors[0], errors[0]
+    assert not (tmp_path / "imp").exists()
+
+
+def test_import_out_holding_its_files_is_refused(tmp_path):
+    """Issue 24, item 1: the SOFAST files are the import's inputs; an output directory pmdsim
+    wrote (so --force would replace it) that holds one of them is refused, the file kept."""
+    out = tmp_path / "prev"
+    do_import(out)  # a pmdsim output
+    meas = out / "measurement_facet.h5"
+    shutil.copy(files()["measurement"], meas)
+    before = meas.read_bytes()
+    f = files(measurement=meas)
+    r = cli("import", "sofast", "--measurement", f["measurement"], "--camera", f["camera"], "--display", f["display"],
+            "--orientation", f["orientation"], "--calibration", f["calibration"], "--out", out, "--force")
+    assert r.returncode == 2 and "a parent of an input" in r.stderr and str(meas) in r.stderr, r.stderr
+    assert meas.read_bytes() == before

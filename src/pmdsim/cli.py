@@ -9,8 +9,8 @@
     pmdsim experiment 1|2|3|4|5 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
-Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT and SIGTERM
-abort cleanly (:mod:`pmdsim.interrupts`): exit code 130 / 143, no output written. Nothing
+Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT, SIGTERM and
+SIGHUP abort cleanly (:mod:`pmdsim.interrupts`): exit code 130 / 143 / 129, no output written. Nothing
 heavy (numba, numpy kernels) is imported before a command runs: ``--version`` and ``--help``
 compile nothing. The work is done by
 :mod:`pmdsim.studies.jobs` (one measurement, disk to disk) and :mod:`pmdsim.studies.runs`
@@ -44,6 +44,20 @@ def _load(setup_path: str | None, bulge_mm: float | None) -> Setup:
     return setup
 
 
+def _inputs(setup_path: str | None, setup: Setup | None = None) -> list[str]:
+    """The files a setup brings in (the setup file, a ``[sample] height_map`` file relative to
+    it): outputs must not touch them (:func:`pmdsim.io.outputs.check_output_target`)."""
+    from pathlib import Path
+
+    out = [setup_path] if setup_path else []
+    shape = None if setup is None else setup.sample.shape
+    f = getattr(shape, "file", None)
+    if f:
+        p = Path(f)
+        out.append(str(p if p.is_absolute() or not setup_path else Path(setup_path).parent / p))
+    return out
+
+
 class _Group(click.Group):
     """Turns pmdsim's own errors into a one-line message (no traceback): exit code 2 for bad
     input, 1 for a computation that failed (:class:`~pmdsim.errors.ComputationError`)."""
@@ -60,7 +74,7 @@ class _Group(click.Group):
         # the previous handlers back; the command-line process keeps them until it exits, so
         # that a signal during the interpreter's shutdown is not reported as "Exception ignored".
         interrupts.reset()
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        old = {s: signal.getsignal(s) for s in interrupts.SIGNALS}
         interrupts.install()
         log = logging.getLogger("pmdsim")
         note = logging.StreamHandler(sys.stderr)
@@ -128,18 +142,26 @@ def setup_cmd(show: bool, setup_path: str | None, bulge_mm: float | None) -> Non
                 else f"{shape.kind} (closed form, exact: no interpolation)" if hasattr(shape, "kind")
                 else f"height map {shape.file!r}")
         click.echo(f"sample: {what}", err=True)
-    from .studies.checks import setup_findings  # coverage, clipping, periods (issue 11)
+    n_warn = _setup_checks(setup)
+    click.echo(f"setup OK: cameras {', '.join(setup.cameras)}"
+               + (f" ({n_warn} warning{'s' if n_warn > 1 else ''} above)" if n_warn else "")
+               + "; use --show to print it", err=True)
+
+
+def _setup_checks(setup: Setup, info: bool = True) -> int:
+    """The setup's findings (coverage, clipping, periods; issue 11) — the same for `setup --setup`
+    and `simulate`: printed, exit 2 on a fatal one. Returns the number of warnings."""
+    from .studies.checks import setup_findings
 
     findings = setup_findings(setup)
     for f in findings:
+        if f.level == "info" and not info:
+            continue
         prefix = {"fatal": "pmdsim: error: ", "warning": "pmdsim: warning: ", "info": "  "}[f.level]
         click.echo(prefix + f.message, err=True)
     if any(f.level == "fatal" for f in findings):
         sys.exit(2)
-    n_warn = sum(f.level == "warning" for f in findings)
-    click.echo(f"setup OK: cameras {', '.join(setup.cameras)}"
-               + (f" ({n_warn} warning{'s' if n_warn > 1 else ''} above)" if n_warn else "")
-               + "; use --show to print it", err=True)
+    return sum(f.level == "warning" for f in findings)
 
 
 def _setup_source(setup_path: str | None) -> str:
@@ -168,10 +190,11 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
     from .studies.jobs import simulate_to_dir, simulation_steps
 
     setup = _load(setup_path, bulge_mm)
+    _setup_checks(setup, info=False)  # as `setup --setup` does: refuse before writing, warn
     steps = simulation_steps(setup if calibration_pose is None else setup.with_mirror_pose(calibration_pose))
     with _bar(steps, "simulating", quiet) as bar:
         summary = simulate_to_dir(setup, out_dir, force=force, command=_command(), calibration_pose=calibration_pose,
-                                  progress=lambda msg: bar.update(1), inputs=[setup_path])
+                                  progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup))
     click.echo(summary.as_text(out_dir), err=True)
 
 
@@ -182,7 +205,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--method", type=click.Choice(["stepwise", "least_squares"]), default=None,
               help="Surface integration. Default: the manifest's method (least_squares for imported real "
-                   "measurements), else stepwise.")
+                   "measurements), else stepwise. Not with --stereo.")
 @click.option("--screen-model", type=click.Choice(["planar", "setup"]), default=None,
               help="planar: the screen frame's x–y plane (the paper's assumption); setup: the setup's screen surface. "
                    "Default: the manifest's screen_model, else planar.")
@@ -203,7 +226,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
               help="--stereo: heights searched along the view rays, sample frame (default: -20 20).")
 @click.option("--min-valid-fraction", type=click.FloatRange(0.0, 1.0), default=0.5, show_default=True,
               help="Fail (exit 1, outputs kept for inspection) when fewer of the pixels that see fringes are "
-                   "reconstructed (consistency checks: docs/reliability.md).")
+                   "reconstructed (consistency checks: docs/reliability.md); per camera, also with --stereo.")
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
@@ -219,22 +242,44 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
 
+    import math
+
+    for opt, v in (("--seed-height-mm", seed_height_mm), ("--anchor-distance-mm", anchor_distance_mm),
+                   ("--anchor-pixel", anchor_pixel), ("--anchor-point-mm", anchor_point_mm),
+                   ("--noise-std", noise_std), ("--search-range-mm", search_range_mm)):
+        if v is not None and not all(math.isfinite(x) for x in (v if isinstance(v, tuple) else (v,))):
+            raise click.BadParameter(f"{opt} must be finite, got {' '.join(str(x) for x in (v if isinstance(v, tuple) else (v,)))} "
+                                     "(NaN or infinity is no height, distance or noise)")
     given = [anchor_distance_mm is not None, anchor_pixel is not None, anchor_point_mm is not None]
     if any(given) and not all(given):
         raise click.UsageError("a distance anchor needs --anchor-distance-mm, --anchor-pixel and --anchor-point-mm")
     anchor = DistanceAnchor(anchor_pixel, anchor_distance_mm, anchor_point_mm) if all(given) else None
     setup = _load(setup_path, None)
+    from .io.outputs import check_output_target
+
+    check_output_target(out_dir, force=force, inputs=[image_dir, *_inputs(setup_path, setup)], kind="dir")
     if stereo:
         if seed_pixel is not None or seed_height_mm is not None or anchor is not None:
             raise JobInputError("--stereo needs no seed or anchor: drop --seed-pixel/--seed-height-mm/--anchor-*")
+        if method is not None:
+            raise JobInputError(f"--method {method} does not apply to --stereo (stereo fits each camera's heights "
+                                "to the anchors it finds, docs/stereo.md): drop --method")
         with _bar(len(setup.cameras), "evaluating (stereo)", quiet) as bar:
             summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
                                                 search_range_mm=search_range_mm, noise_std=noise_std, force=force,
                                                 command=_command(), progress=lambda msg: bar.update(1),
-                                                inputs=[setup_path])
+                                                inputs=_inputs(setup_path, setup),
+                                                min_valid_fraction=min_valid_fraction)
         for line in summary.lines():
             click.echo(line)
+        for w in summary.data_warnings():
+            click.echo(f"pmdsim: warning: {w}", err=True)
         click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
+        failures = summary.failures()
+        if failures:
+            click.echo(f"pmdsim: error: {' | '.join(failures)} (outputs kept in {out_dir} for inspection; "
+                       f"--min-valid-fraction sets the limit)", err=True)
+            sys.exit(1)
         return
     if search_range_mm is not None:
         raise JobInputError("--search-range-mm is an option of --stereo")
@@ -242,7 +287,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
                                      noise_std=noise_std, force=force, command=_command(),
-                                     progress=lambda msg: bar.update(1), inputs=[setup_path],
+                                     progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup),
                                      min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path))
     for line in summary.lines():
         click.echo(line)
@@ -313,8 +358,8 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     nominal = _load(setup_path, None)
     with _bar(len(image_dirs), "decoding", quiet) as bar:
         run = calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                   command=_command(), progress=lambda msg: bar.update(1), inputs=[setup_path],
-                                   setup_source=_setup_source(setup_path))
+                                   command=_command(), progress=lambda msg: bar.update(1),
+                                   inputs=_inputs(setup_path, nominal), setup_source=_setup_source(setup_path))
     for name, c in run.summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
                    f"{c['std']['fy_px']:.3f} px, pp ({c['ppx_px']:.3f}, {c['ppy_px']:.3f}) px")
@@ -367,8 +412,9 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 
     from .io.outputs import check_output_target
 
+    _refuse_inapplicable(number)
     base = _load(setup_path, None)
-    check_output_target(out_dir, force=force, inputs=[setup_path], kind="dir")  # before hours of computing
+    check_output_target(out_dir, force=force, inputs=_inputs(setup_path, base), kind="dir")  # before hours of computing
     from .studies.checks import check_memory
 
     check_memory(base.binned(downsample), "evaluate")
@@ -466,10 +512,33 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
         sys.exit(1)
 
 
+#: The experiment options and the experiments they apply to (the others refuse them, issue 24).
+_EXPERIMENT_OPTIONS = {"bulges_mm": ("1", "2", "3", "5"), "seed": ("2", "4", "5"), "write_images": ("1",),
+                       "grids": ("3",), "deformations": ("3",), "mirror_sags_um": ("3",), "sag_bulge_mm": ("3",),
+                       "effects": ("4",)}
+
+
+def _refuse_inapplicable(number: str) -> None:
+    """Refuse an option given on the command line that experiment ``number`` does not use
+    (e.g. ``experiment 1 --grids 3``): it would be silently ignored."""
+    ctx = click.get_current_context()
+    if number not in {n for ns in _EXPERIMENT_OPTIONS.values() for n in ns}:
+        return  # an experiment this table does not describe
+    for name, applies in _EXPERIMENT_OPTIONS.items():
+        if number in applies or ctx.get_parameter_source(name) in (None, click.core.ParameterSource.DEFAULT):
+            continue
+        opt = "--" + name.replace("_", "-")
+        raise click.UsageError(f"{opt} does not apply to experiment {number} (it is an option of experiment"
+                               f"{'s' if len(applies) > 1 else ''} {', '.join(applies)}); drop it")
+
+
 def _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet) -> None:
     from .studies.experiment4 import EFFECTS, experiment4_steps, write_experiment4
 
     names = list(EFFECTS) if effects is None else [e.strip() for e in effects.split(",") if e.strip()]
+    twice = sorted({e for e in names if names.count(e) > 1})
+    if twice:
+        raise click.BadParameter(f"--effects lists {', '.join(twice)} more than once; give each effect once")
     bad = [e for e in names if e not in EFFECTS]
     if bad or not names:
         raise click.BadParameter(f"--effects: unknown {bad}; expected some of {list(EFFECTS)}" if bad
@@ -490,6 +559,10 @@ def _parse_list(text: str, kind, option: str) -> list:
         raise click.BadParameter(f"{option} must be comma-separated {what}, got {text!r}") from None
     if not values:
         raise click.BadParameter(f"{option} lists no value")
+    twice = sorted({v for v in values if values.count(v) > 1})
+    if twice:
+        raise click.BadParameter(f"{option} lists {', '.join(f'{v:g}' for v in twice)} more than once "
+                                 f"(each would be a duplicate row); give each value once")
     return values
 
 

@@ -1,7 +1,8 @@
-"""SIGINT and SIGTERM: a clean abort at any phase of a command (docs/reliability.md).
+"""SIGINT, SIGTERM and SIGHUP: a clean abort at any phase of a command (docs/reliability.md).
 
-The command line installs :func:`install` once. From then on the first SIGINT (Ctrl-C) or
-SIGTERM (``kill``, ``timeout``, a batch scheduler) is *recorded* and raised as
+The command line installs :func:`install` once. From then on the first SIGINT (Ctrl-C),
+SIGTERM (``kill``, ``timeout``, a batch scheduler) or SIGHUP (the terminal closed) is
+*recorded* and raised as
 :class:`Interrupted` (a :class:`KeyboardInterrupt`, so ``except Exception`` does not swallow
 it). Python may still swallow that exception when it is raised inside a finaliser
 (``Exception ignored in … KeyboardInterrupt``); the record stays, and the output layer
@@ -10,7 +11,12 @@ interrupt still aborts the run before anything is written; inside a finaliser th
 does not even raise (it only records). The commit itself runs in :func:`deferred`. Later
 signals are only recorded: the cleanup of the first one is not interrupted by a second Ctrl-C.
 
-The exit codes are the shell's: 128 + signal number (130 for SIGINT, 143 for SIGTERM). Once a
+Where Python reports an exception it cannot raise ("Exception ignored in …", a finaliser or a
+callback of C code, e.g. while numba loads its kernels), :func:`install`'s unraisable hook keeps
+quiet about an :class:`Interrupted` that was recorded: the command ends with its one line.
+
+The exit codes are the shell's: 128 + signal number (130 for SIGINT, 143 for SIGTERM, 129 for
+SIGHUP). Once a
 command's output is committed (:func:`output_committed`), a signal no longer aborts: the
 output is complete, the command ends normally and says that the signal came too late.
 
@@ -22,19 +28,23 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 from typing import Iterator
 
-__all__ = ["Interrupted", "install", "installed", "received", "check", "deferred", "output_committed", "exit_code",
+__all__ = ["SIGNALS", "Interrupted", "install", "installed", "received", "check", "deferred", "output_committed", "exit_code",
            "signal_name", "reset", "finish", "committed"]
 
-_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: The signals that abort a command cleanly: Ctrl-C, ``kill``/``timeout``/a batch scheduler, and
+#: the terminal closing (SIGHUP: a run in a closed ssh session must not leave partial outputs).
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_SIGNALS = SIGNALS
 
 _state: dict = {"installed": False, "signum": None, "committed": None, "quiet": False, "deferring": 0}
 
 
 class Interrupted(KeyboardInterrupt):
-    """The run was interrupted by a signal (``signum``: SIGINT or SIGTERM)."""
+    """The run was interrupted by a signal (``signum``: SIGINT, SIGTERM or SIGHUP)."""
 
     def __init__(self, signum: int):
         super().__init__(f"interrupted by {signal_name(signum)}")
@@ -42,7 +52,7 @@ class Interrupted(KeyboardInterrupt):
 
 
 def signal_name(signum: int) -> str:
-    """``"SIGINT"`` for 2, ``"SIGTERM"`` for 15, …"""
+    """``"SIGINT"`` for 2, ``"SIGTERM"`` for 15, ``"SIGHUP"`` for 1, …"""
     try:
         return signal.Signals(signum).name
     except ValueError:
@@ -50,7 +60,7 @@ def signal_name(signum: int) -> str:
 
 
 def exit_code(signum: int) -> int:
-    """The shell's exit code of a process ended by ``signum``: 128 + signum (130, 143)."""
+    """The shell's exit code of a process ended by ``signum``: 128 + signum (130, 143, 129)."""
     return 128 + int(signum)
 
 
@@ -87,7 +97,18 @@ def install() -> None:
     for s in _SIGNALS:
         if signal.getsignal(s) is not signal.SIG_IGN:  # an ignored signal stays ignored (as Python's own)
             signal.signal(s, _handler)
+    if sys.unraisablehook is not _unraisable:
+        _state["unraisablehook"] = sys.unraisablehook
+        sys.unraisablehook = _unraisable
     _state["installed"] = True
+
+
+def _unraisable(info) -> None:
+    """``sys.unraisablehook``: an :class:`Interrupted` Python could not raise (in a finaliser or
+    a callback) is already recorded — :func:`check` raises it — so it is not printed."""
+    if isinstance(info.exc_value, Interrupted) and _state["signum"] is not None:
+        return
+    (_state.get("unraisablehook") or sys.__unraisablehook__)(info)
 
 
 def installed() -> bool:

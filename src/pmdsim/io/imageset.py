@@ -69,6 +69,7 @@ from .imageset_instrument import (
     InstrumentInfo,
     apply_mask_and_map,
     linearise_stacks,
+    linearised_noise_std,
     parse_instrument,
     read_frame,
 )
@@ -796,10 +797,15 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     for i, direction in enumerate(DIRECTIONS):
         p0 = images.periods_mm(direction)[0]
         if p0 < size[i]:
+            other = images.periods_mm(DIRECTIONS[1 - i])[0]
+            swapped = p0 >= size[1 - i] and other >= size[i]  # each would cover the other extent
             raise ImageSetError(
                 f"camera {images.camera!r}, direction {direction!r}: the coarsest period {p0:g} mm is shorter "
                 f"than the screen's {'width' if i == 0 else 'height'} {size[i]:g} mm; absolute (hierarchical) "
                 f"unwrapping needs a coarsest period of at least the screen extent"
+                + (f" — the x and y directions look swapped: the {direction} periods fit the screen's "
+                   f"{'height' if i == 0 else 'width'} and the {DIRECTIONS[1 - i]} periods ({other:g} mm coarsest) its "
+                   f"{'width' if i == 0 else 'height'}; check each image's direction in the manifest" if swapped else "")
             )
     if response is None:
         return decode_screen_coordinates(
@@ -811,12 +817,7 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     ys, sat_y = linearise_stacks(images.y_stacks, full, response)
     # σ_I (grey levels; default quantisation noise) → display-level units through the inverse
     # response's slope at each pixel's mean level of the finest x period.
-    s_grey = 1.0 / np.sqrt(12.0) if noise_std is None else np.asarray(noise_std, dtype=float)
-    mean_c = np.mean(images.x_stacks[-1], axis=0, dtype=float) / full
-    h = 0.5 / full
-    lo, _ = response.linearise(mean_c - h)
-    hi, _ = response.linearise(mean_c + h)
-    sigma = s_grey / full * np.abs(hi - lo) / (2.0 * h)
+    sigma = linearised_noise_std(images, response, noise_std)
     kw = dict(decoder_kw)
     kw["check_saturation"] = False
     dec = decode_screen_coordinates(xs, list(images.x_periods_mm), ys, list(images.y_periods_mm), size, 1.0,

@@ -70,6 +70,8 @@ __all__ = [
     "read_frame",
     "parse_instrument",
     "linearise_stacks",
+    "linearised_noise_std",
+    "consistency_stacks",
     "apply_mask_and_map",
 ]
 
@@ -396,6 +398,103 @@ def linearise_stacks(stacks, max_value: float, response):
         sat = s if sat is None else (sat | s)
         out.append(d)
     return out, sat
+
+
+def linearised_noise_std(images, response, noise_std=None) -> np.ndarray:
+    """σ_I of linearised images, per pixel (H, W), in display levels (fractions of full scale).
+
+    The camera's σ_I (grey levels; default quantisation noise 1/√12) is carried through the
+    inverse response by its slope at each pixel's mean level of the finest x period (first-order
+    error propagation, σ_d = |∂d/∂c|·σ_c), the slope a central difference over one grey level.
+    """
+    full = float(images.max_value)
+    s_grey = 1.0 / np.sqrt(12.0) if noise_std is None else np.asarray(noise_std, dtype=float)
+    mean_c = np.mean(images.x_stacks[-1], axis=0, dtype=float) / full
+    h = 0.5 / full
+    lo, _ = response.linearise(mean_c - h)
+    hi, _ = response.linearise(mean_c + h)
+    return s_grey / full * np.abs(hi - lo) / (2.0 * h)
+
+
+def _sinusoid_fit(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Modulation B and residual sum of squares of the least-squares fit I_k = A + B·cos(φ − δ_k),
+    δ_k = 2πk/N, of a stack (N, H, W): both (H, W) (the N-point DFT's first bin)."""
+    st = np.asarray(stack, dtype=float)
+    n = st.shape[0]
+    d = 2.0 * np.pi * np.arange(n) / n
+    a = st.mean(axis=0)
+    c = (2.0 / n) * np.tensordot(np.cos(d), st, axes=1)
+    s = (2.0 / n) * np.tensordot(np.sin(d), st, axes=1)
+    fit = a + np.cos(d)[:, None, None] * c + np.sin(d)[:, None, None] * s
+    return np.hypot(c, s), ((st - fit) ** 2).sum(axis=0)
+
+
+def linearisation_residual(stacks, lit) -> tuple[float, np.ndarray]:
+    """How far linearised fringes are from sinusoids, relative to their modulation.
+
+    A display response known at a few grey levels linearises the images only approximately; the
+    remainder is mostly a second harmonic of the fringe, which an N = 4 phase shift does not
+    take into the phase (it aliases into the fit residual only) but which the residual check
+    would read as a defect in every pixel. Its relative amplitude κ is estimated from the images
+    themselves: per stack the median over ``lit`` pixels of √(RSS/(N − 3)) / B, scaled by
+    1/0.6745 (the median of |z| for a normal z), and κ is the median over the stacks, so that a
+    defective stack (a black frame: √RSS ≈ B) among many good ones does not raise it.
+
+    Parameters
+    ----------
+    stacks : sequence of ndarray (N_i, H, W)
+        Linearised stacks, display levels.
+    lit : ndarray (H, W) bool
+        Pixels to estimate from.
+
+    Returns
+    -------
+    (kappa, b_max)
+        κ (dimensionless) and the largest modulation over the stacks per pixel, (H, W).
+    """
+    ratios = []
+    b_max = None
+    for st in stacks:
+        n = np.asarray(st).shape[0]
+        b, rss = _sinusoid_fit(st)
+        b_max = b if b_max is None else np.maximum(b_max, b)
+        if n > 3 and lit.any():
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = np.sqrt(rss[lit] / (n - 3)) / b[lit]
+            r = r[np.isfinite(r)]
+            if r.size:
+                ratios.append(float(np.median(r)) / 0.6745)
+    return (float(np.median(ratios)) if ratios else 0.0), b_max
+
+
+def consistency_stacks(images, response, noise_std=None, lit=None):
+    """The stacks and σ_I the consistency checks (:mod:`pmdsim.evaluation.consistency`) test.
+
+    Without a declared response: the raw stacks and ``noise_std``. With one: the linearised
+    stacks (display levels — the decoder's input, where the fringe model I_k = A + B·cos(φ − δ_k)
+    holds up to the linearisation's error) and, per pixel, σ_I² = σ_d² + (κ·B_max)²: σ_d the
+    camera noise carried through the response (:func:`linearised_noise_std`), κ·B_max the
+    linearisation's residual (:func:`linearisation_residual`, estimated over the ``lit`` pixels).
+    A measurement with a declared response is thus checked like any other, without reading a
+    coarsely sampled response as a defect in every pixel.
+
+    Returns
+    -------
+    (x_stacks, y_stacks, noise_std, kappa)
+        Lists of (N, H, W) arrays, a scalar or (H, W) σ_I in the stacks' units, and κ (None
+        without a response).
+    """
+    if response is None:
+        return list(images.x_stacks), list(images.y_stacks), noise_std, None
+    full = float(images.max_value)
+    xs, _ = linearise_stacks(images.x_stacks, full, response)
+    ys, _ = linearise_stacks(images.y_stacks, full, response)
+    sigma_d = linearised_noise_std(images, response, noise_std)
+    if lit is None:
+        lit = np.ones(sigma_d.shape, bool)
+    kappa, b_max = linearisation_residual(xs + ys, lit)
+    sigma = np.sqrt(sigma_d ** 2 + (kappa * np.nan_to_num(b_max)) ** 2)
+    return xs, ys, np.maximum(sigma, 1e-12), kappa
 
 
 def apply_mask_and_map(dec: ScreenCoordinates, *, saturated=None, mask=None, screen_map: ScreenMap | None = None,

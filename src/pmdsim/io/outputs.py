@@ -8,9 +8,12 @@ The rules (docs/reliability.md, "Outputs, interrupts and environment"):
   leaves no half-written output and an existing output untouched.
 * **Marked.** Every output directory carries :data:`MARKER_NAME` (``.pmdsim-output.json``:
   format, pmdsim version, command, time). ``force`` replaces only a directory with that marker
-  — never a user's directory — and never a path that is an input of the same command
-  (``inputs``: ``pmdsim evaluate run --out run --force`` would destroy the image set). A file
-  output is replaced with ``force`` only if it is a regular file and not an input.
+  — never a user's directory — and never a path that touches an input of the same command
+  (``inputs``): the output is not an input, does not contain one (``pmdsim evaluate run --out
+  run --force`` would destroy the image set) and is not inside an input directory (``pmdsim
+  calibrate pose0 … --out pose0/left_x_p0_s0.png --force`` would replace a fringe image). A file
+  output is replaced with ``force`` only if it is a regular file and not an input. A refusal
+  suggests ``--force`` only where ``--force`` would be accepted.
 * **Locked.** A run holds ``fcntl.flock`` on ``.{name}.lock`` beside the output from before its
   computation to its commit; a second run on the same output is refused with a message naming
   the holder (pid, host, start time, command). The lock file is removed when released.
@@ -118,16 +121,35 @@ def _write_marker(directory: Path, command: str | None, kind: str) -> None:
 
 
 # ============================================================================ checks
-def _is_input(target: Path, inputs: Iterable[str | Path]) -> str | None:
-    """The input that ``target`` is or contains (replacing ``target`` would destroy it)."""
+def _is_input(target: Path, inputs: Iterable[str | Path]) -> tuple[str, str] | None:
+    """The input that writing ``target`` would touch, and how: ``(input, relation)`` with
+    relation ``"an"`` (``target`` is the input), ``"a parent of an"`` (``target`` contains it)
+    or ``"inside an"`` (``target`` is a file or directory inside an input directory).
+
+    Paths are compared after resolving symbolic links, so a link to an input counts as the input.
+    """
     t = target.resolve()
     for p in inputs:
         if p is None:
             continue
         q = Path(p).resolve()
-        if q == t or q.is_relative_to(t):
-            return str(p)
+        if q == t:
+            return str(p), "an"
+        if q.is_relative_to(t):
+            return str(p), "a parent of an"
+        if t.is_relative_to(q):
+            return str(p), "inside an"
     return None
+
+
+def _input_refusal(target: Path, inputs: Iterable[str | Path]) -> str | None:
+    """The refusal message when ``target`` touches an input (no ``--force`` can change it)."""
+    hit = _is_input(target, inputs)
+    if hit is None:
+        return None
+    p, rel = hit
+    return (f"output {str(target)!r} is {rel} input of this command ({p!r}); writing it could destroy the input "
+            "(--force does not change this) — choose an output path outside every input")
 
 
 def _check_writable_location(target: Path) -> None:
@@ -152,6 +174,41 @@ def _check_writable_location(target: Path) -> None:
                               "choose another output path")
 
 
+#: Room a name needs beside it for the hidden partial/lock names: ``.{name}.partial-{pid}-{8 hex}``.
+_PARTIAL_EXTRA = len(".") + len(".partial-") + 10 + 1 + 8
+
+
+def _check_path_length(target: Path) -> None:
+    """Refuse a name or path the file system cannot hold, before anything is created: a name
+    (with its hidden partial's suffix) longer than the file system's NAME_MAX bytes (255 on
+    Linux) or a path longer than PATH_MAX (4096) — instead of an ``OSError`` traceback later."""
+    name_max, path_max = 255, 4096  # Linux's; the file system's own where it can be asked
+    a = _parent(target).absolute()
+    while a != a.parent:
+        try:
+            if a.is_dir():
+                name_max = os.pathconf(a, "PC_NAME_MAX")
+                path_max = os.pathconf(a, "PC_PATH_MAX")
+                break
+        except (OSError, ValueError):  # a component too long to even look up
+            pass
+        a = a.parent
+    full = os.fsencode(str(target.absolute()))
+    if len(full) + _PARTIAL_EXTRA >= path_max:
+        raise OutputPathError(f"output path is {len(full)} bytes long ({str(target)[:60]!r}…); the file system takes "
+                              f"paths of at most {path_max} bytes (with room for pmdsim's hidden partial names: "
+                              f"{path_max - _PARTIAL_EXTRA - 1}) — choose a shorter output path")
+    for part in target.absolute().parts:
+        n = len(os.fsencode(part))
+        limit = name_max - _PARTIAL_EXTRA if part == target.name else name_max
+        if n > limit:
+            raise OutputPathError(f"output name {part[:40]!r}… is {n} bytes long; the file system takes names of at "
+                                  f"most {name_max} bytes"
+                                  + (f", and pmdsim needs {_PARTIAL_EXTRA} of them for its hidden partial output "
+                                     f"beside it: at most {limit}" if part == target.name else "")
+                                  + " — choose a shorter output name")
+
+
 def check_output_target(target: str | Path, *, force: bool = False, inputs: Iterable[str | Path] = (),
                         kind: str = "file") -> None:
     """Check an output path before a long computation, so that it does not fail only when writing.
@@ -174,18 +231,16 @@ def check_output_target(target: str | Path, *, force: bool = False, inputs: Iter
         ``target`` cannot be created (under a regular file, read-only or unwritable directory).
     """
     target = Path(target)
+    _check_path_length(target)
     if target.name in ("", ".", "..") or Path.cwd().resolve().is_relative_to(target.resolve()):
         raise OutputExistsError(
             f"output {str(target)!r} is the current directory or one of its parents; name a new "
             f"{'directory' if kind == 'dir' else 'file'}")
-    hit = _is_input(target, inputs)
-    if hit is not None:
-        raise OutputExistsError(f"output {str(target)!r} is {'an' if hit == str(target) else 'a parent of an'} input "
-                                f"of this command ({hit!r}); writing it would destroy the input — choose another "
-                                "output path")
+    refusal = _input_refusal(target, inputs)
+    if refusal is not None:
+        raise OutputExistsError(refusal)
     if target.exists() or target.is_symlink():
-        if not force:
-            raise OutputExistsError(f"output {str(target)!r} exists; pass --force to replace it")
+        what = "directory" if kind == "dir" else "file"
         if kind == "dir":
             if not target.is_dir():
                 raise OutputExistsError(f"output {str(target)!r} exists and is not a directory; pmdsim --force "
@@ -197,6 +252,9 @@ def check_output_target(target: str | Path, *, force: bool = False, inputs: Iter
         elif not target.is_file():
             raise OutputExistsError(f"output {str(target)!r} exists and is not a regular file; choose another "
                                     "output path")
+        if not force:  # only now: --force would be accepted, and the target is no input
+            raise OutputExistsError(f"output {str(target)!r} exists (an earlier pmdsim {what}); pass --force to "
+                                    "replace it")
     _check_writable_location(target)
 
 
@@ -400,15 +458,15 @@ def reused_output_dir(target: str | Path, *, inputs: Iterable[str | Path] = (),
     """
     target = Path(target)
     inputs = list(inputs)
+    _check_path_length(target)
     if target.exists() and not target.is_dir():
         raise OutputExistsError(f"output {str(target)!r} exists and is not a directory; choose another output path")
     if target.is_dir() and any(target.iterdir()) and read_marker(target) is None:
         raise OutputExistsError(f"output {str(target)!r} exists and is not a pmdsim output (no {MARKER_NAME} in "
                                 "it); choose a new or empty directory")
-    hit = _is_input(target, inputs)
-    if hit is not None:
-        raise OutputExistsError(f"output {str(target)!r} is or contains an input of this command ({hit!r}); "
-                                "choose another output path")
+    refusal = _input_refusal(target, inputs)
+    if refusal is not None:
+        raise OutputExistsError(refusal)
     _check_writable_location(target / MARKER_NAME)
     with output_lock(target, command):
         _clean_stale(target)

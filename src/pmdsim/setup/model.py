@@ -568,8 +568,8 @@ class Setup:
             "grid_x_mm": list(self.screen.grid_x_mm),
             "grid_y_mm": list(self.screen.grid_y_mm),
         }
-        if self.screen.heights_mm is not None:
-            scr["heights_mm"] = [list(r) for r in self.screen.heights_mm]
+        if self.screen.heights_mm is not None:  # with the bulge applied: the file's two keys then agree
+            scr["heights_mm"] = [[float(v) for v in r] for r in self.screen.control_heights()]
         if self.screen.bulge_mm is not None:
             scr["bulge_mm"] = self.screen.bulge_mm
         smp: dict[str, Any] = {

@@ -381,6 +381,13 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=N
             f"screen.bulge_mm needs an odd number of grid lines in screen.grid_x_mm and screen.grid_y_mm, "
             f"got {len(gx)} × {len(gy)}"
         )
+    if bulge is not None and heights is not None:  # one centre height, not two (issue 24)
+        centre = heights[len(gy) // 2][len(gx) // 2]
+        if not math.isclose(centre, bulge, rel_tol=1e-12, abs_tol=1e-12):
+            raise SetupError(
+                f"screen.bulge_mm = {bulge:g} and the centre of screen.heights_mm (row {len(gy) // 2}, column "
+                f"{len(gx) // 2}) = {centre:g} disagree: bulge_mm sets that control height; delete bulge_mm to use "
+                f"heights_mm as given, or make them equal")
     s.finish()
     screen = ScreenSetup(screen_pose, gx, gy, heights, bulge)
 
@@ -503,7 +510,8 @@ _COMMENTS = {
     "cameras": "Pinhole + Brown distortion (paper §2.2). Pixel (0, 0) is the centre of the top-left pixel.",
     "screen": "Pattern screen (paper §2.3, §2.5). heights_mm (optional) is (len(grid_y_mm), len(grid_x_mm));\n"
     "bulge_mm sets the central control point (Δh); +z of the screen points away from the sample,\n"
-    "so a positive bulge is concave as seen from the sample.",
+    "so a positive bulge is concave as seen from the sample. When you add heights_mm, delete bulge_mm\n"
+    "(or make it equal to the centre of heights_mm: a setup where they differ is refused).",
     "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given, or shape =\n"
     "\"sphere\" | \"paraboloid\" | \"cylinder\" (radius_mm / focal_length_x_mm, focal_length_y_mm; + = convex as seen\n"
     "from the cameras; exact over the grid's rectangle), or height_map = \"file\" (HDF5/NPY/CSV, resampled onto the grid).",

@@ -44,8 +44,8 @@ from ..io import (
     write_png,
 )
 from ..io.hdf5 import write_consistency_h5
-from ..io.imageset import decode_camera, decode_camera_images, load_camera_stacks, load_manifest
-from ..io.imageset_instrument import apply_mask_and_map
+from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
+from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
 from ..calibration.diagnostics import residual_report
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
 from .checks import check_memory
@@ -305,6 +305,80 @@ def _resolve_anchor(manifest, seed_pixel, seed_height_mm, anchor):
     return None
 
 
+def _expected_screen_xy(setup: Setup, cam: str) -> np.ndarray:
+    """The screen coordinates (H, W, 2) the setup predicts for ``cam``: the reference of the
+    consistency checks' orientation test. For a flat sample the nominal plane's mapping
+    (:func:`nominal_screen_xy`, closed form); for a curved one (a shape, a height map, non-zero
+    heights) the mapping traced through the setup's own sample, so that a concave sample that
+    legitimately inverts the image (seen beyond its focal distance) is not read as a reversed
+    shift order, nor its caustics as defects."""
+    s = setup.sample
+    curved = s.shape is not None or (s.heights_mm is not None and any(v != 0.0 for row in s.heights_mm for v in row))
+    if not curved:
+        cs = setup.cameras[cam]
+        return nominal_screen_xy(cs.camera, cs.T_world_cam, s.T_world_sample, setup.screen.T_world_screen)
+    return trace_setup_camera(setup, cam).screen_xy_mm
+
+
+def _decode_checked(manifest, setup: Setup, cam: str, noise_std, image_dir, run_checks: bool):
+    """Decode one camera of an image set (linearised with a declared response, masked and
+    mapped with a declared mask and screen map) and, with ``run_checks``, check its consistency
+    (:mod:`pmdsim.evaluation.consistency`): returns ``(decoded, ConsistencyResult or None)``,
+    the flagged pixels invalid. Mono and stereo evaluation share it (same checks, same rules).
+
+    Raises :class:`ConsistencyFailure` when pixels were tested and none passed.
+    """
+    inst = manifest.instrument
+    c = setup.cameras[cam].camera
+    images = load_camera_stacks(manifest, cam, expected_size_px=(c.width_px, c.height_px))
+    decoded = decode_camera_images(images, setup.screen.size_mm, noise_std, response=inst.response)
+    if inst.mask is not None or inst.screen_map is not None:
+        decoded = apply_mask_and_map(decoded, mask=inst.mask, screen_map=inst.screen_map, source=str(manifest.path))
+    if not run_checks:
+        return decoded, None
+    expected = _expected_screen_xy(setup, cam)
+    photometric = np.uint8(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
+    xs, ys, noise, _ = consistency_stacks(images, inst.response, noise_std, lit=(decoded.flags & photometric) == 0)
+    cons = check_consistency(xs, images.x_periods_mm, ys, images.y_periods_mm, decoded, setup.screen.size_mm, noise,
+                             expected_xy_mm=expected)
+    decoded = with_consistency(decoded, cons)
+    if not decoded.valid.any() and cons.tested.any():
+        hint = _reversed_order_hint(images, inst, setup, cons, noise_std, expected, lit=(decoded.flags & photometric) == 0)
+        raise ConsistencyFailure(
+            f"{cam}: no pixel of {image_dir} passed the consistency checks; "
+            + "; ".join(_name_files(r, manifest, cam, cons.images) for r in cons.reasons(2))
+            + hint + "; nothing written")
+    return decoded, cons
+
+
+def _reversed_order_hint(images, inst, setup: Setup, cons, noise_std, expected, lit) -> str:
+    """For each period that disagrees with the coarser one as a whole: does it agree with its
+    shifts taken in reverse order (δ_k → −δ_k negates its phase)? Then say so — a reversed shift
+    order, not a wrong period. Runs only on the failure path (one more decode and check)."""
+    import dataclasses
+    import re
+
+    out = []
+    for m in re.finditer(r"direction (x|y), period ([0-9.e+-]+) mm disagrees", " ".join(cons.defects)):
+        direction, period = m.group(1), float(m.group(2))
+        periods = list(getattr(images, f"{direction}_periods_mm"))
+        k = min(range(len(periods)), key=lambda j: abs(periods[j] - period))
+        stacks = list(getattr(images, f"{direction}_stacks"))
+        st = np.asarray(stacks[k])
+        stacks[k] = np.concatenate([st[:1], st[:0:-1]])  # shifts 0, N−1, …, 1: the reverse order
+        trial = dataclasses.replace(images, **{f"{direction}_stacks": tuple(stacks)})
+        dec = decode_camera_images(trial, setup.screen.size_mm, noise_std, response=inst.response)
+        if inst.mask is not None or inst.screen_map is not None:
+            dec = apply_mask_and_map(dec, mask=inst.mask, screen_map=inst.screen_map)
+        xs, ys, noise, _ = consistency_stacks(trial, inst.response, noise_std, lit)
+        again = check_consistency(xs, trial.x_periods_mm, ys, trial.y_periods_mm, dec, setup.screen.size_mm, noise,
+                                  expected_xy_mm=expected)
+        if not any(f"direction {direction}, period {period:g} mm disagrees" in d for d in again.defects):
+            out.append(f"the {period:g} mm period of direction {direction} agrees when its shifts are taken in "
+                       f"reverse order: its images' shift order (shift_index in the manifest) looks reversed")
+    return ("; " + "; ".join(out)) if out else ""
+
+
 def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path, *, method: str | None = None,
                        screen_model: str | None = None, seed_pixel=None, seed_height_mm: float | None = None,
                        anchor=None, noise_std=None, force: bool = False, command: str | None = None,
@@ -371,32 +445,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     anchors = {}
     checks = {}
     inst = manifest.instrument
-    run_checks = consistency and inst.response is None and inst.screen_map is None
+    run_checks = consistency
     notes = []
-    if consistency and not run_checks:
-        notes.append("consistency checks (docs/reliability.md) not run: the manifest declares a response or a screen "
-                     "map, which they do not model yet")
     with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
         for cam in manifest.cameras:
-            c = setup.cameras[cam].camera
-            images = load_camera_stacks(manifest, cam, expected_size_px=(c.width_px, c.height_px))
-            decoded = decode_camera_images(images, setup.screen.size_mm, noise_std, response=inst.response)
-            if inst.mask is not None or inst.screen_map is not None:
-                decoded = apply_mask_and_map(decoded, mask=inst.mask, screen_map=inst.screen_map,
-                                             source=str(manifest.path))
-            if run_checks:
-                cs = setup.cameras[cam]
-                expected = nominal_screen_xy(cs.camera, cs.T_world_cam, setup.sample.T_world_sample,
-                                             setup.screen.T_world_screen)
-                cons = check_consistency(images.x_stacks, images.x_periods_mm, images.y_stacks, images.y_periods_mm,
-                                         decoded, setup.screen.size_mm, noise_std, expected_xy_mm=expected)
-                decoded = with_consistency(decoded, cons)
+            decoded, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, run_checks)
+            if cons is not None:
                 checks[cam] = cons
-                if not decoded.valid.any() and cons.tested.any():
-                    raise ConsistencyFailure(
-                        f"{cam}: no pixel of {image_dir} passed the consistency checks; "
-                        + "; ".join(_name_files(r, manifest, cam, cons.images) for r in cons.reasons(2))
-                        + "; nothing written")
             warnings += check_orientation(setup, cam, decoded.screen_xy_mm, decoded.valid)
             reg = register_model(setup, cam, decoded, screen_model=model_surface)
             bounds = (model_surface.bounds_mm if model_surface is not None else
@@ -502,14 +557,21 @@ def _name_files(reason: str, manifest, cam: str, labels) -> str:
 def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str | Path, *,
                               screen_model: str | None = None, search_range_mm=None, noise_std=None, force: bool = False,
                               command: str | None = None, progress: Progress | None = None,
-                              inputs: Sequence[str | Path | None] = ()) -> EvaluationSummary:
+                              inputs: Sequence[str | Path | None] = (),
+                              min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION,
+                              consistency: bool = True) -> EvaluationSummary:
     """Stereo evaluation of an image set (issue 14, docs/stereo.md): decode and register every
     camera, then :func:`pmdsim.evaluation.stereo.reconstruct_stereo` — absolute heights without
     a seed. Writes ``evaluation.h5`` (the per-camera datasets of :func:`evaluate_image_set`
     plus the agreement report, :func:`pmdsim.io.hdf5.append_stereo_h5`) and
     ``height_{camera}.png``; the summary adds per camera the anchors and the median/max
     normal disagreement (µrad) and height discrepancy (µm) over the overlap. ``screen_model``
-    None: the manifest's, else "planar"; ``out_dir`` must not be ``image_dir`` nor one of ``inputs``."""
+    None: the manifest's, else "planar"; ``out_dir`` must not be ``image_dir`` nor one of ``inputs``.
+
+    Every camera's images are checked for consistency as in :func:`evaluate_image_set` (same
+    checks, flagged pixels not used, :class:`ConsistencyFailure` if none passes, the maps in
+    ``evaluation.h5``); the summary carries each camera's valid fraction, so that
+    :meth:`EvaluationSummary.failures` applies ``min_valid_fraction`` as for mono."""
     from ..evaluation.integration import ReconstructionError
     from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, evaluate_stereo_decoded
     from ..io.hdf5 import append_stereo_h5
@@ -526,14 +588,17 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     if len(manifest.cameras) < 2:
         raise JobInputError(f"--stereo needs images of at least two cameras; {image_dir}/manifest.json has "
                             f"{list(manifest.cameras)}")
+    if not 0.0 <= float(min_valid_fraction) <= 1.0:
+        raise JobInputError(f"min_valid_fraction must be in [0, 1], got {min_valid_fraction!r}")
     search = DEFAULT_SEARCH_RANGE_MM if search_range_mm is None else tuple(search_range_mm)
     prov = provenance(command, setup.to_toml())
     t0 = time.perf_counter()
     decoded = {}
+    checks = {}
     for cam in manifest.cameras:
-        c = setup.cameras[cam].camera
-        decoded[cam] = decode_camera(manifest, cam, screen_size_mm=setup.screen.size_mm, noise_std=noise_std,
-                                     expected_size_px=(c.width_px, c.height_px))
+        decoded[cam], cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, consistency)
+        if cons is not None:
+            checks[cam] = cons
         _tick(progress, f"decoded {cam}")
     try:
         views, st = evaluate_stereo_decoded(setup, decoded, search_range_mm=search,
@@ -552,15 +617,26 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                             {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir)})
         append_stereo_h5(tmp / "evaluation.h5", st, {"search_range_mm": list(st.search_range_mm),
                                                       "search_step_mm": st.search_step_mm, "stride_px": st.stride_px})
+        if checks:
+            write_consistency_h5(tmp / "evaluation.h5", checks,
+                                 {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
     cams = {}
+    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
     for cam, (dec, _, rec) in results.items():
         h = rec.height_mm[rec.reconstructed] * 1e3
+        usable = int(np.count_nonzero((dec.flags & photometric) == 0))
+        n_rec = int(rec.reconstructed.sum())
+        c = checks.get(cam)
         cams[cam] = {"pixels": int(dec.valid.size), "decoded": int(dec.valid.sum()),
-                     "reconstructed": int(rec.reconstructed.sum()),
+                     "reconstructed": n_rec,
                      "height_min_um": float(np.min(h)) if h.size else float("nan"),
                      "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged), "stereo": summary[cam]}
-    return EvaluationSummary(cams, time.perf_counter() - t0)
+                     "converged": bool(rec.converged), "stereo": summary[cam], "usable": usable,
+                     "valid_fraction": n_rec / usable if usable else 0.0,
+                     "consistency_counts": c.counts() if c is not None else {},
+                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
+    return EvaluationSummary(cams, time.perf_counter() - t0, response=manifest.instrument.response_info,
+                             min_valid_fraction=float(min_valid_fraction))
 
 
 # ============================================================================ calibrate

@@ -54,6 +54,7 @@ from ...setup.fringes import FringeSequence
 from ...setup.model import CameraSetup, PatternSetup, Pose, SampleSetup, ScreenSetup, Setup
 from ..images import write_png
 from ..outputs import IMAGESET_FORMAT, MANIFEST_NAME, atomic_output_dir, provenance, write_json
+from .sofast_checks import MIN_LIT_PIXELS, check_calibration, check_screen_faces_optic
 
 __all__ = ["SofastImportError", "SofastImportWarning", "SofastImportSummary", "import_sofast",
            "sofast_screen_transform", "read_sofast_display", "read_sofast_camera"]
@@ -63,6 +64,9 @@ CAMERA_NAME = "camera"
 #: Plausible SOFAST lengths (metres): a display 0.05 … 100 m wide, distances below 1 km.
 _DISPLAY_RANGE_M = (0.05, 100.0)
 _MAX_DISTANCE_M = 1000.0
+#: The widest field of view (deg, per image axis) an imported camera may have: pmdsim's pinhole
+#: + Brown–Conrady model is not a fisheye's, and a focal length of a pixel or less is a unit mistake.
+_MAX_FIELD_OF_VIEW_DEG = 150.0
 
 
 class SofastImportError(PmdsimError, ValueError):
@@ -153,6 +157,13 @@ def read_sofast_camera(path, *, image_size_px=None) -> tuple[Camera, list[str]]:
             f"{src}: the camera model is for {w}×{h} px images, but the measurement's images are "
             f"{image_size_px[0]}×{image_size_px[1]} px; use the camera file at the measurement's resolution "
             f"(SOFAST's camera_sofast_downsampled.h5 for downsampled measurements)")
+    fov = [2.0 * math.degrees(math.atan(0.5 * n / f)) if f > 0 else 180.0 for n, f in ((w, K[0, 0]), (h, K[1, 1]))]
+    if max(fov) > _MAX_FIELD_OF_VIEW_DEG:
+        raise SofastImportError(
+            f"{src}: Camera/intrinsic_mat has fx = {K[0, 0]:g} px, fy = {K[1, 1]:g} px: a field of view of "
+            f"{fov[0]:.1f}° × {fov[1]:.1f}° over the {w}×{h} px image (at most {_MAX_FIELD_OF_VIEW_DEG:g}° "
+            f"expected of a pinhole camera with OpenCV's distortion); focal lengths are in pixels — was it given in "
+            f"millimetres or for another resolution?")
     cam = Camera(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                  float(k[0]), float(k[1]), float(k[2]), float(k[3]), float(k[4]))
     return cam, warn
@@ -266,6 +277,8 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
     from scipy import ndimage
 
     delta = light.astype(float) - dark.astype(float)
+    if not np.all(np.isfinite(delta)) or np.ptp(delta) <= 0:  # no pixel lighter than another: none lit
+        return np.zeros(delta.shape, bool)
     hist, edges = np.histogram(delta, bins=256)
     centres = 0.5 * (edges[:-1] + edges[1:])
     w0 = np.cumsum(hist)
@@ -275,6 +288,8 @@ def _mask(dark: np.ndarray, light: np.ndarray) -> np.ndarray:
         mu0 = m0 / w0
         mu1 = (m0[-1] - m0) / w1
         between = w0 * w1 * (mu0 - mu1) ** 2
+    if not np.any(np.isfinite(between)):
+        return np.zeros(delta.shape, bool)
     otsu = centres[int(np.nanargmax(between))]
     # A pixel is lit when the light covers more than half of it: threshold halfway between the
     # dark and the lit level (the means of the two Otsu classes), so that the region's edge is
@@ -604,6 +619,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     ctype = _optional(calibration, "ImageCalibration/calibration_type")
     dv = np.asarray(cal["d"], dtype=float).ravel()
     cv = np.asarray(cal["c"], dtype=float).ravel()
+    check_calibration(calibration, dv, cv, fr, measurement)
     keep = np.concatenate([[True], np.diff(cv) > 0])
     if not keep.all():
         warn.append(f"{str(calibration)!r}: dropped {int((~keep).sum())} grey level(s) whose camera value does not "
@@ -648,6 +664,10 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
         raise SofastImportError(f"{src_m}: mask_images must be (H, W, 2) (dark, light) like the fringes, got "
                                 f"{mask_imgs.shape}")
     mask = _mask(mask_imgs[..., 0], mask_imgs[..., 1])
+    if mask.sum() < MIN_LIT_PIXELS:
+        raise SofastImportError(f"{src_m}: MeasurementSofastFringe/mask_images has {int(mask.sum())} lit pixel(s) "
+                                f"(light − dark above the dark level); at least {MIN_LIT_PIXELS} expected: are the "
+                                f"dark and light images (…, 0) and (…, 1) in that order, and was the display on?")
     vv, uu = np.nonzero(mask)
     pix = (float(vv.mean()), float(uu.mean()))
     anchor_how = "the mask centroid (no --facet)"
@@ -691,6 +711,7 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     c = s_world @ s_world - (1e3 * dist_m) ** 2
     t = (-b + math.sqrt(max(b * b - 4 * c, 0.0))) / 2.0
     p_opt = t * d
+    check_screen_faces_optic(r_cs, s_world, p_opt, orientation)
     z_s = -((-p_opt) / np.linalg.norm(p_opt) + (s_world - p_opt) / np.linalg.norm(s_world - p_opt))
     R_s = _frame_from_z(z_s, np.array([1.0, 0.0, 0.0]))
     half = 1000.0
@@ -706,7 +727,8 @@ def import_sofast(*, measurement, camera, display, orientation, calibration, fac
     # --- write.
     out = Path(out_dir)
     prov = provenance(command, setup.to_toml())
-    with atomic_output_dir(out, force=force) as tmp:
+    inputs = [measurement, camera, display, orientation, calibration, facet]
+    with atomic_output_dir(out, force=force, inputs=inputs, command=command) as tmp:
         (tmp / "setup.toml").write_text(setup.to_toml(), encoding="utf-8")
         img_dir = tmp / "images"
         img_dir.mkdir()
