@@ -64,7 +64,9 @@ class PhaseFlag(enum.IntFlag):
                                        ``min_modulation_ratio`` (includes constant pixels)
     ``UNWRAP_INCONSISTENT``     8      in a hierarchical unwrapping step the coarser
                                        coordinate disagrees with the finer one by more than
-                                       ``tolerance ·`` (finer period)
+                                       ``tolerance ·`` (finer period); also a period whose
+                                       contrast the lens reversed (defocus beyond the first
+                                       zero of 2·J₁(x)/x: a π flip, half a period off)
     ``NONFINITE``               16     a sample or phase is NaN or infinite
     ``FIT_RESIDUAL``            32     an image deviates from the sinusoid fitted to its
                                        period's N images by more than the noise allows
