@@ -1,10 +1,11 @@
 """Image-formation effects (issue 13): each against something they did not produce.
 
 Truths: the existing ideal renderer (everything off, bit for bit), the TOML reader (round trip),
-rays traced through points of the entrance pupil (defocus footprint), numpy.gradient (pixel
-Jacobian), Gauss–Hermite quadrature of the displayed pattern over the footprint (analytic blur
-of every harmonic), the closed-form modulation transfer exp(−2π²σ²/p²) of a Gaussian, the
-binomial series of (A + B·cos θ)^γ (gamma ripple), and Monte Carlo over seeds (noise model).
+rays traced through points of the entrance pupil to the pixel's point on the focal plane
+(defocus footprint, its centroid, the blur of every harmonic — with the tracer, or with a plane
+mirror written here in numpy for the lens transfer and its contrast reversals), numpy.gradient
+(pixel Jacobian), the binomial series of (A + B·cos θ)^γ (gamma ripple), and Monte Carlo over
+seeds (noise model).
 All on the Table 1 setup binned 8 × 8 (240 × 150 px).
 """
 
@@ -97,9 +98,13 @@ def _pupil_quadrature(D, n_r=8, n_phi=16):
     return pts, wts
 
 
-def _trace_pupil(s, m, v, u, pts):
+def _trace_pupil(s, m, v, u, pts, focus_mm=None):
+    """Screen points of the rays from pupil points ``pts`` (camera frame) through the pixel's
+    point on the focal plane z_cam = ``focus_mm`` (None: its own sample point), by the tracer."""
     cs = s.cameras[CAM]
     p_cam = (cs.T_world_cam.inv() @ s.sample.T_world_sample).apply(m.p_sample_mm[v, u])
+    if focus_mm is not None:
+        p_cam = p_cam * (focus_mm / p_cam[2])
     T_screen_sample = s.screen.T_world_screen.inv() @ s.sample.T_world_sample
     return np.array([trace_rays((p_cam - ak)[None], np.ones(1, bool),
                                 s.sample.T_world_sample.inv() @ cs.T_world_cam @ RigidTransform(np.eye(3), ak),
@@ -138,51 +143,125 @@ def _sharp(coord, period, A, B, shifts, response=None):
     return d if response is None else response.forward(d)
 
 
-def test_blur_of_every_harmonic_matches_quadrature_over_the_footprint(base, mapping):
-    """Display gamma 2.2 (harmonics up to the 6th), defocus f/4 and pixel area: the kernel's
-    noise-free 16-bit values against the displayed pattern integrated over the footprint
-    (Gauss–Hermite for the Gaussian defocus, Gauss–Legendre over the pixel box)."""
+def test_blur_of_every_harmonic_matches_rays_through_the_pupil_and_the_pixel(base, mapping):
+    """Display gamma 2.2 (harmonics up to the 6th), f/8 with the default focal plane, and pixel
+    area: the kernel's noise-free 16-bit values against the displayed pattern averaged over rays
+    traced through the pupil disc (24 × 48 points) to the pixel's point on the focal plane and
+    over the pixel box (Gauss–Legendre), with the tracer — nothing of the code's footprint maps.
+    The first-order footprint neglects terms O((D/s)²) ≈ 6e-5 relative; measured error ≤ 2e-4."""
     from pmdsim.simulation.display import display_response
 
-    s = base.with_patterns(bit_depth=16).with_imaging(display_gamma=2.2, f_number=4.0, pixel_area=True)
+    s = base.with_patterns(bit_depth=16).with_imaging(display_gamma=2.2, f_number=8.0, pixel_area=True)
     maps = imaging_maps(s, CAM, mapping)
     seq = s.patterns.sequence
     period = 8.0
     stack = render_period_imaging(maps, mapping.screen_xy_mm, mapping.valid, "x", period, seq,
                                   SensorModel.from_setup(s), None).astype(float) / 65535.0
     resp = display_response(2.2)
-    z, w = np.polynomial.hermite_e.hermegauss(40)
-    w = w / w.sum()
-    box, bw = np.polynomial.legendre.leggauss(16)
+    pts, wts = _pupil_quadrature(s.imaging.focal_length_mm / 8.0, n_r=24, n_phi=48)
+    box, bw = np.polynomial.legendre.leggauss(8)
     box, bw = box / 2, bw / 2  # Gauss–Legendre on [−½, ½]
     shifts = 2 * np.pi * np.arange(4) / 4
+    J = np.stack(np.gradient(mapping.screen_xy_mm[..., 0], axis=(1, 0)), -1)  # d x_q / d(u, v)
     for v, u in [(20, 30), (75, 120), (130, 200)]:
-        c0 = mapping.screen_xy_mm[v, u, 0] + maps.centroid_xy_mm[v, u, 0]  # (tested against rays below)
-        sig = np.sqrt(maps.var_xy_mm2[v, u, 0])
-        ju, jv = maps.jacobian[v, u, 0]
-        c = c0 + (box[:, None, None] * ju + box[None, :, None] * jv + sig * z[None, None, :])
-        ref = np.einsum("abzk,a,b,z->k", _sharp(c, period, seq.mean_level, seq.amplitude, shifts, resp), bw, bw, w)
-        np.testing.assert_allclose(stack[:, v, u], ref, atol=1.0 / 65535)  # the 16-bit rounding
+        xq = _trace_pupil(s, mapping, v, u, pts, maps.focus_distance_mm)[:, 0]
+        ju, jv = J[v, u]
+        c = xq[None, None, :] + box[:, None, None] * ju + box[None, :, None] * jv
+        ref = np.einsum("abzk,a,b,z->k", _sharp(c, period, seq.mean_level, seq.amplitude, shifts, resp), bw, bw, wts)
+        np.testing.assert_allclose(stack[:, v, u], ref, atol=3e-4)
 
 
-def test_gaussian_blur_keeps_the_phase_and_scales_modulation_by_the_closed_form(base, mapping):
-    s = base.with_patterns(bit_depth=16).with_imaging(f_number=4.0)
-    maps = imaging_maps(s, CAM, mapping)
+def _plane_mirror_pupil_hits(s, m, focus_mm, pix, n_r=24, n_phi=64):
+    """Screen x of rays from a uniform pupil disc (camera x–y plane, diameter f/N) through each
+    pixel's point on the focal plane z_cam = focus_mm, reflected at the planar sample and
+    intersected with the planar screen — numpy, this test's own geometry. Returns the hits
+    (len(pix), K) and the quadrature weights (K,)."""
+    cs = s.cameras[CAM]
+    R, O = cs.T_world_cam.rotation, cs.T_world_cam.translation
+    D = s.imaging.focal_length_mm / s.imaging.f_number
+    Ts, Tq = s.sample.T_world_sample, s.screen.T_world_screen
+    ns, ps0, nq, pq0 = Ts.rotation[:, 2], Ts.translation, Tq.rotation[:, 2], Tq.translation
+    pts, wts = _pupil_quadrature(D, n_r, n_phi)
+    A = O + pts[:, :1] * R[:, 0] + pts[:, 1:2] * R[:, 1]
+    out = []
+    for v, u in pix:
+        P = Ts.apply(m.p_sample_mm[v, u])
+        d = (P - O) / np.linalg.norm(P - O)
+        F = O + focus_mm / (d @ R[:, 2]) * d
+        dirs = F - A
+        X = A + (((ps0 - A) @ ns) / (dirs @ ns))[:, None] * dirs
+        r = dirs - 2 * (dirs @ ns)[:, None] * ns
+        Q = X + (((pq0 - X) @ nq) / (r @ nq))[:, None] * r
+        out.append(((Q - pq0) @ Tq.rotation)[:, 0])
+    return np.array(out), wts
+
+
+@pytest.fixture(scope="module")
+def flat():
+    s = default_setup().binned(8).with_patterns(bit_depth=16).with_imaging(f_number=8.0)
+    return s, trace_setup_camera(s, CAM, store_points=True)
+
+
+def test_lens_transfer_matches_a_pupil_sampled_plane_mirror_with_its_contrast_reversals(flat):
+    """f/8, one focal plane (default: the principal point's sample point), planar sample and
+    screen: the decoded complex first harmonic B·e^{iφ}/B₀ of noise-free 16-bit images against the
+    pupil average of exp(2πi·x_q/p) over rays traced here (:func:`_plane_mirror_pupil_hits`).
+    At p = 2 mm the reference reverses the contrast on most pixels (Re T·e^{−iφ_chief} < 0): the
+    model must agree in sign and size. Bound 4e-3: the footprint's neglected second-order terms,
+    O(D/s₁) = 3.1/420 relative in σ, times max|x·T'(x)| ≈ 0.6 (measured ≤ 7e-4)."""
+    from pmdsim.evaluation.phase import wrapped_phase as wp
+
+    s, m = flat
+    maps = imaging_maps(s, CAM, m)
+    cs = s.cameras[CAM]
+    # The default focus distance: the principal ray meets the sample plane (numpy, here).
+    R, O = cs.T_world_cam.rotation, cs.T_world_cam.translation
+    ray = R @ np.array([0.0, 0.0, 1.0])
+    Ts = s.sample.T_world_sample
+    t = ((Ts.translation - O) @ Ts.rotation[:, 2]) / (ray @ Ts.rotation[:, 2])
+    step = np.abs(np.diff(((cs.T_world_cam.inv() @ Ts).apply(m.p_sample_mm))[..., 2], axis=1))
+    assert abs(maps.focus_distance_mm - t) <= np.nanmax(step)  # the nearest traced pixel's
+    pix = [(v, u) for v in range(5, 150, 20) for u in range(5, 240, 20) if m.valid[v, u]]
+    hits, wts = _plane_mirror_pupil_hits(s, m, maps.focus_distance_mm, pix)
+    vv, uu = np.array(pix).T
     seq = s.patterns.sequence
-    sensor = SensorModel.from_setup(s)
-    for period in (4.0, 8.0):
-        stack = render_period_imaging(maps, mapping.screen_xy_mm, mapping.valid, "x", period, seq, sensor, None)
-        res = wrapped_phase(stack, max_value=65535)
-        ok = mapping.valid & res.valid
-        sigma2 = maps.var_xy_mm2[..., 0]
-        expected = seq.amplitude * 65535 * np.exp(-2 * np.pi**2 * sigma2 / period**2)
-        assert ok.sum() > 1000 and sigma2[ok].min() > 0
-        # Rounding each sample by ≤ ½ DN moves B by ≤ (2/N)·N·½ = 1 DN and φ by ≤ 1/B rad.
-        assert np.abs(res.modulation[ok] - expected[ok]).max() <= 1.0
-        centre = mapping.screen_xy_mm[..., 0] + maps.centroid_xy_mm[..., 0]  # the footprint's centre
-        dphi = np.angle(np.exp(1j * (res.phase - 2 * np.pi * centre / period)))
-        assert np.all(np.abs(dphi[ok]) <= 1.0 / expected[ok])
-        assert (1 - expected[ok] / (seq.amplitude * 65535)).max() > 0.1  # the blur did act
+    for p in (2.0, 4.0):
+        st = render_period_imaging(maps, m.screen_xy_mm, m.valid, "x", p, seq, SensorModel.from_setup(s), None)
+        res = wp(st, max_value=65535)
+        model = (res.modulation * np.exp(1j * res.phase))[vv, uu] / (seq.amplitude * 65535)
+        ref = np.exp(2j * np.pi * hits / p) @ wts
+        assert np.abs(model - ref).max() < 4e-3
+        if p == 2.0:
+            assert ((ref * np.exp(-2j * np.pi * m.screen_xy_mm[vv, uu, 0] / p)).real < 0).mean() > 0.3
+
+
+def test_decoder_flags_the_pixels_whose_contrast_the_lens_reversed(flat):
+    """Finest period 2 mm at f/8: every pixel whose pupil-sampled transfer (numpy plane mirror) is
+    reversed (Re T·e^{−iφ_chief} < −0.05) in x is flagged by the decoder with a reason, not
+    decoded half a period off; at 4 mm, where nothing is reversed, every pixel decodes."""
+    from pmdsim.evaluation.phase import PhaseFlag, decode_direction
+
+    s, m = flat
+    imgs = _images(s, m)
+    periods = s.patterns.sequence.periods_x_mm
+    dec = decode_direction([np.stack(imgs[("x", p)]) for p in periods], periods, s.screen.size_mm[0], 65535)
+    pix = [(v, u) for v in range(2, 150, 4) for u in range(2, 240, 4) if m.valid[v, u]]
+    hits, wts = _plane_mirror_pupil_hits(s, m, imaging_maps(s, CAM, m).focus_distance_mm, pix, 16, 32)
+    vv, uu = np.array(pix).T
+    t = (np.exp(2j * np.pi * hits / 2.0) @ wts * np.exp(-2j * np.pi * m.screen_xy_mm[vv, uu, 0] / 2.0)).real
+    rev = t < -0.05
+    assert rev.sum() > 100
+    # Flagged with a reason: half a period off the coarser periods, or (near the zero) too little
+    # modulation.
+    reason = dec.flags[vv[rev], uu[rev]] & (PhaseFlag.UNWRAP_INCONSISTENT | PhaseFlag.LOW_MODULATION)
+    assert np.all(reason != 0)
+    # Not indiscriminate: with a 4 mm finest period (transfer ≈ 0.4–0.8, nowhere reversed) every
+    # traced pixel decodes.
+    s4 = s.with_patterns(periods_x_mm=(720.0, 48.0, 4.0))
+    imgs4 = _images(s4, m)
+    dec4 = decode_direction([np.stack(imgs4[("x", p)]) for p in (720.0, 48.0, 4.0)], (720.0, 48.0, 4.0),
+                            s.screen.size_mm[0], 65535)
+    assert dec4.valid[m.valid].all()
 
 
 # ------------------------------------------------------------------ noise model
@@ -269,7 +348,7 @@ def test_curved_sample_phase_bias_sign_and_scaling(base):
     s = _dome(base.with_patterns(bit_depth=16, periods_x_mm=(720.0, 48.0, 8.0), periods_y_mm=(420.0, 28.0, 8.0)), 2.0)
     m = trace_setup_camera(s, CAM, store_points=True)
     pix = [(20, 30), (75, 120), (130, 200)]
-    biases = {}
+    biases, traced_bias = {}, {}
     for fn in (4.0, 8.0):
         si = s.with_imaging(f_number=fn)
         maps = imaging_maps(si, CAM, m)
@@ -277,9 +356,12 @@ def test_curved_sample_phase_bias_sign_and_scaling(base):
         assert sig.max() / sig.min() > 1.3  # the blur spot varies over the image
         pts, wts = _pupil_quadrature(si.imaging.focal_length_mm / fn)
         for v, u in pix:
-            traced = wts @ _trace_pupil(s, m, v, u, pts) - m.screen_xy_mm[v, u]
-            # Next order O((D/s)²) ≈ 1e-4 relative; the quadrature is exact to ≈ 1e-6.
-            np.testing.assert_allclose(maps.centroid_xy_mm[v, u, 0], traced[0], rtol=0.01)
+            traced = wts @ _trace_pupil(s, m, v, u, pts, maps.focus_distance_mm) - m.screen_xy_mm[v, u]
+            # The footprint model takes the sample as locally flat; with one focal plane the rays
+            # meet this dome off P (the sample-side blur), which it neglects: 2.7 % measured at
+            # f/4 (issue 20; pupil sampling for curved samples is not implemented). Bound 5 %.
+            np.testing.assert_allclose(maps.centroid_xy_mm[v, u, 0], traced[0], rtol=0.05)
+            traced_bias[fn, v, u] = traced[0]
         biases[fn] = maps.centroid_xy_mm[..., 0]
         # The decoded coordinate carries the bias (noise-free 16 bit: rounding ≤ p/(2π·B)).
         dec = decode_images(si, response=decoder_response(si), images=_images(si, m))
@@ -290,7 +372,9 @@ def test_curved_sample_phase_bias_sign_and_scaling(base):
         assert np.median(maps.centroid_xy_mm[..., 0][ok]) > 5 * np.median(bound[ok])  # resolved
     ok = m.valid
     assert np.all(biases[4.0][ok] > 0)  # sign: along +x of the screen for this geometry
-    np.testing.assert_allclose(biases[4.0][ok], 4.0 * biases[8.0][ok], rtol=1e-9)  # ∝ D² = (f/N)²
+    # ∝ D² = (f/N)² in the traced rays themselves (the model is compared with them above).
+    for v, u in pix:
+        np.testing.assert_allclose(traced_bias[4.0, v, u], 4.0 * traced_bias[8.0, v, u], rtol=0.05)
 
 
 def test_monte_carlo_slope_scatter_matches_the_decoder_sigma_propagated_to_the_normals(base, mapping):
@@ -395,3 +479,157 @@ def test_simulate_writes_12_bit_images_in_16_bit_pngs(tmp_path, small_toml):
     r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "sim"), "--setup", str(setup), "--out",
                                   str(tmp_path / "ev")])
     assert r.exit_code == 0, r.output
+
+
+def test_a_saturated_sample_is_pinned_at_full_scale_without_noise_and_flagged():
+    """Closed form: a sample saturates iff exposure·(A + B·cos(2πc/p − δ_k)) ≥ 1 (its mean
+    reaches the full well); it must then record exactly 2^bits − 1 in every noise draw, and the
+    decoder flags the pixel SATURATED. Shot and read noise (≈ 44 DN) would otherwise scatter it."""
+    from pmdsim.evaluation.phase import PhaseFlag
+    from pmdsim.setup.fringes import FringeSequence
+    from pmdsim.simulation.imaging import ImagingMaps
+
+    im = ImagingSetup(bit_depth=12, full_well_e=10000.0, read_noise_e=40.0, exposure=1.25)
+    sensor = SensorModel.from_values(im, 8, 0.0)
+    shape = (40, 50)
+    coord = np.zeros(shape + (2,))
+    coord[..., 0] = np.linspace(0.0, 8.0, shape[0] * shape[1]).reshape(shape)
+    A, B, period = 0.5, 0.45, 8.0
+    maps = ImagingMaps(np.zeros(shape + (2,)), None, np.ones(shape), 0.0, np.array([A, B]))
+    seq = FringeSequence((period,), (period,), n_shifts=4, mean_level=A, amplitude=B)
+    shifts = 2 * np.pi * np.arange(4) / 4
+    level = 1.25 * (A + B * np.cos(2 * np.pi * coord[..., 0, None] / period - shifts))  # (H, W, N)
+    sat = np.moveaxis(level >= 1.0, -1, 0)
+    # 6 σ below: σ² = g·mean + (g·σ_read)², g = 4095/FW → √(1677 + 268) ≈ 44.1 DN near full scale
+    clear = np.moveaxis(level < 1.0 - 6 * 44.1 / 4095, -1, 0)
+    assert sat.sum() > 500 and clear.sum() > 500
+    for seed in range(3):
+        out = render_period_imaging(maps, coord, np.ones(shape, bool), "x", period, seq, sensor,
+                                    np.random.default_rng(seed))
+        assert np.all(out[sat] == 4095)
+        assert np.all(out[clear] < 4095)
+        flags = wrapped_phase(out, max_value=4095).flags
+        np.testing.assert_array_equal((flags & PhaseFlag.SATURATED) != 0, sat.any(0) | (out == 4095).any(0))
+        assert ((flags & PhaseFlag.SATURATED) != 0)[sat.any(0)].all()
+
+
+def test_downsampling_keeps_the_real_pixel_footprint():
+    """`Setup.binned(K)` samples every K-th pixel of the same camera: the pixel-area footprint is
+    the real pixel's. The Jacobian of a K = 8 mapping over its sampling step 8 against the K = 4
+    one's (the mean of the 2 × 2 block whose centre is the K = 8 pixel's centre), and the TOML
+    round trip of the step and the focus distance."""
+    s = default_setup().with_imaging(pixel_area=True, focus_distance_mm=450.0)
+    s8, s4 = s.binned(8), s.binned(4)
+    assert (s8.imaging.sampling_step_px, s4.imaging.sampling_step_px) == (8, 4)
+    assert parse_setup(tomllib.loads(s8.to_toml())) == s8
+    j8 = imaging_maps(s8, CAM, trace_setup_camera(s8, CAM)).jacobian
+    j4 = imaging_maps(s4, CAM, trace_setup_camera(s4, CAM)).jacobian
+    h, w = j8.shape[:2]
+    blk = j4[: 2 * h, : 2 * w].reshape(h, 2, w, 2, 2, 2).mean(axis=(1, 3))
+    ok = (np.abs(j8).sum((-1, -2)) > 0) & (np.abs(blk).sum((-1, -2)) > 0)
+    ok[[0, -1], :] = ok[:, [0, -1]] = False  # one-sided differences at the border
+    assert ok.sum() > 10000
+    np.testing.assert_allclose(j8[ok], blk[ok], rtol=0.02, atol=0.02 * np.abs(j8[ok]).max())
+
+
+# ------------------------------------------------------------------ screen pixels (issue 20)
+def _render_1d(coord_x, period, *, hold=0.0, jac_u=0.0, sigma=0.0, coefficients=(0.5, 0.45)):
+    """Noise-free 16-bit images of one row of pixels at screen x = ``coord_x`` (mm)."""
+    from pmdsim.setup.fringes import FringeSequence
+    from pmdsim.simulation.imaging import ImagingMaps
+
+    shape = (1, coord_x.size)
+    coord = np.zeros(shape + (2,))
+    coord[0, :, 0] = coord_x
+    jac = None
+    if jac_u:
+        jac = np.zeros(shape + (2, 2))
+        jac[..., 0, 0] = jac_u
+    var = np.zeros(shape + (2,))
+    var[..., 0] = sigma**2
+    maps = ImagingMaps(var, jac, np.ones(shape), hold, np.asarray(coefficients, float))
+    seq = FringeSequence((period,), (period,), n_shifts=4, mean_level=0.5, amplitude=0.45)
+    sensor = SensorModel.from_values(None, 16, 0.0)
+    return render_period_imaging(maps, coord, np.ones(shape, bool), "x", period, seq, sensor, None)[:, 0].astype(float)
+
+
+def _decoded_x(I, period):
+    """N = 4 phase of (N, M) samples → screen coordinate (mm) modulo the period."""
+    d = 2 * np.pi * np.arange(I.shape[0]) / I.shape[0]
+    return period / (2 * np.pi) * np.arctan2(np.sin(d) @ I, np.cos(d) @ I)
+
+
+def _wrapped_mm(a, period):
+    return (a + period / 2) % period - period / 2
+
+
+def test_screen_pixel_staircase_moves_the_decoded_coordinate_as_the_box_average_of_the_held_pattern():
+    """Closed form: a camera pixel of footprint J (box) over the held pattern
+    f((⌊x/P⌋ + ½)·P) records (1/J)·∫ f over the box — a sum over the screen pixels it overlaps,
+    computed here exactly (overlap lengths × the held values). The decoded coordinate of the
+    renderer's images against the one of these closed-form samples: equal within the 16-bit
+    rounding, and the staircase's own error (the closed form against the true x) is resolved."""
+    P, p, J = 0.27, 2.0, 0.35
+    x = np.linspace(10.0, 14.0, 801)
+    got = _decoded_x(_render_1d(x, p, hold=P, jac_u=J), p)
+    shifts = 2 * np.pi * np.arange(4) / 4
+    lo, hi = x - J / 2, x + J / 2
+    ref = np.zeros((4, x.size))
+    for j in range(int(np.floor(lo.min() / P)), int(np.floor(hi.max() / P)) + 1):
+        overlap = np.clip(np.minimum(hi, (j + 1) * P) - np.maximum(lo, j * P), 0.0, None)
+        ref += overlap / J * (0.5 + 0.45 * np.cos(2 * np.pi * (j + 0.5) * P / p - shifts[:, None]))
+    want = _decoded_x(ref * 65535, p)
+    stair = _wrapped_mm(want - x, p)
+    err = _wrapped_mm(got - want, p)
+    assert np.sqrt(np.mean((stair - stair.mean()) ** 2)) > 5e-3  # the staircase: > 5 µm RMS
+    # 16-bit rounding: |Δφ| ≤ (2/N)·Σ½/B = 1/B rad; B = 0.45·|T|, T = sinc(J/p)·sinc(P/p) > 0.9.
+    # The aliases the renderer leaves out (beyond A = min(√(K/HOLD_TOLERANCE), HOLD_ALIASES), each
+    # ≤ K/a², K = 0.45·sin(πP/p)/π · P/(πJ)): their sum over a > A and both signs ≤ 2K/(A − 1),
+    # |Δφ| ≤ 2·sum/B.
+    from pmdsim.simulation.imaging import HOLD_ALIASES, HOLD_TOLERANCE
+
+    B = 0.45 * 0.9
+    K = 0.45 * np.sin(np.pi * P / p) / np.pi * P / (np.pi * J)
+    A = min(np.sqrt(K / HOLD_TOLERANCE), HOLD_ALIASES)
+    dphi = 1.0 / (B * 65535) + 2 * 2 * K / (A - 1) / B
+    assert np.abs(err).max() <= p / (2 * np.pi) * dphi
+
+
+def test_display_levels_round_the_commanded_pattern_closed_form():
+    """L = 16 display levels: the screen shows Q(d) = round(d·(L − 1))/(L − 1) of the commanded
+    d = A + B·cos(2πx/p − δ_k), seen through a defocus footprint of std σ = 1 mm (p = 8 mm). The
+    reference averages Q over the footprint's marginal, the semicircle of radius 2σ (40 000-point
+    quadrature here), and decodes it; the renderer keeps the rounding's harmonics up to the 48th.
+    Bound: the dropped harmonics that fold into the N = 4 phase (n > 48, n ≡ ±1 mod 4; |c_n| from a
+    2^16-point FFT here) times the envelope 1.6/x^1.5 of 2·J₁(x)/x, |Δφ| ≤ 2·Σ/B, plus the 16-bit
+    rounding. The rounding's ripple itself is > 3× that bound (measured 2.6 µm vs 0.73 µm)."""
+    from scipy.special import j1
+
+    from pmdsim.simulation.display import harmonic_coefficients
+
+    L, p, sig, A, B = 16, 8.0, 1.0, 0.5, 0.45
+    s = default_setup().with_imaging(display_levels=L)
+    coef = harmonic_coefficients(None, A, B, levels=s.imaging.display_levels)
+    x = np.linspace(0.0, p, 499, endpoint=False)
+    got = _decoded_x(_render_1d(x, p, sigma=sig, coefficients=coef), p)
+    shifts = 2 * np.pi * np.arange(4) / 4
+    R = 2 * sig
+    t = np.linspace(-R, R, 40001)[1:-1]
+    w = np.sqrt(R * R - t * t)
+    w /= w.sum()
+    ref = np.stack([(np.floor((A + B * np.cos(2 * np.pi * (x[:, None] + t) / p - dk)) * (L - 1) + 0.5) / (L - 1) * w)
+                    .sum(-1) for dk in shifts])
+    want = _decoded_x(ref, p)
+    theta = 2 * np.pi * np.arange(2**16) / 2**16
+    c = 2 * np.abs(np.fft.rfft(np.floor((A + B * np.cos(theta)) * (L - 1) + 0.5) / (L - 1)).real) / 2**16
+    n = np.arange(c.size)
+    xn = 4 * np.pi * sig * np.maximum(n, 1) / p
+    folded = (n > 48) & ((n % 4 == 1) | (n % 4 == 3))
+    dropped = (c * np.minimum(1.0, 1.6 / xn**1.5))[folded].sum()
+    x1 = 4 * np.pi * sig / p
+    b1 = B * 2 * j1(x1) / x1
+    bound = p / (2 * np.pi) * (2 * dropped / b1 + 1.0 / (b1 * 65535))
+    err = _wrapped_mm(got - want, p)
+    ripple = _wrapped_mm(want - x, p)
+    assert np.abs(ripple - ripple.mean()).max() > 3 * bound  # the rounding's ripple is resolved
+    assert np.abs(err).max() <= bound

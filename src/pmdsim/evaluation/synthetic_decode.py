@@ -27,22 +27,16 @@ from ..geometry.fast_trig import TIE_GUARD as _TIE_GUARD
 from ..geometry.fast_trig import libm_grey_level
 from ..geometry.fast_trig import sincos as _sincos_fast
 from ..setup.fringes import DIRECTIONS, FringeSequence
-from .phase import (
-    _MODE_COARSE,
-    _MODE_REFINE,
+from .decoding import _MODE_COARSE, _MODE_REFINE, ScreenCoordinates, _combine_kernel, _finish_row, _shift_weights
+from .phase_flags import (
     _TWO_PI,
     DEFAULT_DARK_FRACTION,
     DEFAULT_MIN_MODULATION_FRACTION,
     DEFAULT_MIN_MODULATION_RATIO,
     DEFAULT_UNWRAP_TOLERANCE,
     PhaseDecodingError,
-    ScreenCoordinates,
-    _check_extent,
-    _combine_kernel,
-    _finish_row,
-    _resolve_margin,
-    _shift_weights,
 )
+from .unwrapping import _check_extent, _resolve_margin
 
 __all__ = ["decode_rendered_fringes"]
 
@@ -52,7 +46,7 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
                            noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx, cb, sb, redo):
     """Row v: the N quantised grey levels of every pixel (the model and arithmetic of
     ``patterns._render_stack_rows``; 0 where not ``valid``), accumulated as in
-    ``phase._accumulate_row``: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I.
+    ``decoding._accumulate_row``: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I.
 
     Vectorised passes over the row (fast sin/cos, then image by image); pixels whose value lies
     within ``tie_guard`` of a rounding boundary, or whose phase is not in the fast range, are
@@ -113,7 +107,7 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
                 c_acc += w_c[k] * q
                 s_acc += w_s[k] * q
                 m = max(m, q)
-        else:  # black pixel: N samples of 0 (the sums of zeros are +0.0, as in phase._accumulate_row)
+        else:  # black pixel: N samples of 0 (the sums of zeros are +0.0, as in decoding._accumulate_row)
             m = 0.0
         sa[u] = a
         sc[u] = c_acc
@@ -128,7 +122,7 @@ def _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
                        mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
                        tie_guard, out, flags, modulation, offset, std):
     """Row v of one period: render (in registers) and decode; the arguments after
-    ``render_noise`` are those of ``phase._decode_kernel``. Returns the number of pixels
+    ``render_noise`` are those of ``decoding._decode_kernel``. Returns the number of pixels
     recomputed with libm's sin and cos (see ``_render_accumulate_row``)."""
     w = valid.shape[1]
     sa = np.empty(w)

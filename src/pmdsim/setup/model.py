@@ -203,11 +203,24 @@ class ImagingSetup:
     screen_fill_factor : float
         Emitting fraction of a screen pixel's area, in (0, 1].
     f_number : float or None
-        Lens f-number; switches defocus on (the camera is focused on the sample).
+        Lens f-number; switches defocus on: a thin lens whose entrance pupil is a uniform disc
+        of diameter focal_length_mm / f_number at the pinhole, with one plane of sharp focus.
     focal_length_mm : float
         Lens focal length (the aperture diameter is focal_length_mm / f_number).
     pixel_area : bool
         Integrate the pattern over each camera pixel's footprint (box of one pixel).
+    focus_distance_mm : float or None
+        Distance (mm, along the optical axis from the pinhole) of the plane of sharp focus,
+        perpendicular to the optical axis (issue 20). None: per camera, the axial distance of the
+        sample point seen by the principal point.
+    display_levels : int or None
+        The commanded pattern is rounded to this many display levels (e.g. 256 for an 8-bit
+        display) before the response; None: continuous levels (issue 20).
+    sampling_step_px : int
+        The simulated cameras sample every K-th pixel of the real sensor (K × K fewer pixels of the
+        same camera, issue 20): pixel-area integration is over the real pixel, 1/K of the sampling
+        step; full well and noise are the real pixel's. :meth:`Setup.binned` multiplies it by
+        the binning factor (``--downsample K``). Default 1.
     """
 
     bit_depth: int | None = None
@@ -226,6 +239,9 @@ class ImagingSetup:
     f_number: float | None = None
     focal_length_mm: float = 25.0
     pixel_area: bool = False
+    focus_distance_mm: float | None = None
+    sampling_step_px: int = 1
+    display_levels: int | None = None
 
     def __post_init__(self) -> None:
         def num(name, lo=None, lo_open=False, hi=None, hi_open=False, optional=False):
@@ -253,9 +269,16 @@ class ImagingSetup:
         num("screen_fill_factor", 0, True, 1)
         num("f_number", 0, True, optional=True)
         num("focal_length_mm", 0, True)
+        num("focus_distance_mm", 0, True, optional=True)
         for name in ("linearise", "pixel_area"):
             if not isinstance(getattr(self, name), bool):
                 raise SetupError(f"imaging.{name} must be true or false, got {getattr(self, name)!r}")
+        if (isinstance(self.sampling_step_px, bool) or not isinstance(self.sampling_step_px, int)
+                or self.sampling_step_px < 1):
+            raise SetupError(f"imaging.sampling_step_px must be an integer ≥ 1, got {self.sampling_step_px!r}")
+        if self.display_levels is not None and (isinstance(self.display_levels, bool)
+                                                or not isinstance(self.display_levels, int) or self.display_levels < 2):
+            raise SetupError(f"imaging.display_levels must be an integer ≥ 2, got {self.display_levels!r}")
         if isinstance(self.grey_levels, bool) or not isinstance(self.grey_levels, int) or self.grey_levels < 3:
             raise SetupError(f"imaging.grey_levels must be an integer ≥ 3, got {self.grey_levels!r}")
 
@@ -264,7 +287,7 @@ class ImagingSetup:
         """True if any effect changes the images (False: the ideal renderer's images)."""
         return any((self.bit_depth is not None, self.full_well_e is not None, self.display_gamma is not None,
                     self.emission_exponent is not None, self.screen_pixel_pitch_mm is not None,
-                    self.f_number is not None, self.pixel_area))
+                    self.f_number is not None, self.pixel_area, self.display_levels is not None))
 
     def with_(self, **changes: Any) -> "ImagingSetup":
         """The same effects with some values changed (validated)."""
@@ -455,7 +478,10 @@ class Setup:
             cams = {n: CameraSetup(cs.camera.binned(int(factor)), cs.pose) for n, cs in self.cameras.items()}
         except ValueError as e:
             raise SetupError(f"cannot bin the cameras {factor} × {factor}: {e}") from None
-        return replace(self, cameras=cams)
+        # Fewer pixels of the same camera: image formation keeps the real pixel (issue 20).
+        im = None if self.imaging is None else self.imaging.with_(
+            sampling_step_px=self.imaging.sampling_step_px * int(factor))
+        return replace(self, cameras=cams, imaging=im)
 
     def with_bulge(self, bulge_mm: float) -> "Setup":
         """The same setup with the screen's central control height set to ``bulge_mm`` (Δh)."""

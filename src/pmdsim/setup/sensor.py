@@ -3,15 +3,19 @@
 Model (docs/conventions.md, "Image formation"), per sample with relative screen radiance s
 (1 = a full-white, normally viewed screen):
 
-    e = min(exposure · FW · s, FW)                    photo-electrons (full well FW saturates)
+    e = exposure · FW · s                             photo-electrons
     DN = dark + g · e + √(g²·(e + σ_read²) + σ_extra²) · z,   z ~ N(0, 1)
-    recorded = clip(round(DN), 0, 2^bits − 1)
+    recorded = clip(round(DN), 0, 2^bits − 1)      if e < FW
+    recorded = 2^bits − 1                           if e ≥ FW (saturated: pinned, no noise)
 
 with g the conversion gain (DN per electron; default (2^bits − 1)/FW, the full well fills the
 range), σ_read the read noise in electrons and σ_extra the setup's additive grey-level noise
 (``patterns.noise_std``). Photon shot noise is Poisson (variance e); it is drawn as a normal of
 the same variance (EMVA 1288's linear model; the normal's shape error is irrelevant above a few
-tens of electrons, and it lets one standard normal per sample carry all noise sources).
+tens of electrons, and it lets one standard normal per sample carry all noise sources). A pixel
+whose well is full records the saturation code 2^bits − 1 exactly — it carries no noise, and the
+decoder flags it SATURATED (issue 20; before, noise was added to the clipped mean, so a saturated
+pixel still fluctuated below full scale).
 Without a full well (sensor off) the camera is ideal: DN = (2^bits − 1)·s + σ_extra·z.
 """
 

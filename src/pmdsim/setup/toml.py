@@ -59,7 +59,8 @@ _KNOWN_KEYS = {
     "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
     "imaging": ("bit_depth", "full_well_e", "exposure", "read_noise_e", "dark_offset_dn", "gain_dn_per_e",
                 "display_gamma", "display_black_level", "linearise", "grey_levels", "emission_exponent",
-                "screen_pixel_pitch_mm", "screen_fill_factor", "f_number", "focal_length_mm", "pixel_area"),
+                "screen_pixel_pitch_mm", "screen_fill_factor", "f_number", "focal_length_mm", "pixel_area",
+                "focus_distance_mm", "sampling_step_px", "display_levels"),
 }
 
 
@@ -464,6 +465,10 @@ def _imaging(r: _Reader) -> ImagingSetup:
         kw["bit_depth"] = r.integer("bit_depth", choices=(8, 10, 12, 16))
     if r.has("grey_levels"):
         kw["grey_levels"] = r.integer("grey_levels", minimum=3)
+    if r.has("display_levels"):
+        kw["display_levels"] = r.integer("display_levels", minimum=2)
+    if r.has("sampling_step_px"):
+        kw["sampling_step_px"] = r.integer("sampling_step_px", minimum=1)
     for k in ("linearise", "pixel_area"):
         if r.has(k):
             v = r.raw(k)
@@ -474,7 +479,7 @@ def _imaging(r: _Reader) -> ImagingSetup:
                     ("dark_offset_dn", "nonneg"), ("gain_dn_per_e", "positive"), ("display_gamma", "positive"),
                     ("display_black_level", "nonneg"), ("emission_exponent", "nonneg"),
                     ("screen_pixel_pitch_mm", "positive"), ("screen_fill_factor", "positive"),
-                    ("f_number", "positive"), ("focal_length_mm", "positive")):
+                    ("f_number", "positive"), ("focal_length_mm", "positive"), ("focus_distance_mm", "positive")):
         if r.has(k):
             kw[k] = r.number(k, **{rule: True})
     r.finish()
@@ -522,7 +527,7 @@ _COMMENTS = {
     "imaging": "Image-formation effects (docs/conventions.md, \"Image formation\"); absent keys are off:\n"
     "sensor (bit_depth 8/10/12/16, full_well_e, exposure, read_noise_e, dark_offset_dn, gain_dn_per_e),\n"
     "display (display_gamma, display_black_level, linearise, grey_levels, emission_exponent,\n"
-    "screen_pixel_pitch_mm, screen_fill_factor), optics (f_number, focal_length_mm, pixel_area).",
+    "screen_pixel_pitch_mm, screen_fill_factor), optics (f_number, focal_length_mm, focus_distance_mm, pixel_area).",
     "patterns": "Fringes I_k = A + B·cos(2π·c/p − 2πk/N); mean_level A and amplitude B are fractions of full scale;\n"
     "periods coarsest first (the coarsest must cover the screen); noise_std in grey levels.",
 }

@@ -9,8 +9,10 @@
 * Angular emission: radiance ∝ cos^m θ_v, θ_v the angle between the viewing ray and the screen
   normal (m = 0: a Lambertian emitter).
 * Pixel structure: the screen shows the pattern constant over each pixel of pitch P
-  (sample-and-hold: transfer sinc(n·P/p) for the n-th harmonic of period p, phase kept because the
-  hold is centred on the pixel) and emits through an aperture of area fraction f (the black
+  (sample-and-hold: the pattern sampled at the pixel centres (j + ½)·P and held, a staircase in
+  position; its spectrum is harmonic n of period p at ν = n/p plus aliases at ν = n/p + a/P with
+  weight sin(πnP/p)/(π(nP/p + a)), a = 0 giving sinc(n·P/p) — simulation.imaging renders |a| ≤ 3,
+  each through the camera's transfer at its own frequency) and emits through an aperture of area fraction f (the black
   matrix: a rectangular wave of pitch P and duty √f per axis, whose harmonics survive the blur
   only where the camera resolves the pitch). The mean radiance is normalised to that of a fully
   emitting screen (the exposure refers to the screen's average white).
@@ -22,8 +24,9 @@ import numba
 import numpy as np
 
 from ..setup.response import IntensityResponse
+from .optics import JINC_TABLE, jinc
 
-__all__ = ["display_response", "harmonic_coefficients", "emission_falloff", "black_matrix_factor",
+__all__ = ["display_response", "quantise_levels", "harmonic_coefficients", "emission_falloff", "black_matrix_factor",
            "HARMONIC_TOLERANCE"]
 
 #: Harmonics of the response with |c_n| below this (relative radiance) are dropped: 1e-5 of full
@@ -39,17 +42,33 @@ def display_response(gamma: float | None, black_level: float = 0.0) -> Intensity
     return IntensityResponse.from_gamma(1.0 if gamma is None else gamma, black_level=black_level, n_levels=1025)
 
 
-def harmonic_coefficients(response: IntensityResponse | None, mean_level: float, amplitude: float, *,
-                          n_samples: int = 256, max_harmonics: int = 16) -> np.ndarray:
-    """Cosine-series coefficients c_n of r(A + B·cos θ) = Σ_n c_n cos(nθ), shape (K + 1,).
+def quantise_levels(d, levels: int | None) -> np.ndarray:
+    """Commanded display levels d ∈ [0, 1] rounded to ``levels`` equally spaced levels
+    (round(d·(L − 1))/(L − 1), half up; e.g. L = 256 for an 8-bit display); None: unchanged."""
+    d = np.asarray(d, dtype=float)
+    if levels is None:
+        return d
+    return np.floor(np.clip(d, 0.0, 1.0) * (levels - 1) + 0.5) / (levels - 1)
 
-    Without a response: (A, B) exactly. Trailing harmonics below :data:`HARMONIC_TOLERANCE` are
-    dropped (the series of a smooth response converges fast).
+
+def harmonic_coefficients(response: IntensityResponse | None, mean_level: float, amplitude: float, *,
+                          n_samples: int = 256, max_harmonics: int = 16, levels: int | None = None) -> np.ndarray:
+    """Cosine-series coefficients c_n of r(Q(A + B·cos θ)) = Σ_n c_n cos(nθ), shape (K + 1,).
+
+    Q rounds the commanded level to ``levels`` display levels (:func:`quantise_levels`; None: no
+    rounding). Without a response and levels: (A, B) exactly. Trailing harmonics below
+    :data:`HARMONIC_TOLERANCE` are dropped (the series of a smooth response converges fast). The
+    rounded pattern is a staircase in θ whose harmonics decay slowly: it is sampled on 16384
+    points and kept up to harmonic 48 (the remainder, each below ~1/(n·L), is dropped — see
+    docs/conventions.md, "Screen pixels").
     """
-    if response is None:
+    if response is None and levels is None:
         return np.array([float(mean_level), float(amplitude)])
+    if levels is not None:
+        n_samples, max_harmonics = max(n_samples, 16384), max(max_harmonics, 48)
     theta = 2.0 * np.pi * np.arange(n_samples) / n_samples
-    f = response.forward(mean_level + amplitude * np.cos(theta))
+    d = quantise_levels(mean_level + amplitude * np.cos(theta), levels)
+    f = d if response is None else response.forward(d)
     spec = np.fft.rfft(f).real / n_samples  # f even in θ: real cosine coefficients
     c = np.concatenate([[spec[0]], 2.0 * spec[1:max_harmonics + 1]])
     keep = np.nonzero(np.abs(c) >= HARMONIC_TOLERANCE)[0]
@@ -71,7 +90,8 @@ def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_x
 
     Per axis a rectangular wave of pitch P and duty w = √f centred on the pixel centres
     (i + ½)·P: w + Σ_m 2w·sinc(m·w)·cos(2πm(x − P/2)/P), each harmonic attenuated by the
-    footprint's Gaussian transfer exp(−2π²m²σ²/P²) (``var_xy_mm2`` (H, W, 2): σ² along x and y)
+    footprint's uniform-ellipse transfer 2·J₁(x)/x, x = 4πmσ/P (:mod:`.optics`; ``var_xy_mm2``
+    (H, W, 2): σ² along x and y)
     and, if given, by the pixel-area transfer (``sinc_args`` (H, W, 2, 2): the Jacobian
     d(screen)/d(pixel), rows x and y).
     """
@@ -82,12 +102,12 @@ def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_x
     if w >= 1.0:
         return out
     jac = np.zeros((1, 1, 2, 2)) if sinc_args is None else np.ascontiguousarray(sinc_args, dtype=float)
-    _black_matrix_kernel(xy, var, jac, sinc_args is not None, float(pitch_mm), w, int(n_harmonics), out)
+    _black_matrix_kernel(xy, var, jac, sinc_args is not None, float(pitch_mm), w, int(n_harmonics), JINC_TABLE, out)
     return out
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, out):
+def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, table, out):
     h, wd = out.shape
     for v in numba.prange(h):
         for u in range(wd):
@@ -99,7 +119,7 @@ def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, out):
                     break
                 acc = w
                 for m in range(1, n_harmonics + 1):
-                    t = np.exp(-2.0 * np.pi**2 * m * m * var[v, u, a] / (pitch * pitch))
+                    t = jinc(4.0 * np.pi * m * np.sqrt(var[v, u, a]) / pitch, table)
                     if use_jac:
                         for j in range(2):
                             x = np.pi * m * jac[v, u, a, j] / pitch

@@ -5,12 +5,15 @@ For one camera the slowly varying per-pixel factors are computed once from the t
 emission and black-matrix factor of :mod:`.display`); every fringe image is then rendered by one
 numba kernel that sums the display response's cosine harmonics, each multiplied by its transfer
 
-    T_n = exp(−½·(2πn/p)²·σ_a²) · sinc(n·J_a,u/p)·sinc(n·J_a,v/p) · sinc(n·P/p)
+    T_n = 2·J₁(4πnσ_a/p)/(4πnσ_a/p) · sinc(n·J_a,u/p)·sinc(n·J_a,v/p) · sinc(n·P/p)
 
-(defocus, pixel area, screen sample-and-hold; a the fringe axis), evaluated at the defocus
-footprint's centroid (offset from the chief ray's screen point by O(D²)), scales by the emission factor
-and passes the result through the sensor (:class:`.sensor.SensorModel`). Every harmonic keeps its
-phase, so the blur changes only the modulation (exactly, for a locally linear mapping).
+(defocus by a thin lens with a uniform-disc pupil and one focal plane — the uniform-ellipse
+footprint's transfer, :mod:`.optics`; pixel area; screen sample-and-hold; a the fringe axis, σ_a
+the footprint's std along it), evaluated at the defocus footprint's centroid (offset from the
+chief ray's screen point by O(D²)), scales by the emission factor and passes the result through
+the sensor (:class:`.sensor.SensorModel`). A harmonic's transfer is real: it scales the modulation
+and, where it is negative (defocus beyond the first zero of J₁), reverses the contrast — a π phase
+flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20).
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
@@ -28,11 +31,21 @@ import numpy as np
 from ..setup import ImagingSetup, Setup
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
-from .optics import defocus_moments, pixel_jacobian
+from .optics import JINC_TABLE, default_focus_distance, defocus_moments, focus_path, jinc, pixel_jacobian
 from ..setup.sensor import SensorModel
 from .trace import Mapping
 
-__all__ = ["ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
+#: The screen's sample-and-hold staircase: aliases ν = n/p ± a/P of each harmonic are rendered
+#: for a = 1, 2, … until an upper bound of the next pair (weight 1/(π(a − nP/p)) times the
+#: envelopes 1.6/x^1.5 of the defocus transfer and 1/(πJν) of the pixel box) drops below
+#: HOLD_TOLERANCE (relative radiance), at most HOLD_ALIASES pairs. With the f/8 blur of Table 1
+#: a few pairs suffice; for a camera that resolves the pitch the series is cut at 32 pairs (the
+#: rest, each ≤ K/a², sums to ≤ 2K/32 — measured cost: without the cap a sharp point-sampling
+#: camera took minutes per full-resolution frame).
+HOLD_ALIASES = 32
+HOLD_TOLERANCE = 1e-6
+
+__all__ = ["HOLD_ALIASES", "HOLD_TOLERANCE", "ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
            "decoder_response"]
 
 
@@ -61,6 +74,9 @@ class ImagingMaps:
     centroid_xy_mm : ndarray (H, W, 2) or None
         Offset of the defocus footprint's centroid from the chief ray's screen point (mm);
         None without defocus.
+    focus_distance_mm : float or None
+        The camera's focus distance used (``imaging.focus_distance_mm`` or the default); None
+        without defocus.
     """
 
     var_xy_mm2: np.ndarray
@@ -69,6 +85,7 @@ class ImagingMaps:
     hold_pitch_mm: float
     coefficients: np.ndarray
     centroid_xy_mm: np.ndarray | None = None
+    focus_distance_mm: float | None = None
 
 
 def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=None) -> ImagingMaps:
@@ -76,7 +93,9 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
 
     ``T_world_sample`` is the pose of the surface the mapping was traced with (default: the
     setup's sample; a calibration mirror pose otherwise). Defocus and angular emission need the
-    mapping's points (``store_points=True``).
+    mapping's points (``store_points=True``). The default focus distance (``imaging.
+    focus_distance_mm`` unset) is taken from this mapping: the axial distance of the surface point
+    seen by the principal point.
     """
     im = setup.imaging if setup.imaging is not None else ImagingSetup()
     xy = mapping.screen_xy_mm
@@ -90,9 +109,16 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
         if mapping.p_sample_mm is None or mapping.q_screen_mm is None:
             raise ValueError("defocus and angular emission need a mapping traced with store_points=True")
         aperture = 0.0 if im.f_number is None else im.focal_length_mm / im.f_number
+        fpath = None
+        if im.f_number is not None:
+            focus = im.focus_distance_mm
+            if focus is None:
+                focus = default_focus_distance(cs.T_world_cam, T_ws, mapping.p_sample_mm,
+                                               (cs.camera.ppx_px, cs.camera.ppy_px))
+            fpath = focus_path(cs.T_world_cam, T_ws, mapping.p_sample_mm, focus)
         cov, centroid, cos_view = defocus_moments(cs.T_world_cam, T_ws, setup.screen.T_world_screen,
                                                   mapping.p_sample_mm, mapping.q_screen_mm, aperture,
-                                                  setup.screen.surface)
+                                                  setup.screen.surface, fpath)
         if im.f_number is not None:
             var = np.stack([cov[..., 0, 0], cov[..., 1, 1]], axis=-1)
             centroid = np.ascontiguousarray(np.where(np.isfinite(centroid), centroid, 0.0))
@@ -101,25 +127,30 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
         if im.emission_exponent is not None:
             radiance = radiance * emission_falloff(cos_view, im.emission_exponent)
     var = np.where(np.isfinite(var), var, 0.0)
-    jac = pixel_jacobian(xy) if im.pixel_area else None
+    # The real pixel's footprint: 1/K of the sampling step of a camera sampled every K-th pixel.
+    jac = pixel_jacobian(xy) / im.sampling_step_px if im.pixel_area else None
     if im.screen_pixel_pitch_mm is not None:
         radiance = radiance * black_matrix_factor(xy, im.screen_pixel_pitch_mm, im.screen_fill_factor, var, jac)
     radiance = np.where(np.isfinite(radiance), radiance, 0.0)
     seq = setup.patterns.sequence
     coef = harmonic_coefficients(display_response(im.display_gamma, im.display_black_level), seq.mean_level,
-                                 seq.amplitude)
+                                 seq.amplitude, levels=im.display_levels)
     return ImagingMaps(np.ascontiguousarray(var), None if jac is None else np.ascontiguousarray(jac),
-                       np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid)
+                       np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid,
+                       None if im.f_number is None else float(focus))
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
 def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
-                  scale, dark, clip, shot, const_var, full, noise, use_noise, out):
+                  scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, hold_tol, out):
     w = valid.shape[1]
     n = cos_d.shape[0]
     kmax = coef.shape[0] - 1
     k1 = 2.0 * np.pi / period
     t = np.empty(kmax + 1)
+    tsin = np.zeros(kmax + 1)
+    aliasing = hold > 0.0 and n_alias > 0
+    cps1 = sps1 = cyu1 = syu1 = cyv1 = syv1 = 0.0
     cn = np.empty(kmax + 1)
     sn = np.empty(kmax + 1)
     ck = np.empty((n, kmax + 1))
@@ -139,26 +170,29 @@ def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, us
             phi = k1 * coord[v, u]
             c1 = np.cos(phi)
             s1 = np.sin(phi)
-            e1 = np.exp(-0.5 * k1 * k1 * var[v, u])
-            e2 = e1 * e1
-            step = e1  # e1^(2m − 1)
-            gauss = 1.0  # e1^(m²) = Π_{j ≤ m} e1^(2j − 1)
+            xj = 2.0 * k1 * np.sqrt(var[v, u])  # 4πσ/p: the first harmonic's jinc argument
             # sinc(m·x) = sin(m x)/(m x), sin(m x) by the Chebyshev recurrence
             # sin((m+1)x) = 2 cos x · sin(m x) − sin((m−1)x): one sine and cosine per factor.
             xa = np.pi * jac[v, u, 0] / period if use_jac else 0.0
             xb = np.pi * jac[v, u, 1] / period if use_jac else 0.0
             xh = np.pi * hold / period
+            xq = coord[v, u] / hold if hold > 0.0 else 0.0  # screen position in pixel pitches
             ca, sa, sa0 = np.cos(xa), np.sin(xa), 0.0
             cb, sb, sb0 = np.cos(xb), np.sin(xb), 0.0
+            cam_a, cam_a0 = ca, 1.0  # cos(m·x_a), cos(m·x_b) by the same recurrence
+            cam_b, cam_b0 = cb, 1.0
+            if aliasing:  # cos, sin of 2πx/P, πJ_u/P, πJ_v/P (the aliases' steps)
+                cps1, sps1 = np.cos(2.0 * np.pi * xq), np.sin(2.0 * np.pi * xq)
+                yu = np.pi * jac[v, u, 0] / hold if use_jac else 0.0
+                yv = np.pi * jac[v, u, 1] / hold if use_jac else 0.0
+                cyu1, syu1, cyv1, syv1 = np.cos(yu), np.sin(yu), np.cos(yv), np.sin(yv)
             ch, sh, sh0 = np.cos(xh), np.sin(xh), 0.0
             cn[0] = 1.0
             sn[0] = 0.0
             for m in range(1, kmax + 1):
                 cn[m] = cn[m - 1] * c1 - sn[m - 1] * s1
                 sn[m] = sn[m - 1] * c1 + cn[m - 1] * s1
-                gauss *= step
-                step *= e2
-                tm = gauss
+                tm = jinc(m * xj, table) if xj != 0.0 else 1.0
                 if xa != 0.0:
                     tm *= sa / (m * xa)
                 if xb != 0.0:
@@ -166,6 +200,51 @@ def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, us
                 if xh != 0.0:
                     tm *= sh / (m * xh)
                 t[m] = coef[m] * tm
+                tsin[m] = 0.0
+                if aliasing:
+                    # Staircase: aliases at ν = m/p ± a/P (a = 1, 2, …), weight
+                    # sin(πmP/p)/(π(mP/p ± a)), phase ±2πa·x/P, each through the defocus and
+                    # pixel-area transfer at ν; sin(π·J·ν) = sin(m·x_u ± a·y_u) by angle addition,
+                    # the multiples of ψ, y_u, y_v by recurrence. Stops when an upper bound of the
+                    # next pair (1/(π(a − mP/p)) · the transfers' envelopes) is below HOLD_TOLERANCE.
+                    cp, sp, cu, su, cw, sw = 1.0, 0.0, 1.0, 0.0, 1.0, 0.0
+                    r = m * hold / period
+                    for a in range(1, n_alias + 1):
+                        cp, sp = cp * cps1 - sp * sps1, sp * cps1 + cp * sps1
+                        cu, su = cu * cyu1 - su * syu1, su * cyu1 + cu * syu1
+                        cw, sw = cw * cyv1 - sw * syv1, sw * cyv1 + cw * syv1
+                        nu_min = (a - r) / hold
+                        env = abs(coef[m] * sh) / (np.pi * (a - r)) if a > r else abs(coef[m] * sh)
+                        if nu_min > 0.0:
+                            xe = xj * period * nu_min
+                            if xe > 1.0:
+                                env *= 1.6 / (xe * np.sqrt(xe))
+                            ze = np.pi * abs(jac[v, u, 0]) * nu_min if use_jac else 0.0
+                            if ze > 1.0:
+                                env /= ze
+                            ze = np.pi * abs(jac[v, u, 1]) * nu_min if use_jac else 0.0
+                            if ze > 1.0:
+                                env /= ze
+                        if env < hold_tol:
+                            break
+                        for sg in (1.0, -1.0):
+                            nu = m / period + sg * a / hold
+                            den = np.pi * (r + sg * a)
+                            # sin(π·r)/(π(r − a)) → (−1)^a as r → a (a harmonic on an alias of the grid)
+                            ta = coef[m] * (sh / den if den != 0.0 else (1.0 - 2.0 * (a % 2)))
+                            if xj != 0.0:
+                                ta *= jinc(xj * period * abs(nu), table)
+                            if use_jac:
+                                za = np.pi * jac[v, u, 0] * nu
+                                zb = np.pi * jac[v, u, 1] * nu
+                                if za != 0.0:
+                                    ta *= (sa * cu + cam_a * sg * su) / za
+                                if zb != 0.0:
+                                    ta *= (sb * cw + cam_b * sg * sw) / zb
+                            t[m] += ta * cp
+                            tsin[m] += ta * sg * sp
+                cam_a, cam_a0 = 2.0 * ca * cam_a - cam_a0, cam_a
+                cam_b, cam_b0 = 2.0 * cb * cam_b - cam_b0, cam_b
                 sa, sa0 = 2.0 * ca * sa - sa0, sa
                 sb, sb0 = 2.0 * cb * sb - sb0, sb
                 sh, sh0 = 2.0 * ch * sh - sh0, sh
@@ -173,12 +252,17 @@ def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, us
             for k in range(n):
                 s = coef[0]
                 for m in range(1, kmax + 1):
-                    # cos(m(φ − δ_k)) = cos mφ cos mδ_k + sin mφ sin mδ_k
-                    s += t[m] * (cn[m] * ck[k, m] + sn[m] * sk[k, m])
+                    # cos(m(φ − δ_k) + ψ) = cos m(φ − δ_k)·cos ψ − sin m(φ − δ_k)·sin ψ (ψ: the
+                    # aliases' phases, folded into t and tsin)
+                    cm = cn[m] * ck[k, m] + sn[m] * sk[k, m]
+                    s += t[m] * cm
+                    if tsin[m] != 0.0:
+                        s -= tsin[m] * (sn[m] * ck[k, m] - cn[m] * sk[k, m])
                 mean = g * s
-                if mean > clip:
-                    mean = clip
-                elif mean < 0.0:
+                if mean >= clip:  # the full well is reached: the saturation code, no noise (issue 20)
+                    out[k, v, u] = full
+                    continue
+                if mean < 0.0:
                     mean = 0.0
                 val = dark + mean
                 if use_noise:
@@ -193,12 +277,13 @@ def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, us
 
 @numba.njit(cache=True, parallel=True)
 def _imaging_kernel(coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
-                    scale, dark, clip, shot, const_var, full, noise, use_noise, out):
+                    scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, hold_tol, out):
     h = valid.shape[0]
     rows = 16
     for b in numba.prange((h + rows - 1) // rows):
         _imaging_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac,
-                      hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, out)
+                      hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias,
+                      hold_tol, out)
 
 
 def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
@@ -245,7 +330,7 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
                     np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
                     maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
                     sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
-                    noise, sensor.noisy, out)
+                    noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, HOLD_TOLERANCE, out)
     return out
 
 

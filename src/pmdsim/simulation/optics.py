@@ -1,28 +1,44 @@
 """Optics of the camera: defocus of the screen seen via the sample, and pixel-area integration.
 
-Defocus (docs/conventions.md, "Image formation"). The camera is focused on the sample: all rays
-from the entrance pupil (diameter D = f/N, in the camera's x–y plane at the pinhole) to a
-pixel's sample point P reflect at P with the same normal, so the reflected bundle is the
-mirrored incident cone continued a distance s₂ to the screen. To first order in the pupil
-offset a (camera frame, |a| ≤ D/2, uniform), the screen point moves by
+Defocus (docs/conventions.md, "Image formation"; issue 20). A thin lens: the entrance pupil is a
+uniform disc of diameter D = f/N in the camera's x–y plane, centred on the pinhole O, and there is
+one plane of sharp focus perpendicular to the optical axis at the focus distance z_F. The pixel
+whose chief ray has unit direction d meets that plane at F = O + s_F·d, s_F = z_F/(d·e_z) (the
+*focus path*). Every pupil ray of the pixel passes through F: its (unnormalised) direction is
+s_F·d − a for the pupil offset a. A locally flat sample mirrors the bundle, so after the
+reflection H = I − 2nnᵀ at the chief ray's sample point P (n ∥ r − d) the rays leave the mirror
+image F' of F (at path length s_F along the reflected chief ray) with direction r + ε,
+ε = −H·a/s_F, and meet the screen (normal m) at the lever L = s₁ + s₂ − s_F beyond F'
+(s₁ = |P − O|, s₂ = |q − P|):
 
-    δq = s₂ · M · H · δd,   δd = −(I − d dᵀ)·a / s₁,
+    δq = L·(m·r)·[(r + ε)/(m·r + m·ε) − r/(m·r)].
 
-with d, r the unit incident and reflected directions, s₁ = |P − O|, s₂ = |q − P|,
-H = I − 2nnᵀ the reflection at P (n ∥ r − d) and M = I − r e_zᵀ / r_z the projection along r onto
-the screen plane (screen frame, normal e_z). The footprint's covariance is therefore
+To first order δq = −(L/s_F)·M H a with M = I − r mᵀ/(m·r) the projection along r onto the
+screen: the footprint is the linear image of the pupil disc, a *uniform ellipse*, with covariance
 
-    Σ = (D²/16) · (s₂/s₁)² · M H (I − d dᵀ) P_xy (I − d dᵀ) Hᵀ Mᵀ
+    Σ = (D²/16)·(L/s_F)²·M H P_xy Hᵀ Mᵀ
 
 (D²/16: the variance of a uniform disc of diameter D per axis; P_xy projects onto the pupil
-plane), and to second order the footprint's centroid is offset from the chief ray's screen
+plane). A pixel focused on its own sample point (s_F = s₁, the model before issue 20) has
+L/s_F = s₂/s₁. To second order the centroid of the footprint is offset from the chief ray's screen
 point by the curvature of the central projection onto the oblique screen
-(:func:`defocus_moments`), a phase bias ∝ D². Both are computed from the traced sample and
-screen points, no extra rays. A curved sample
-changes s₂ and r over the image, and with them Σ. The blur is applied to each sinusoidal
-harmonic analytically with the Gaussian of this covariance, whose transfer at period p is
-exp(−2π²σ²/p²) (σ² the variance along the fringe axis): the modulation shrinks and the phase is
-kept.
+(:func:`defocus_moments`), a phase bias ∝ D². Both are computed from the traced sample and screen
+points, no extra rays.
+
+Transfer of a uniform ellipse. The footprint's marginal along the fringe axis e_a is the
+projection of a uniform disc of radius R = D/2 by the linear map's row l_a: a semicircle
+(Wigner) density of radius R·|l_a|, whose variance is R²|l_a|²/4 = σ_a² (σ_a² = e_aᵀΣe_a). Its
+characteristic function at the spatial frequency k = 2πn/p of harmonic n is
+
+    T_n = 2·J₁(x)/x,    x = k·R·|l_a| = 4π·n·σ_a/p,
+
+(J₁ the Bessel function of the first kind): 1 − x²/8 + … (the Gaussian exp(−2π²σ²/p²) to second
+order), first zero at x = 3.8317 (σ_a = 0.305·p), negative beyond it up to x = 7.0156 — a
+contrast reversal, i.e. a π phase flip of the recorded fringe — then alternating lobes decaying as
+x^(−3/2). The mapping is locally linear where the footprint is small against the curvature of
+the sample and screen; the sample's curvature is not in this first-order footprint (a curved
+sample adds focusing power and mixes neighbouring slopes off the focal plane): its error against a
+pupil-sampled reference is recorded in docs/benchmarks.md.
 
 Pixel-area integration: a pixel integrates the pattern over its 1 × 1 px footprint; with the
 local Jacobian J = ∂(x_q, y_q)/∂(u, v) (central differences of the traced mapping) a sinusoid of
@@ -37,7 +53,7 @@ import numpy as np
 
 from ..geometry.transform import RigidTransform
 
-__all__ = ["defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "screen_derivatives", "view_geometry"]
+__all__ = ["focus_path", "default_focus_distance", "uniform_disc_transfer", "defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "screen_derivatives", "view_geometry"]
 
 
 def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
@@ -68,19 +84,92 @@ def view_geometry(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T
     return dv / s1[..., None], rv / s2[..., None], s1, s2
 
 
+def _sample_in_camera(T_world_cam: RigidTransform, T_world_sample: RigidTransform, p_sample_mm) -> np.ndarray:
+    return (T_world_cam.inv() @ T_world_sample).apply(np.asarray(p_sample_mm, dtype=float))
+
+
+def default_focus_distance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, p_sample_mm: np.ndarray,
+                           principal_point_px) -> float:
+    """The default focus distance (mm): the axial (camera z) distance of the sample point seen by
+    the principal point — the traced pixel nearest to ``principal_point_px`` (u, v).
+
+    Raises ``ValueError`` if no pixel is traced.
+    """
+    z = _sample_in_camera(T_world_cam, T_world_sample, p_sample_mm)[..., 2]
+    ok = np.isfinite(z) & (z > 0)
+    if not ok.any():
+        raise ValueError("no traced sample point to focus on (imaging.focus_distance_mm unset)")
+    v, u = np.nonzero(ok)
+    i = np.argmin((u - principal_point_px[0]) ** 2 + (v - principal_point_px[1]) ** 2)
+    return float(z[v[i], u[i]])
+
+
+def focus_path(T_world_cam: RigidTransform, T_world_sample: RigidTransform, p_sample_mm: np.ndarray,
+               focus_distance_mm: float) -> np.ndarray:
+    """Path length s_F (mm) from the pinhole along each pixel's chief ray to the plane of sharp
+    focus z_cam = ``focus_distance_mm``: s_F = z_F·s₁/z_P (s₁, z_P the distance and camera-z of
+    the pixel's sample point), (H, W); NaN where not traced."""
+    p = _sample_in_camera(T_world_cam, T_world_sample, p_sample_mm)
+    return focus_distance_mm * np.linalg.norm(p, axis=-1) / p[..., 2]
+
+
+#: Tabulated 2·J₁(x)/x (scipy.special.j1) on [0, _JINC_X_MAX] with step _JINC_STEP: linear
+#: interpolation in the render kernel is accurate to h²/8·max|f''| = 3.0e-8 (|f''| ≤ 1/4); beyond
+#: the table the asymptotic form 2·√(2/(πx))·cos(x − 3π/4)/x (error < 1e-5 there).
+_JINC_STEP = 1.0 / 1024.0
+_JINC_X_MAX = 512.0
+
+
+def _jinc_table() -> np.ndarray:
+    from scipy.special import j1
+
+    x = np.arange(0.0, _JINC_X_MAX + 2 * _JINC_STEP, _JINC_STEP)
+    t = np.empty_like(x)
+    t[0] = 1.0
+    t[1:] = 2.0 * j1(x[1:]) / x[1:]
+    return t
+
+
+JINC_TABLE = _jinc_table()
+
+
+@numba.njit(cache=True, error_model="numpy")
+def jinc(x, table):
+    """2·J₁(x)/x for x ≥ 0 from :data:`JINC_TABLE` (linear interpolation; asymptotic beyond)."""
+    if x < _JINC_X_MAX:
+        f = x * (1.0 / _JINC_STEP)
+        i = int(f)
+        w = f - i
+        return table[i] + w * (table[i + 1] - table[i])
+    return 2.0 * np.sqrt(2.0 / (np.pi * x)) * np.cos(x - 0.75 * np.pi) / x
+
+
+def uniform_disc_transfer(sigma_mm, period_mm, harmonic: int = 1) -> np.ndarray:
+    """Transfer 2·J₁(x)/x, x = 4π·n·σ/p, of a uniform-ellipse footprint whose std along the
+    fringe axis is ``sigma_mm``, for harmonic ``n`` of period ``period_mm`` (module docstring);
+    negative where the contrast is reversed. Exact (scipy.special.j1)."""
+    from scipy.special import j1
+
+    x = 4.0 * np.pi * harmonic * np.asarray(sigma_mm, dtype=float) / period_mm
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(x == 0, 1.0, 2.0 * j1(x) / np.where(x == 0, 1.0, x))
+
+
 def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,
-                    p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float, screen_surface=None):
+                    p_sample_mm: np.ndarray, q_screen_mm: np.ndarray, aperture_mm: float, screen_surface=None,
+                    focus_path_mm: np.ndarray | None = None):
     """Covariance and centroid offset of the defocus footprint on the screen (screen frame x, y).
 
     A pupil point a (uniform on the disc of diameter D in the camera's x–y plane) sends its ray
-    through the sample point P; its (unnormalised) direction P − O − a is linear in a, so after
-    the reflection H the ray is r + ε with ε = −H·a/s₁, and it meets the screen plane (normal
-    m, the local screen normal: e_z for a plane) at δq = s₂·(m·r)·[(r + ε)/(m·r + m·ε) − r/(m·r)].
-    To second order in ε, with C = Cov(ε) = (D²/16)/s₁² · H (e_x e_xᵀ + e_y e_yᵀ) Hᵀ (e_x, e_y the
-    pupil axes):
+    through the pixel's point F on the focal plane (path s_F from the pinhole); its
+    (unnormalised) direction s_F·d − a is linear in a, so after the reflection H the ray is
+    r + ε with ε = −H·a/s_F from the mirror image F' of F, and it meets the screen plane (normal
+    m, the local screen normal: e_z for a plane) at δq = L·(m·r)·[(r + ε)/(m·r + m·ε) − r/(m·r)],
+    L = s₁ + s₂ − s_F (module docstring). To second order in ε, with
+    C = Cov(ε) = (D²/16)/s_F² · H (e_x e_xᵀ + e_y e_yᵀ) Hᵀ (e_x, e_y the pupil axes):
 
-        Σ = s₂² · M C Mᵀ,                          M = I − r mᵀ / (m·r),
-        E[δq] = s₂ · (r · mᵀCm / (m·r)² − C m / (m·r))
+        Σ = L² · M C Mᵀ,                          M = I − r mᵀ / (m·r),
+        E[δq] = L · (r · mᵀCm / (m·r)² − C m / (m·r))
 
     (x, y components: the pattern coordinates on the local tangent plane), plus the lift of a
     curved screen over its tangent plane, ½·tr(KΣ) along the ray (K the height's Hessian).
@@ -88,6 +177,9 @@ def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform,
     The centroid offset E[δq] — the central projection's curvature — is O(D²): it scales with
     1/N², points where the oblique reflected bundle meets the screen farther out, and shifts the
     fringe phase (the footprint is no longer centred on the chief ray).
+
+    ``focus_path_mm`` (H, W): s_F per pixel (:func:`focus_path`); None focuses every pixel on
+    its own sample point (s_F = s₁, L = s₂).
 
     Returns
     -------
@@ -109,13 +201,16 @@ def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform,
     cov = np.empty(shape + (2, 2))
     centroid = np.empty(shape + (2,))
     cos_view = np.empty(shape)
+    fpath = (np.full(shape, -1.0) if focus_path_mm is None
+             else np.ascontiguousarray(np.broadcast_to(np.asarray(focus_path_mm, dtype=float), shape)))
     _moments_kernel(p.reshape(-1, 3), q.reshape(-1, 3), o, ex, ey, grad.reshape(-1, 2), hess.reshape(-1, 3),
-                    float(aperture_mm), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2), cos_view.reshape(-1))
+                    float(aperture_mm), fpath.reshape(-1), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2),
+                    cos_view.reshape(-1))
     return cov, centroid, cos_view
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_view):
+def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, fpath, cov, centroid, cos_view):
     """Per pixel: the footprint covariance and centroid of :func:`defocus_moments` (flat arrays)."""
     c0 = aperture * aperture / 16.0
     for i in numba.prange(p.shape[0]):
@@ -158,7 +253,10 @@ def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_vi
         hyv[0] = ey[0] - 2.0 * ay * nx
         hyv[1] = ey[1] - 2.0 * ay * ny
         hyv[2] = ey[2] - 2.0 * ay * nz
-        c = c0 / (s1 * s1)  # C = c·(hx hxᵀ + hy hyᵀ)
+        # Focus path s_F (≤ 0: focused on the sample point) and lever L beyond the virtual point F'.
+        sf = s1 if fpath[i] <= 0.0 else fpath[i]
+        lev = s2 if fpath[i] <= 0.0 else s1 + s2 - sf
+        c = c0 / (sf * sf)  # C = c·(hx hxᵀ + hy hyᵀ)
         # Screen normal m ∝ (−h_x, −h_y, 1).
         mx = -grad[i, 0]
         my = -grad[i, 1]
@@ -167,12 +265,12 @@ def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_vi
         cos_view[i] = mr / np.sqrt(mx * mx + my * my + 1.0)
         mhx = mx * hxv[0] + my * hxv[1] + mz * hxv[2]
         mhy = mx * hyv[0] + my * hyv[1] + mz * hyv[2]
-        # M v = v − r (m·v)/(m·r); Σ = s₂² c Σ_axes (M h)(M h)ᵀ.
+        # M v = v − r (m·v)/(m·r); Σ = L² c Σ_axes (M h)(M h)ᵀ.
         ux = hxv[0] - rx * mhx / mr
         uy = hxv[1] - ry * mhx / mr
         vx = hyv[0] - rx * mhy / mr
         vy = hyv[1] - ry * mhy / mr
-        k = s2 * s2 * c
+        k = lev * lev * c
         sxx = k * (ux * ux + vx * vx)
         sxy = k * (ux * uy + vx * vy)
         syy = k * (uy * uy + vy * vy)
@@ -180,14 +278,14 @@ def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, cov, centroid, cos_vi
         cov[i, 0, 1] = sxy
         cov[i, 1, 0] = sxy
         cov[i, 1, 1] = syy
-        # E[δq] = s₂ (r·mᵀCm/(m·r)² − Cm/(m·r)), Cm = c (hx (hx·m) + hy (hy·m)).
+        # E[δq] = L (r·mᵀCm/(m·r)² − Cm/(m·r)), Cm = c (hx (hx·m) + hy (hy·m)).
         mcm = c * (mhx * mhx + mhy * mhy)
         # Curved screen: + ½ tr(KΣ)/(m·r) · r (m unnormalised with m_z = 1).
         lam = 0.5 * (hess[i, 0] * sxx + 2.0 * hess[i, 1] * sxy + hess[i, 2] * syy) / mr
         cmx = c * (hxv[0] * mhx + hyv[0] * mhy)
         cmy = c * (hxv[1] * mhx + hyv[1] * mhy)
-        centroid[i, 0] = s2 * (rx * mcm / (mr * mr) - cmx / mr) + lam * rx
-        centroid[i, 1] = s2 * (ry * mcm / (mr * mr) - cmy / mr) + lam * ry
+        centroid[i, 0] = lev * (rx * mcm / (mr * mr) - cmx / mr) + lam * rx
+        centroid[i, 1] = lev * (ry * mcm / (mr * mr) - cmy / mr) + lam * ry
 
 
 def defocus_covariance(T_world_cam: RigidTransform, T_world_sample: RigidTransform, T_world_screen: RigidTransform,

@@ -70,6 +70,46 @@ def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsam
                                      image_sink=image_sink, screen_grid=screen_grid, observations=observations)
 
 
+#: Decoded regions smaller than this (pixels) are not reconstructed on their own.
+MIN_REGION_PX = 16
+#: At most this many further regions are reconstructed (largest first).
+MAX_REGIONS = 64
+
+
+def _with_other_regions(reg, rec, method: str):
+    """``rec`` plus every further 4-connected region of registered pixels it did not reach (e.g.
+    where the lens reversed the finest fringes' contrast and those pixels were flagged, issue 20),
+    each reconstructed from its own seed — the pixel nearest its centroid — at height 0: the
+    regions' heights are *not* tied by the measurement; each is anchored to the table plane the
+    budget's planar sample lies on, as the first region is. Regions under :data:`MIN_REGION_PX`
+    pixels are left out; at most :data:`MAX_REGIONS` (largest first)."""
+    from scipy import ndimage
+
+    from ..evaluation.anchor import default_seed_pixel
+    from ..evaluation.reconstruction import reconstruct
+
+    rest = reg.valid & ~rec.reconstructed
+    labels, n = ndimage.label(rest)
+    if n == 0:
+        return rec
+    sizes = np.bincount(labels.ravel())[1:]
+    order = [i + 1 for i in np.argsort(-sizes, kind="stable") if sizes[i] >= MIN_REGION_PX][:MAX_REGIONS]
+    h, p, nrm, done = rec.height_mm.copy(), rec.p_sample_mm.copy(), rec.n_sample.copy(), rec.reconstructed.copy()
+    for lab in order:
+        region = labels == lab
+        try:
+            r = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, region, method=method,
+                            seed_pixel=default_seed_pixel(region), seed_height_mm=0.0)
+        except ReconstructionError:
+            continue
+        m = r.reconstructed & ~done
+        h[m], p[m], nrm[m] = r.height_mm[m], r.p_sample_mm[m], r.n_sample[m]
+        done |= m
+    from dataclasses import replace
+
+    return replace(rec, height_mm=h, p_sample_mm=p, n_sample=nrm, reconstructed=done)
+
+
 def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, method: str = "stepwise",
                               start_seed=0, progress: Progress | None = None, image_sink=None,
                               screen_grid: int | None = None, observations=None) -> Experiment2Bulge:
@@ -118,6 +158,7 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
                 seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
+        rec = _with_other_regions(reg, rec, method)
         n_rec = int(rec.reconstructed.sum())
         if n_rec < 3:  # nothing to assess: say why instead of failing in the metrics
             n_dec = int(decoded.valid.sum())

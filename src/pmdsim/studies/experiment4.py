@@ -8,10 +8,10 @@ uncorrected and linearised). Each case records the Experiment 1 figures of merit
 peak-to-valley, deviation from the best-fit plane, tilt, RMS) plus the slope error, so that the
 dominant effect and the remedy can be read off.
 
-At ``downsample`` K > 1 the cameras are binned K × K: the pixel-area effect is then that of the
-K-times larger binned pixels (stronger than at full resolution) and at the Table 1 periods
-(finest 2 mm) defocus plus binned pixel area can wash the finest fringes out; the full-resolution
-budget needs K = 1.
+At ``downsample`` K > 1 the cameras sample every K-th pixel of the same sensor (issue 20): the
+pixel area, full well and noise are the real pixel's (``imaging.sampling_step_px`` = K), so the
+systematic rows do not change with K and the noise rows change as the σ model predicts for the
+coarser sampling.
 """
 
 from __future__ import annotations
@@ -45,8 +45,10 @@ _SENSOR = dict(bit_depth=12, full_well_e=10500.0, read_noise_e=6.0, dark_offset_
 _DISPLAY = dict(display_gamma=2.2, display_black_level=0.001)
 _EMISSION = dict(emission_exponent=2.0)
 _PIXELS = dict(screen_pixel_pitch_mm=0.27, screen_fill_factor=0.8, pixel_area=True)
-#: A 25 mm lens at f/8, focused on the sample.
+#: A 25 mm lens at f/8, one focal plane through the sample point of the principal point.
 _DEFOCUS = dict(f_number=8.0, focal_length_mm=25.0)
+#: An 8-bit display: the commanded pattern rounded to 256 levels.
+_LEVELS = dict(display_levels=256)
 
 
 @dataclass(frozen=True)
@@ -70,8 +72,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("sensor", _SENSOR, "12-bit camera: shot and read noise, dark offset",
            "more phase shifts or averaged frames (σ ∝ 1/√N), a longer exposure, a finer period"),
     Effect("gamma_uncorrected", _DISPLAY, "LCD response: gamma 2.2, contrast 1000:1, not corrected",
-           "linearise with a grey-level calibration series, or more phase shifts (N ≥ 5 rejects "
-           "the 3rd and 4th harmonics)"),
+           "linearise with a grey-level calibration series, or more phase shifts (N ≥ 6 rejects "
+           "the 3rd and 4th harmonics: harmonic n leaks into the phase iff n ≡ ±1 mod N)"),
     Effect("gamma_corrected", {**_DISPLAY, "linearise": True}, "LCD response, linearised from a simulated "
            "grey-level series", "—"),
     Effect("emission", _EMISSION, "screen radiance falling off as cos²θ with the viewing angle",
@@ -80,15 +82,20 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "integration)", "periods ≫ the pixel pitch; defocus averages the black matrix"),
     Effect("pixel_area", {"pixel_area": True}, "camera pixel-area integration",
            "longer periods (transfer sinc(footprint/p))"),
-    Effect("defocus_f8", _DEFOCUS, "f/8, focused on the sample: the screen is out of focus",
-           "a smaller aperture (higher f-number), longer periods (modulation exp(−2π²σ²/p²))"),
+    Effect("defocus_f8", _DEFOCUS, "f/8, one focal plane on the sample: the screen is out of focus "
+           "(uniform-disc pupil; contrast reversed, and flagged, where σ > 0.305·p)",
+           "a smaller aperture (higher f-number), longer periods (transfer 2·J₁(x)/x, x = 4πσ/p: reversed "
+           "contrast, flagged, where σ > 0.305·p)"),
+    Effect("display_levels", _LEVELS, "8-bit display: the commanded fringe rounded to 256 levels",
+           "more phase shifts (the rounding's harmonics n ≡ ±1 mod N fold into the phase), or a "
+           "display with more levels"),
     Effect("all_uncorrected", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS},
            "every effect, display not corrected", "linearise; then the remaining budget"),
     Effect("all_corrected", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS, "linearise": True},
            "every effect, display linearised", "—"),
     # The remedy for the defocus that dominates at the Table 1 periods: a finest period of 8 mm,
-    # whose modulation transfer exp(−2π²σ²/p²) at the f/8 blur spot (σ ≈ 0.5–0.9 mm) is 0.8–0.9
-    # instead of 0.02–0.3 at 2 mm (docs/experiments.md).
+    # whose transfer 2·J₁(x)/x (x = 4πσ/p) at the f/8 blur spot (σ ≈ 0.5–0.9 mm) is 0.77–0.93
+    # instead of a reversed or vanishing contrast at 2 mm (docs/experiments.md).
     Effect("all_uncorrected_p8mm", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS},
            "every effect, display not corrected, finest period 8 mm", "linearise; then the remaining budget",
            finest_period_mm=8.0),
@@ -162,7 +169,8 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
     records, cases = [], []
     for name in effects:
         eff = EFFECTS[name]
-        truth = truth0.with_imaging(eff.as_imaging()) if eff.imaging else truth0
+        # --downsample K: fewer pixels of the same camera (the real pixel's area, full well, noise).
+        truth = truth0.with_imaging(eff.as_imaging().with_(sampling_step_px=downsample)) if eff.imaging else truth0
         if eff.finest_period_mm is not None:
             truth = _with_finest_period(truth, eff.finest_period_mm)
         try:
