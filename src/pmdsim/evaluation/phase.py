@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from ..errors import PmdsimError
+from ..geometry.compact import compact_repr
 
 __all__ = [
     "PhaseDecodingError",
@@ -236,6 +237,8 @@ class ScreenCoordinates:
     offset : ndarray, shape (H, W, 2), float64
         Offset A (grey levels) of the finest x and y period.
     """
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     screen_xy_mm: np.ndarray
     valid: np.ndarray

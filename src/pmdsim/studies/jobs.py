@@ -48,6 +48,7 @@ from ..io.imageset import decode_camera, decode_camera_images, load_camera_stack
 from ..io.imageset_instrument import apply_mask_and_map
 from ..calibration.diagnostics import residual_report
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
+from ..evaluation.pipeline import consistency_checked
 from .checks import check_memory
 from ..setup import Setup
 from ..simulation.imaging import needs_points
@@ -385,12 +386,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                 decoded = apply_mask_and_map(decoded, mask=inst.mask, screen_map=inst.screen_map,
                                              source=str(manifest.path))
             if run_checks:
-                cs = setup.cameras[cam]
-                expected = nominal_screen_xy(cs.camera, cs.T_world_cam, setup.sample.T_world_sample,
-                                             setup.screen.T_world_screen)
-                cons = check_consistency(images.x_stacks, images.x_periods_mm, images.y_stacks, images.y_periods_mm,
-                                         decoded, setup.screen.size_mm, noise_std, expected_xy_mm=expected)
-                decoded = with_consistency(decoded, cons)
+                decoded, cons = consistency_checked(setup, cam, images.x_stacks, images.x_periods_mm, images.y_stacks,
+                                                    images.y_periods_mm, decoded, noise_std)
                 checks[cam] = cons
                 if not decoded.valid.any() and cons.tested.any():
                     raise ConsistencyFailure(
