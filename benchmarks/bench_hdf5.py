@@ -7,7 +7,7 @@ filled with smooth maps plus the noise a decoded measurement has (screen coordin
 heights ±10 nm, normals ±10 µrad), NaN outside an elliptical field of view (≈ 70 % of the
 pixels valid) — float noise in the low mantissa bits is what limits the compression of real maps.
 
-    PYTHONPATH=src python benchmarks/bench_hdf5.py [--repeat 3]
+    PYTHONPATH=src python benchmarks/bench_hdf5.py [--repeat 3] [--only "lzf + shuffle|gzip 1"]
 """
 
 from __future__ import annotations
@@ -23,15 +23,19 @@ import numpy as np
 
 from pmdsim.io import hdf5
 
+GZ1S = dict(compression="gzip", compression_opts=1, shuffle=True)
+LZFS = dict(compression="lzf", shuffle=True)
+#: name → (float-map filters, bool/int-map filters, rows per chunk; None: contiguous, no filters)
 FILTERS = {
-    "none (contiguous)": ({}, None),
-    "none (64-row chunks)": ({}, 64),
-    "gzip 1": (dict(compression="gzip", compression_opts=1), 64),
-    "gzip 1 + shuffle": (dict(compression="gzip", compression_opts=1, shuffle=True), 64),
-    "gzip 4 + shuffle": (dict(compression="gzip", compression_opts=4, shuffle=True), 64),
-    "lzf": (dict(compression="lzf"), 64),
-    "lzf + shuffle": (dict(compression="lzf", shuffle=True), 64),
-    "gzip 1 + shuffle, 256-row chunks": (dict(compression="gzip", compression_opts=1, shuffle=True), 256),
+    "none (contiguous)": ({}, {}, None),
+    "none (64-row chunks)": ({}, {}, 64),
+    "gzip 1": (dict(compression="gzip", compression_opts=1), dict(compression="gzip", compression_opts=1), 64),
+    "gzip 1 + shuffle": (GZ1S, GZ1S, 64),
+    "gzip 4 + shuffle": (dict(GZ1S, compression_opts=4), dict(GZ1S, compression_opts=4), 64),
+    "lzf": (dict(compression="lzf"), dict(compression="lzf"), 64),
+    "lzf + shuffle": (LZFS, LZFS, 64),
+    "gzip 1 + shuffle, 256-row chunks": (GZ1S, GZ1S, 256),
+    "floats none, ints gzip 1 + shuffle": ({}, GZ1S, 64),
 }
 
 
@@ -63,8 +67,9 @@ def camera(rng, H=1200, W=1920):
     return (dec, reg, rec), extras, cons
 
 
-def write(path, data, filters, rows):
+def write(path, data, filters, rows, int_filters=None):
     hdf5.FLOAT_FILTERS = filters
+    hdf5.INT_FILTERS = filters if int_filters is None else int_filters
     hdf5.CHUNK_ROWS = rows if rows else 10**9
     results = {c: d[0] for c, d in data.items()}
     extras = {c: d[1] for c, d in data.items()}
@@ -77,6 +82,7 @@ def write(path, data, filters, rows):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--only", default=None, help="variant names separated by | (default: all)")
     args = ap.parse_args()
     rng = np.random.default_rng(1)
     data = {"left": camera(rng), "right": camera(rng)}
@@ -85,15 +91,20 @@ def main() -> None:
         *d[1].values(), *[v for v in vars(d[2]).values() if isinstance(v, np.ndarray)]))
     print(f"raw data {nbytes / 1e6:.0f} MB (two 1920×1200 cameras); load {os.getloadavg()[0]:.2f}")
     print(f"{'filters':36s} {'write s':>8s} {'MB':>7s} {'MB/s':>6s} {'read h5py s':>11s} {'xarray s':>8s}")
-    orig = (hdf5.FLOAT_FILTERS, hdf5.CHUNK_ROWS)
+    orig = (hdf5.FLOAT_FILTERS, hdf5.INT_FILTERS, hdf5.CHUNK_ROWS)
     with tempfile.TemporaryDirectory() as d:
-        for name, (filters, rows) in FILTERS.items():
+        try:  # imported before the first timing, so that no row pays for it
+            import xarray  # noqa: F401
+        except ImportError:
+            pass
+        chosen = FILTERS if args.only is None else {k: FILTERS[k] for k in args.only.split("|")}
+        for name, (filters, int_filters, rows) in chosen.items():
             path = os.path.join(d, "evaluation.h5")
             times = []
             for _ in range(args.repeat):
                 if os.path.exists(path):
                     os.unlink(path)
-                times.append(write(path, data, filters, rows) if rows else _write_contiguous(path, data))
+                times.append(write(path, data, filters, rows, int_filters) if rows else _write_contiguous(path, data))
             size = os.path.getsize(path)
             t0 = time.perf_counter()
             with h5py.File(path) as f:
@@ -113,7 +124,7 @@ def main() -> None:
                 pass
             best = min(times)
             print(f"{name:36s} {best:8.2f} {size / 1e6:7.1f} {nbytes / 1e6 / best:6.0f} {t_read:11.2f} {t_xr:8.2f}")
-    hdf5.FLOAT_FILTERS, hdf5.CHUNK_ROWS = orig
+    hdf5.FLOAT_FILTERS, hdf5.INT_FILTERS, hdf5.CHUNK_ROWS = orig
     print(f"load {os.getloadavg()[0]:.2f}")
 
 

@@ -100,6 +100,9 @@ def test_evaluation_h5_opens_with_named_dims_and_open_evaluation(sim_eval):
     with h5py.File(ev / "evaluation.h5") as f:
         np.testing.assert_array_equal(ds["height_mm"].sel(camera="right").values, f["right/height_mm"][()])
         assert ds.attrs["pmdsim_version"] == f.attrs["pmdsim_version"]
+    with h5py.File(ev / "evaluation.h5") as f:  # the storage docs/benchmarks.md chose: standard filters only
+        assert f["left/height_mm"].compression is None and f["left/height_mm"].chunks[1:] == (96,)
+        assert f["left/decoded"].compression == "gzip" and f["left/decoded"].shuffle
     one = pmdsim.open_evaluation(ev / "evaluation.h5", camera="right")
     assert one["screen_xy_mm"].dims == ("v", "u", "component_xy") and one.attrs["camera"] == "right"
     with pytest.raises(pmdsim.PmdsimError, match="no camera 'middle'"):
@@ -166,6 +169,9 @@ def test_experiment1_heights_h5(tmp_path):
                                                             for c in ("left", "right")], {"a": 1})
     groups = check_file(tmp_path / "heights.h5")
     assert groups["/case_001"].attrs["bulge_mm"] == 3.0
+    with h5py.File(tmp_path / "heights.h5") as f:  # archives: float maps gzip + shuffle
+        d = f["case_001/left/height_error_um"]
+        assert d.compression == "gzip" and d.shuffle
     with hdf5.reconstructions_h5(tmp_path / "case.h5", {}) as add:
         add(_case("left", 1.0, rng), group="left")
     assert set(check_file(tmp_path / "case.h5")) == {"/", "/left"}

@@ -7,8 +7,9 @@ to HDF5 dimension scales ``v`` and ``u`` (pixel row and column indices) and, for
 ``component`` (x, y, z) or ``component_xy`` (x, y), so that
 ``xarray.open_datatree(path, engine="h5netcdf")`` opens every file with named dimensions.
 Parameters (Δh, scenario, screen model, …) are group attributes, never part of a group name.
-Float maps are stored with the filters chosen by measurement (:data:`FLOAT_FILTERS`,
-docs/benchmarks.md "HDF5 writing"): standard filters any HDF5 reader decodes without plugins.
+Filters chosen by measurement (docs/benchmarks.md, "HDF5 writing"): float maps of mapping and
+evaluation files uncompressed, of ``heights.h5`` gzip + shuffle, booleans and integers gzip +
+shuffle — standard filters any HDF5 reader decodes without plugins.
 """
 
 from __future__ import annotations
@@ -22,15 +23,26 @@ import h5py
 import numpy as np
 
 __all__ = ["write_mapping_h5", "reconstructions_h5", "write_reconstructions_h5", "write_evaluation_h5",
-           "append_stereo_h5", "write_consistency_h5", "UNITS", "FLOAT_FILTERS", "case_groups"]
+           "append_stereo_h5", "write_consistency_h5", "UNITS", "FLOAT_FILTERS", "ARCHIVE_FILTERS", "INT_FILTERS",
+           "case_groups"]
 
 #: The units strings pmdsim writes (UDUNITS-2 spellings; ``1``: dimensionless, counts, codes,
 #: booleans, indices). Documented in docs/conventions.md; the tests check every dataset against it.
 UNITS = ("mm", "um", "urad", "1")
 
-#: HDF5 filters for float and integer maps, chosen by measurement (docs/benchmarks.md, "HDF5
-#: writing"): byte shuffle + gzip level 1 — standard filters every HDF5 reader decodes.
-FLOAT_FILTERS: dict = dict(compression="gzip", compression_opts=1, shuffle=True)
+#: HDF5 filters for the float maps of ``mapping.h5`` and ``evaluation.h5``, chosen by measurement
+#: (docs/benchmarks.md, "HDF5 writing"): none. Decoded float maps carry noise in their low
+#: mantissa bits, so gzip + shuffle saves only 47 % of their size at 10–14× the write time
+#: (11 s of a full-resolution evaluate at load 4, against 0.8–1.3 s uncompressed).
+FLOAT_FILTERS: dict = {}
+
+#: HDF5 filters for the float maps of ``heights.h5`` (experiment archives of many cases, where
+#: the size matters more than a second per case): byte shuffle + gzip level 1.
+ARCHIVE_FILTERS: dict = dict(compression="gzip", compression_opts=1, shuffle=True)
+
+#: HDF5 filters for boolean and integer maps (masks, flags, codes: long runs of equal values, a
+#: few per cent of their size after gzip level 1 + shuffle, at little cost).
+INT_FILTERS: dict = dict(compression="gzip", compression_opts=1, shuffle=True)
 
 #: Rows per chunk of a per-pixel map (a chunk spans whole rows and all components).
 CHUNK_ROWS = 64
@@ -74,9 +86,11 @@ def _pixel_scales(g: h5py.Group, shape: tuple) -> list[h5py.Dataset]:
 
 
 def _put(g: h5py.Group, name: str, data, *, units: str, long_name: str, frame: str | None = None,
-         dims: list | None = None, compress: bool = True, **attrs) -> h5py.Dataset:
+         dims: list | None = None, compress: bool = True, archive: bool = False, **attrs) -> h5py.Dataset:
     """Write ``g[name]`` with its units, long name, frame and dimension scales (per-pixel
-    (H, W[, k]) maps by default; ``dims``: other scales, one per axis)."""
+    (H, W[, k]) maps by default, in chunks of :data:`CHUNK_ROWS` whole rows; ``dims``: other
+    scales, one per axis). Filters: :data:`INT_FILTERS` for booleans and integers, else
+    :data:`ARCHIVE_FILTERS` if ``archive`` else :data:`FLOAT_FILTERS`."""
     if units not in UNITS:
         raise ValueError(f"units {units!r} of {name!r} not in {UNITS}")
     data = np.asarray(data)
@@ -84,7 +98,8 @@ def _put(g: h5py.Group, name: str, data, *, units: str, long_name: str, frame: s
     if dims is None:
         dims = _pixel_scales(g, data.shape)
         if compress and data.size:
-            kw = dict(FLOAT_FILTERS, chunks=(min(CHUNK_ROWS, data.shape[0]), *data.shape[1:]))
+            filters = INT_FILTERS if data.dtype.kind != "f" else ARCHIVE_FILTERS if archive else FLOAT_FILTERS
+            kw = dict(filters, chunks=(min(CHUNK_ROWS, data.shape[0]), *data.shape[1:]))
     d = g.create_dataset(name, data=data, **kw)
     d.attrs["units"] = units
     d.attrs["long_name"] = long_name
@@ -130,10 +145,11 @@ def write_mapping_h5(path: str | Path, mappings: dict[str, Any], attrs: dict[str
 def _write_case(g: h5py.Group, c) -> None:
     """One reconstructed case (an Experiment 1 ``Case``) into group ``g``."""
     _put(g, "height_mm", c.height_mm, units="mm", frame="sample",
-         long_name="reconstructed height along sample +z; NaN outside the field of view")
+         long_name="reconstructed height along sample +z; NaN outside the field of view", archive=True)
     _put(g, "height_error_um", (c.height_error_mm * 1e3).astype(np.float32), units="um", frame="sample",
-         long_name="reconstructed minus true height")
-    _put(g, "points_mm", c.p_sample_mm, units="mm", frame="sample", long_name="reconstructed surface points")
+         long_name="reconstructed minus true height", archive=True)
+    _put(g, "points_mm", c.p_sample_mm, units="mm", frame="sample", long_name="reconstructed surface points",
+         archive=True)
     _put(g, "valid", c.reconstructed, units="1", long_name="pixel reconstructed (bool)")
     for k, v in c.as_record().items():
         g.attrs[k] = json.dumps(v) if isinstance(v, (list, dict)) else v
