@@ -128,12 +128,16 @@ def test_stereo_append_opens_with_named_dims(tmp_path):
     hdf5.write_evaluation_h5(path, res, {"pmdsim_version": "x"})
     cams = {c: SimpleNamespace(overlap=np.ones((H, W), bool), normal_disagreement_urad=rng.random((H, W)),
                                height_discrepancy_um=rng.random((H, W)),
-                               anchor_pixels=rng.integers(0, 6, (n, 2)), anchor_height_mm=rng.random(n),
-                               anchor_residual_urad=rng.random(n), anchor_fit_um=rng.random(n)) for c in res}
+                               anchor_pixels=rng.integers(0, 6, (k, 2)), anchor_height_mm=rng.random(k),
+                               anchor_residual_urad=rng.random(k), anchor_fit_um=rng.random(k))
+            for c, k in zip(res, (n, n + 2))}
     hdf5.append_stereo_h5(path, SimpleNamespace(cameras=cams), {"stride_px": 4})
     g = check_file(path)["/left"]
     assert g["anchor_pixels"].dims == ("anchor", "pixel_axis") and list(g["pixel_axis"].values) == ["v", "u"]
     assert g["normal_disagreement_urad"].attrs["units"] == "urad" and g["anchor_fit_um"].attrs["units"] == "um"
+    ds = pmdsim.open_evaluation(path)  # anchors of different counts per camera: padded, not refused
+    assert ds.sizes["anchor"] == n + 2 and np.isnan(ds["anchor_fit_um"].sel(camera="left").values[n:]).all()
+    np.testing.assert_array_equal(ds["anchor_fit_um"].sel(camera="right").values, cams["right"].anchor_fit_um)
 
 
 def _case(camera, bulge, rng, H=5, W=7):

@@ -40,7 +40,8 @@ def open_evaluation(path, camera: str | None = None):
         ``component`` / ``component_xy``, the group's attributes as the Dataset's attributes.
         Default: every camera, stacked along a dimension ``camera`` (the cameras must have the
         same image size; for different sizes open them one by one, or use
-        ``xarray.open_datatree(path, engine="h5netcdf")``).
+        ``xarray.open_datatree(path, engine="h5netcdf")``); a stereo file's per-camera anchors
+        are padded with NaN to the longest list.
 
     Returns
     -------
@@ -85,7 +86,7 @@ def open_evaluation(path, camera: str | None = None):
     for d in parts:
         d.attrs = {}
     ds = xr.concat(parts, dim=xr.DataArray(cameras, dims="camera", name="camera"), data_vars="all",
-                   coords="minimal", compat="override", join="exact", combine_attrs="override")
+                   coords="minimal", compat="override", join="outer", combine_attrs="override")
     ds["camera"].attrs.update(units="1", long_name="camera name in the setup")
     ds.attrs = {**root, "camera_attrs": json.dumps(group_attrs, default=str)}
     return ds
