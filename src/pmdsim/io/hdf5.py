@@ -32,7 +32,7 @@ UNITS = ("mm", "um", "urad", "1")
 
 #: HDF5 filters for the float maps of ``mapping.h5`` and ``evaluation.h5``, chosen by measurement
 #: (docs/benchmarks.md, "HDF5 writing"): none. Decoded float maps carry noise in their low
-#: mantissa bits, so gzip + shuffle saves only 47 % of their size at 10–14× the write time
+#: mantissa bits, so gzip + shuffle saves only 47 % of their size at 8–27× the write time
 #: (11 s of a full-resolution evaluate at load 4, against 0.8–1.3 s uncompressed).
 FLOAT_FILTERS: dict = {}
 
