@@ -62,17 +62,11 @@ def test_missing_extra_is_one_line_naming_it(tmp_path, monkeypatch):
 
 
 def test_open_evaluation_without_xarray_names_the_extra(monkeypatch, tmp_path):
-    import builtins
+    import importlib.util
 
     import pmdsim
 
-    real = builtins.__import__
-
-    def no_xarray(name, *a, **k):
-        if name in ("xarray", "h5netcdf"):
-            raise ImportError(f"No module named {name!r}", name=name)
-        return real(name, *a, **k)
-
-    monkeypatch.setattr(builtins, "__import__", no_xarray)
-    with pytest.raises(pmdsim.OptionalDependencyError, match=r"pip install 'pmdsim\[xarray\]'"):
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "h5netcdf" else real(name, *a))
+    with pytest.raises(pmdsim.OptionalDependencyError, match=r"needs h5netcdf .* pip install 'pmdsim\[xarray\]'"):
         pmdsim.open_evaluation(tmp_path / "evaluation.h5")

@@ -10,21 +10,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..errors import OptionalDependencyError
+from ..errors import require_extra
 
 __all__ = ["open_evaluation", "require_xarray"]
 
 
 def require_xarray():
-    """Import xarray and h5netcdf, or raise :class:`~pmdsim.errors.OptionalDependencyError`
-    naming the extra that installs them."""
-    try:
-        import h5netcdf  # noqa: F401
-        import xarray
-    except ImportError as exc:
-        raise OptionalDependencyError(
-            f"reading pmdsim's HDF5 files as xarray objects needs xarray and h5netcdf ({exc.name} is missing); "
-            "install them with: pip install 'pmdsim[xarray]'") from None
+    """Import xarray (and check h5netcdf), or raise
+    :class:`~pmdsim.errors.OptionalDependencyError` naming the extra that installs them."""
+    require_extra("xarray", "xarray", "h5netcdf", feature="reading pmdsim's HDF5 files as xarray objects")
+    import xarray
+
     return xarray
 
 
