@@ -23,6 +23,7 @@ ALLOWED = {
     "cli": {"__init__", "errors", "interrupts", "geometry", "setup", "simulation", "evaluation", "calibration", "io", "studies",
             "api"},
     "__init__": set(),
+    "__main__": {"cli"},  # python -m pmdsim
 }
 
 

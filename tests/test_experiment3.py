@@ -77,9 +77,13 @@ def test_cli_experiment3_contract(tmp_path):
     import h5py
 
     with h5py.File(out / "heights.h5") as f:
-        assert set(f) == {"bulge_3mm", "offcentre"}
-        assert set(f["offcentre"]) == {"planar", "3x3", "5x5"}
-        assert set(f["offcentre/5x5/left"]) == {"height_mm", "height_error_um", "points_mm", "valid"}
+        from pmdsim.io.hdf5 import case_groups
+
+        cases = {(p["scenario"], p["bulge_mm"], p["screen_model"], cam): g for p, cam, g in case_groups(f)}
+        assert {(k[0], k[2]) for k in cases} == set(free)  # every model that ran, parameters as attributes
+        assert all(k[1] == 3.0 for k in cases if k[0] == "bulge")
+        g = next(g for k, g in cases.items() if k[0] == "offcentre" and k[2] == "5x5" and k[3] == "left")
+        assert {"height_mm", "height_error_um", "points_mm", "valid"} <= set(g)
     # Never overwritten without --force.
     r2 = CliRunner().invoke(main, args)
     assert r2.exit_code != 0 and "--force" in r2.output

@@ -18,7 +18,9 @@ Setups: :class:`Setup`, :func:`default_setup` (Table 1), :func:`load_setup`, :fu
 Steps: :func:`simulate`, :func:`decode`, :func:`evaluate`, :func:`reconstruct`,
 :func:`calibrate`, :func:`calibrated_setup`. Results: :class:`Measurement`,
 :class:`ScreenCoordinates`, :class:`Evaluation`, :class:`Reconstruction`,
-:class:`CalibrationResult`. Errors: :class:`PmdsimError` and its subclasses.
+:class:`CalibrationResult`. Files: :func:`open_evaluation` (an ``evaluation.h5`` as an
+xarray Dataset; extra ``pmdsim[xarray]``). Errors: :class:`PmdsimError` and its subclasses;
+:class:`ConsistencyWarning`.
 """
 
 from __future__ import annotations
@@ -233,6 +235,12 @@ _LAZY = {
     "SetupError": "pmdsim.errors",
     "ImageSetError": "pmdsim.errors",
     "ComputationError": "pmdsim.errors",
+    "OptionalDependencyError": "pmdsim.errors",
+    "InputError": "pmdsim.errors",
+    "InputTypeError": "pmdsim.errors",
+    "UnknownCameraError": "pmdsim.errors",
+    "ConsistencyWarning": "pmdsim.errors",
+    "open_evaluation": "pmdsim.io.datasets",
 }
 
 __all__ = ["__version__", *_LAZY]
@@ -248,4 +256,5 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+    """The public API only (``__all__``): no imported modules, no private helpers."""
+    return sorted(__all__)

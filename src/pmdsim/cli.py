@@ -474,6 +474,9 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
     """Run a parameter sweep / Monte-Carlo study (STUDY.toml) on Dask: OUT/results.parquet, .csv,
     summary.txt and figures."""
+    from .errors import require_extra
+
+    require_extra("study", "distributed", "pyarrow", feature="pmdsim study")  # pmdsim[study]: one line, exit 2
     from .studies.study import run_study
     from .studies.study_file import load_study
     from .studies.study_summary import write_study_outputs

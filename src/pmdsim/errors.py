@@ -15,6 +15,12 @@ __all__ = [
     "ComputationError",
     "OutputPathError",
     "OutputLockedError",
+    "OptionalDependencyError",
+    "ConsistencyWarning",
+    "InputError",
+    "InputTypeError",
+    "UnknownCameraError",
+    "require_extra",
 ]
 
 
@@ -51,3 +57,46 @@ class OutputPathError(PmdsimError, OSError):
 
 class OutputLockedError(PmdsimError):
     """Another pmdsim run is writing the same output (its lock file is held); the message names it."""
+
+
+class OptionalDependencyError(PmdsimError, ImportError):
+    """A feature needs a package of an optional extra (``pmdsim[study]``, ``pmdsim[xarray]``)
+    that is not installed; the message names the extra to install."""
+
+
+class ConsistencyWarning(UserWarning):
+    """Pixels failed the fringe-consistency checks (dropped, duplicated or foreign frames, wrong
+    periods or shift orders; :mod:`pmdsim.evaluation.consistency`): issued by
+    :func:`pmdsim.evaluate` with the reasons, as the CLI prints them; the pixels are flagged in
+    the result's ``flags``."""
+
+
+def require_extra(extra: str, *modules: str, feature: str) -> None:
+    """Check that the packages of an optional extra import; raise
+    :class:`OptionalDependencyError` naming ``pip install 'pmdsim[extra]'`` otherwise.
+
+    ``pmdsim[study]``: distributed, pyarrow (``pmdsim study``, :func:`pmdsim.studies.run_study`);
+    ``pmdsim[xarray]``: xarray, h5netcdf (:func:`pmdsim.open_evaluation`).
+    """
+    import importlib.util
+
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if missing:
+        raise OptionalDependencyError(f"{feature} needs {', '.join(missing)} (optional extra {extra!r}); install it "
+                                      f"with: pip install 'pmdsim[{extra}]'")
+
+
+class InputError(PmdsimError, ValueError):
+    """An argument of a pmdsim function is invalid (a shape, a dtype, an option, a pixel outside
+    the image); the message names the argument, what was given and what was expected."""
+
+
+class InputTypeError(InputError, TypeError):
+    """An argument of a pmdsim function has the wrong type (e.g. a path where a Setup is expected)."""
+
+
+class UnknownCameraError(InputError, KeyError):
+    """A camera name that the setup does not have; the message lists the setup's cameras."""
+
+    def __str__(self) -> str:  # KeyError would quote the whole message
+        return str(self.args[0]) if self.args else ""

@@ -29,6 +29,7 @@ from typing import Sequence
 import numba
 import numpy as np
 
+from ..geometry.compact import compact_repr
 from .phase_flags import (
     _DARK,
     _LOW_MODULATION,
@@ -137,6 +138,8 @@ class ScreenCoordinates:
     offset : ndarray, shape (H, W, 2), float64
         Offset A (grey levels) of the finest x and y period.
     """
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     screen_xy_mm: np.ndarray
     valid: np.ndarray

@@ -12,6 +12,7 @@ import numba
 import numpy as np
 
 from ..errors import PmdsimError
+from ..geometry.compact import compact_repr
 
 __all__ = ["ReconstructionError", "Reconstruction", "normals_from_registration"]
 
@@ -57,6 +58,8 @@ class Reconstruction:
         The largest height change of the last iteration (outer iteration for
         ``"least_squares"``, last corrector update of any step for ``"stepwise"``), mm.
     """
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     height_mm: np.ndarray
     p_sample_mm: np.ndarray

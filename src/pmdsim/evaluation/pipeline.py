@@ -42,6 +42,29 @@ def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordin
                                      noise_std=noise)
 
 
+def consistency_checked(setup: Setup, camera: str | None, x_stacks, x_periods_mm, y_stacks, y_periods_mm,
+                        decoded: ScreenCoordinates, noise_std=None):
+    """The consistency checks of ``pmdsim evaluate`` (docs/reliability.md) for one camera's
+    decoded images, with the orientation check against the setup's nominal flat sample (when
+    ``camera`` is given); one
+    definition for the CLI's evaluate job and :func:`pmdsim.decode` / :func:`pmdsim.evaluate`.
+
+    Returns ``(decoded, result)``: the decoded coordinates with the consistency bits OR-ed into
+    ``flags`` (and those pixels invalid), and the
+    :class:`~pmdsim.evaluation.consistency.ConsistencyResult`.
+    """
+    from .consistency import check_consistency, nominal_screen_xy, with_consistency
+
+    expected = None
+    if camera is not None:  # the orientation check needs the camera's nominal mapping
+        cs = setup.cameras[camera]
+        expected = nominal_screen_xy(cs.camera, cs.T_world_cam, setup.sample.T_world_sample,
+                                     setup.screen.T_world_screen)
+    cons = check_consistency(x_stacks, x_periods_mm, y_stacks, y_periods_mm, decoded, setup.screen.size_mm, noise_std,
+                             expected_xy_mm=expected)
+    return with_consistency(decoded, cons), cons
+
+
 def decode_simulated(setup: Setup, screen_xy_mm: np.ndarray, valid: np.ndarray, *, rng=None,
                      pixel_stride: int = 1) -> ScreenCoordinates:
     """What :func:`decode_images` returns for the ideal renderer's images of a traced mapping

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..geometry.camera import Camera
 from ..geometry.transform import RigidTransform
+from ..geometry.compact import compact_repr
 
 __all__ = ["Registration", "RegistrationStatus", "register"]
 
@@ -48,6 +49,8 @@ class Registration:
     status : ndarray of uint8 (H, W)
         :class:`RegistrationStatus` per pixel.
     """
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     o_ref_mm: np.ndarray
     d_ref: np.ndarray

@@ -59,6 +59,7 @@ from .integration import (
 from .least_squares import _INNER_CAP, _INNER_MAX_ITER, _INNER_RTOL, _apply_update, _assemble_gauss_newton, _start_heights
 from .multigrid import _CGWork, _pcg
 from .registration import Registration
+from ..geometry.compact import compact_repr
 
 __all__ = ["StereoView", "StereoCamera", "StereoReconstruction", "reconstruct_stereo", "evaluate_stereo_decoded",
            "stereo_residual",
@@ -346,6 +347,8 @@ class StereoCamera:
         Sparse pixels searched; ``ambiguous``: those with more than one consistent height.
     """
 
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
+
     reconstruction: Reconstruction
     overlap: np.ndarray
     normal_disagreement_urad: np.ndarray
@@ -370,6 +373,8 @@ class StereoCamera:
 class StereoReconstruction:
     """Result of :func:`reconstruct_stereo`: per camera a :class:`StereoCamera`, and the
     search settings used."""
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     cameras: dict
     search_range_mm: tuple[float, float]

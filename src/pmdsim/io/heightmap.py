@@ -198,10 +198,21 @@ def write_height_map(path, x_mm, y_mm, z_mm, *, units: str = "mm", dataset: str 
     if ext in _HDF5:
         import h5py
 
-        with h5py.File(p, "w") as f:
-            f.create_dataset(dataset, data=z).attrs["units"] = units
-            f.create_dataset("x_mm", data=x)
-            f.create_dataset("y_mm", data=y)
+        with h5py.File(p, "w") as f:  # self-describing: units, long names, dimension scales (issue 23)
+            scales = []
+            for name, g, what in (("y_mm", y, "y"), ("x_mm", x, "x")):
+                s = f.create_dataset(name, data=g)
+                s.make_scale(name)
+                s.attrs["units"] = "mm"
+                s.attrs["long_name"] = f"{what} of the grid column/row in the sample frame"
+                s.attrs["frame"] = "sample"
+                scales.append(s)
+            d = f.create_dataset(dataset, data=z)
+            d.attrs["units"] = units
+            d.attrs["long_name"] = "height along sample +z"
+            d.attrs["frame"] = "sample"
+            for axis, s in enumerate(scales):
+                d.dims[axis].attach_scale(s)
     elif ext == ".npy":
         np.save(p, z)
     elif ext == ".csv":

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,38 @@ SETUP_FORMAT_VERSION = 1
 
 
 # ============================================================================ value objects
+class FrozenMap(Mapping):
+    """An immutable, hashable mapping that keeps its insertion order (``Setup.cameras``): reads
+    like a dict (``setup.cameras["left"]``, iteration, ``len``, ``in``), equal to a dict with the
+    same items, and cannot be changed in place — a setup's parts are values (issue 23)."""
+
+    __slots__ = ("_items",)
+
+    def __init__(self, items=()):
+        object.__setattr__(self, "_items", dict(items))
+
+    def __getitem__(self, key):
+        return self._items[key]
+
+    def __iter__(self):
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __hash__(self) -> int:
+        return hash(tuple(self._items.items()))
+
+    def __setattr__(self, name, value):
+        raise AttributeError("FrozenMap is immutable")
+
+    def __reduce__(self):
+        return (FrozenMap, (tuple(self._items.items()),))
+
+    def __repr__(self) -> str:
+        return f"FrozenMap({self._items!r})"
+
+
 @dataclass(frozen=True)
 class Pose:
     """Six pose parameters of a component (paper §2.1): origin in world (mm), Givens angles (deg).
@@ -396,6 +429,11 @@ class Setup:
     patterns: PatternSetup
     calibration: CalibrationSetup = field(default_factory=CalibrationSetup)
     imaging: ImagingSetup | None = None
+
+    def __post_init__(self) -> None:
+        # cameras: an immutable mapping (issue 23) so that the setup is deeply immutable and hashable
+        if not isinstance(self.cameras, FrozenMap):
+            object.__setattr__(self, "cameras", FrozenMap(self.cameras))
 
     def with_camera(self, name: str, **changes: Any) -> "Setup":
         """The same setup with one camera's intrinsics or pose changed.

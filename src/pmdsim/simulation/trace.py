@@ -21,6 +21,7 @@ from ..geometry.surface import (
 )
 from ..geometry.transform import RigidTransform
 from .trace_rows import _BLK, _NF, _NI, trace_row
+from ..geometry.compact import compact_repr
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
 
@@ -274,6 +275,8 @@ class Mapping:
     q_screen_mm : ndarray (H, W, 3) or None
         The screen intersection point (screen frame, z = screen height), if requested.
     """
+
+    __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
 
     screen_xy_mm: np.ndarray
     status: np.ndarray

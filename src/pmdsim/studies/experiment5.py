@@ -279,7 +279,7 @@ def write_experiment5(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
     """Experiment 5 for every Δh in ``bulges``, written to ``out_dir``: ``results.json`` (per
     Δh, method and camera the Experiment 1 keys plus ``method``, ``sample`` and
     ``max_abs_error_um``, then diagnostics), ``calibration.json``, ``run.json``,
-    ``heights.h5`` (group ``bulge_{Δh}mm/{method}/{camera}``), ``table.txt``,
+    ``heights.h5`` (group ``case_{k}/{camera}``, attributes ``bulge_mm``, ``method``), ``table.txt``,
     ``height_error.png`` and ``standoff_error.png``."""
     bulges = [float(b) for b in bulges]
     if not bulges:
@@ -298,7 +298,7 @@ def write_experiment5(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
             row = []
             for c in cases:
                 records.append(c.record)
-                add(c.case, f"bulge_{dh:g}mm/{c.method}/{c.case.camera}")
+                add(c.case, {"bulge_mm": float(dh), "method": c.method})
                 if c.case.camera == next(iter(base.cameras)):
                     p = c.case.p_sample_mm
                     row.append((p[..., 0], p[..., 1], c.case.height_error_mm * 1e3,

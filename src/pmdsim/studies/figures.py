@@ -20,23 +20,45 @@ def _stride(shape, max_cells=250_000):
     return max(1, int(np.ceil(np.sqrt(h * w / max_cells))))
 
 
-def _panel(fig, ax, x_mm, y_mm, z_um, title, label):
-    s = _stride(z_um.shape)
-    x, y, z = x_mm[::s, ::s], y_mm[::s, ::s], z_um[::s, ::s]
-    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    if ok.sum() < 3:
+def _filled_grid(x: np.ndarray, y: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points' x, y (H, W) with the gaps (NaN: pixels without a point) filled by a
+    least-squares quadratic in the pixel indices (v, u), so that the map can be drawn as a
+    quadrilateral mesh on the pixel grid; the filled cells are masked when drawn."""
+    if ok.all():
+        return x, y
+    v, u = np.mgrid[0:x.shape[0], 0:x.shape[1]].astype(float)
+    v, u = v / max(1, x.shape[0] - 1), u / max(1, x.shape[1] - 1)
+    basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+    coef, *_ = np.linalg.lstsq(basis[ok], np.stack([x[ok], y[ok]], axis=-1), rcond=None)
+    fit = basis @ coef
+    return np.where(ok, x, fit[..., 0]), np.where(ok, y, fit[..., 1])
+
+
+def _panel(fig, ax, x_mm, y_mm, z, title, label, *, signed: bool = True):
+    """One map on its pixel grid: a quadrilateral mesh over the points' x, y (mm) with the
+    pixels without a value masked (never a scatter of points). ``signed``: a diverging colour
+    map centred on zero (errors, heights about a reference), else viridis. ``label`` names the
+    quantity and its unit, e.g. ``"height error (µm)"``."""
+    from matplotlib.colors import CenteredNorm
+
+    if "(" not in label or not label.rstrip().endswith(")"):
+        raise ValueError(f"colour-bar label {label!r} must end with its unit in parentheses, e.g. 'height (µm)'")
+    s = _stride(z.shape)
+    x, y, z = x_mm[::s, ::s], y_mm[::s, ::s], z[::s, ::s]
+    has_xy = np.isfinite(x) & np.isfinite(y)
+    ok = has_xy & np.isfinite(z)
+    if ok.sum() < 6:
         ax.set_title(title + " (no data)")
         return
-    if np.isfinite(x).all() and np.isfinite(y).all():
-        # Gap-free: a quadrilateral mesh over the points (curvilinear grid), NaN heights masked.
-        sc = ax.pcolormesh(x, y, np.ma.masked_invalid(z), shading="nearest", cmap="viridis", rasterized=True)
-    else:
-        sc = ax.scatter(x[ok], y[ok], c=z[ok], s=2.0, marker="s", linewidths=0, cmap="viridis", rasterized=True)
+    xg, yg = _filled_grid(x, y, has_xy)
+    zm = np.ma.masked_where(~ok, z)
+    kw = dict(cmap="RdBu_r", norm=CenteredNorm(vcenter=0.0)) if signed else dict(cmap="viridis")
+    mesh = ax.pcolormesh(xg, yg, zm, shading="nearest", rasterized=True, **kw)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(title, fontsize=9)
-    cb = fig.colorbar(sc, ax=ax, shrink=0.85)
+    cb = fig.colorbar(mesh, ax=ax, shrink=0.85)
     cb.set_label(label)
     cb.formatter.set_useOffset(False)
     cb.update_ticks()
@@ -50,20 +72,22 @@ def _save(fig: Figure, path: str | Path | None) -> Figure:
 
 
 def height_map_figure(x_mm, y_mm, z_um, *, title: str, label: str = "height (µm)",
-                      path: str | Path | None = None) -> Figure:
+                      path: str | Path | None = None, signed: bool = True) -> Figure:
     """One height map over its points' x, y (mm, each (H, W)) with a colour bar; ``z_um`` (H, W).
 
-    Saved as PNG to ``path`` when given; returns the figure.
+    Drawn on the pixel grid (masked where there is no value), a diverging colour map centred on
+    zero unless ``signed`` is False. Saved as PNG to ``path`` when given; returns the figure.
     """
     fig = Figure(figsize=(6.4, 4.8), dpi=120)
     ax = fig.subplots()
-    _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label)
+    _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label, signed=signed)
     return _save(fig, path)
 
 
 def height_grid_figure(panels, *, suptitle: str, label: str = "height error (µm)",
                        path: str | Path | None = None) -> Figure:
-    """A grid of height maps, each with its own colour scale (like the paper's Figs. 4 and 5).
+    """A grid of height maps, each with its own colour scale centred on zero (like the paper's
+    Figs. 4 and 5), drawn on the pixel grid.
 
     ``panels`` is a list of rows; each entry is (x_mm, y_mm, z_um, title) with (H, W) arrays.
     Saved as PNG to ``path`` when given; returns the figure.

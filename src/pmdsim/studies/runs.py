@@ -206,13 +206,12 @@ def write_experiment3(out_dir: str | Path, base: Setup, *, bulges: Sequence[floa
             if not e.result.converged:
                 raise ExperimentError(f"{sc.label}, screen model {label}: calibration did not converge: "
                                       f"{e.result.reason}")
-            tag = {"bulge": f"bulge_{sc.bulge_mm:g}mm", "mirror_sag": f"mirror_sag_{sc.mirror_sag_um:g}um"}.get(
-                sc.name, sc.name)
             records.extend(recs)
             calibrations.append({"scenario": sc.name, "bulge_mm": sc.bulge_mm, "mirror_sag_um": sc.mirror_sag_um,
                                  "screen_model": label, **e.result.to_dict(), "deviation_from_truth": e.deviation})
             for c in e.cases:  # written as they come: the run never holds all height maps
-                add_case(c, f"{tag}/{label}/{c.camera}")
+                add_case(c, {"scenario": sc.name, "bulge_mm": float(sc.bulge_mm),
+                                  "mirror_sag_um": float(sc.mirror_sag_um), "screen_model": label})
         write_json(tmp / "results.json", json_ready(records))
         write_json(tmp / "calibration.json", json_ready(calibrations))
         write_json(tmp / "run.json", {**prov, "experiment": 3, "downsample": downsample, "method": method,
