@@ -28,6 +28,7 @@ from pmdsim.setup import default_setup
 from pmdsim.studies.experiment1 import run_experiment1_case
 from pmdsim.studies.study import CASES_DIR, run_study
 from pmdsim.studies.study_file import StudyError, load_study, parse_study
+from pmdsim.studies.study_results import wide_rows
 from pmdsim.studies.study_summary import QUANTILES, metric_quantiles
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,8 +46,9 @@ def _env(**extra) -> dict:
 
 
 def _rows(out) -> list[dict]:
+    """One dict per case (``{camera}.{metric}``) from the tidy results.parquet."""
     return [{k: v for k, v in r.items() if k not in RUN_COLUMNS}
-            for r in pq.read_table(Path(out) / "results.parquet").to_pylist()]
+            for r in wide_rows(pq.read_table(Path(out) / "results.parquet"))]
 
 
 def _records(out) -> dict[str, dict]:
@@ -147,7 +149,7 @@ def test_monte_carlo_draws_are_seeded_per_sample():
     for c in cases:
         rng = np.random.default_rng([11, c.mc_sample])  # the documented draw, in parameter order
         assert c.params["patterns.noise_std"] == rng.uniform(0.5, 2.0)
-        assert c.params["cameras.left.focal_length_px"] == rng.normal(0.0, 3.0)
+        assert c.params["offset(cameras.left.focal_length_px)"] == rng.normal(0.0, 3.0)
     # The same sample index draws the same values at every grid point; the keys all differ.
     assert [c.params["patterns.noise_std"] for c in cases[:3]] == [c.params["patterns.noise_std"] for c in cases[3:]]
     assert len({c.key for c in cases}) == 6
@@ -181,7 +183,7 @@ def test_example_serial_physics(example_serial):
         right = {tuple(r[k] for k in r if k.startswith("right.")) for r in rows if r["screen.bulge_mm"] == bulge}
         assert len(right) == 1
     # No bulge, no focal error: the reconstruction of the true plane is exact to < 0.1 µm.
-    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["model.cameras.left.focal_length_px"] == 0.0]
+    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["offset(model.cameras.left.focal_length_px)"] == 0.0]
     assert r0["left.max_height_diff_um"] < 0.1 and r0["right.max_height_diff_um"] < 0.1
 
 
@@ -522,7 +524,7 @@ def test_identical_cases_run_once(tmp_path):
     assert (run.n_cases, run.n_computed, run.n_missing) == (2, 1, 0)
     a, b = _rows(tmp_path / "out")
     assert a["case_key"] == b["case_key"] and a["status"] == b["status"] == "ok"
-    assert (a["case_index"], b["case_index"]) == (0, 1)
+    assert (a["case_id"], b["case_id"]) == (0, 1)
 
 
 def test_setup_path_relative_to_the_study_file(tmp_path, small_toml):
