@@ -424,8 +424,10 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
               "default: a LocalCluster on this machine.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="LocalCluster worker processes (default: one per core; numba threads = cores // workers).")
+@click.option("--connect-timeout", "connect_timeout_s", type=click.FloatRange(min=0.1), default=30.0, show_default=True,
+              help="Seconds to wait for the scheduler and for its first worker.")
 @click.option("--quiet", is_flag=True, help="No progress lines.")
-def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
+def study_cmd(study_file, out_dir, scheduler, workers, connect_timeout_s, quiet) -> None:
     """Run a parameter sweep / Monte-Carlo study (STUDY.toml) on Dask: OUT/results.parquet (one row per
     case and camera), results.csv, results_wide.csv, summary.txt and figures."""
     from .io.outputs import reused_output_dir
@@ -441,11 +443,12 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
     click.echo(f"study {study.name!r}: {study.n_cases} cases, action {study.action} "
                f"({'scheduler ' + scheduler if scheduler else 'LocalCluster'})", err=True)
     # The scheduler, its workers and their pmdsim are checked before OUT is touched (issue 23).
-    with open_cluster(scheduler, workers) as cluster, _StudyProgress(study.n_cases, quiet) as progress:
+    with open_cluster(scheduler, workers, timeout_s=connect_timeout_s) as cluster, _StudyProgress(study.n_cases, quiet) as progress:
         click.echo(f"  on {cluster.describe()}", err=True)
         with reused_output_dir(out_dir, inputs=[study_file], command=_command()):  # marked, locked
             try:
-                run = run_study(study, out_dir, client=cluster.client, progress=progress)
+                run = run_study(study, out_dir, client=cluster.client, progress=progress,
+                                connect_timeout_s=connect_timeout_s)
             except KeyboardInterrupt:
                 progress.close()
                 signum = interrupts.received() or signal.SIGINT

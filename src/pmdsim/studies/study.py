@@ -430,7 +430,9 @@ class _Engine:
         # least every _POLL_S, not only when the study ends.
         interrupts.check()
         try:
-            done = wait([f for f, _ in self.pending.values()], timeout=_POLL_S, return_when="FIRST_COMPLETED").done
+            with self.cluster.client.as_current():  # also a client that is not the default one
+                done = wait([f for f, _ in self.pending.values()], timeout=_POLL_S,
+                            return_when="FIRST_COMPLETED").done
         except TimeoutError:
             self.check_workers_alive()
             return

@@ -150,7 +150,7 @@ def _connect(scheduler: str, timeout_s: float):
 
     with _quiet_dask():
         try:
-            return Client(scheduler, timeout=timeout_s, set_as_default=False)
+            return Client(scheduler, timeout=timeout_s)
         except ValueError as e:
             raise StudyError(f"scheduler address {scheduler!r} is not valid ({e}); expected tcp://HOST:PORT") from None
         except (OSError, TimeoutError) as e:
@@ -219,7 +219,7 @@ def open_cluster(scheduler: str | None = None, n_workers: int | None = None, *, 
         with _children_ignore_terminal_signals():
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                    host="127.0.0.1")
-        client, owned = Client(cluster, timeout=timeout_s, set_as_default=False), True
+        client, owned = Client(cluster, timeout=timeout_s), True
     try:
         workers, threads = check_workers(client, timeout_s)
     except BaseException:
