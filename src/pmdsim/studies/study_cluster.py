@@ -19,6 +19,7 @@ start numba on all cores: 2 workers on 2 cores ran 8 threads).
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import threading
@@ -115,8 +116,6 @@ class StudyCluster:
 def _quiet_dask():
     """Dask's own log lines (a worker stopping, a connection closed) silenced while a cluster
     stops: the user asked it to stop."""
-    import logging
-
     log = logging.getLogger("distributed")
     old = log.level
     log.setLevel(logging.CRITICAL)
@@ -217,8 +216,10 @@ def open_cluster(scheduler: str | None = None, n_workers: int | None = None, *, 
 
         n, _ = local_layout(n_workers)
         with _children_ignore_terminal_signals():
+            # silence_logs: the workers' own warnings (a case cancelled by Ctrl-C, a worker restarted)
+            # are not the user's business; the study reports lost cases itself.
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   host="127.0.0.1")
+                                   host="127.0.0.1", silence_logs=logging.ERROR)
         client, owned = Client(cluster, timeout=timeout_s), True
     try:
         workers, threads = check_workers(client, timeout_s)
