@@ -199,6 +199,8 @@ def test_example_on_local_cluster_equals_serial(tmp_path, example_serial):
                          env=_env(), capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "32 cases computed, 0 reused, 0 failed, 0 missing" in res.stderr
+    # Not a terminal: one progress line per max(1, min(1000, 32 // 20)) = 1 case.
+    assert sum(" done, " in line for line in res.stderr.splitlines()) == 32
     assert _rows(tmp_path / "out") == example_serial
     workers = {r["worker"] for r in _records(tmp_path / "out").values()}
     assert len(workers) == min(2, os.cpu_count())  # the cases ran in the LocalCluster's worker processes
@@ -731,3 +733,35 @@ def test_tidy_results_schema_units_and_rerun(tmp_path):
             assert r[m] == rec[f"{r['camera']}.{m}"]
     wide = (out / RESULTS_WIDE_CSV).read_text().splitlines()
     assert len(wide) == 3 and '"left.max_height_diff_um"' in wide[0]
+
+
+def test_huge_grid_starts_at_once_with_bounded_futures(tmp_path):
+    """9 million cases (300 × 300 × 100): the first cases finish within seconds and the client
+    never holds more than the documented number of cases in flight; stopped after 12 cases,
+    the study leaves their records (the tables of 9 million rows are left to a rerun)."""
+    from distributed import Client, LocalCluster
+
+    from pmdsim.studies.study import MIN_IN_FLIGHT, RESULTS_PARQUET
+
+    grid = lambda n, step: "[" + ", ".join(f"{step * i:g}" for i in range(n)) + "]"  # noqa: E731
+    text = ('format = "pmdsim-study"\naction = "simulate"\ndownsample = 8\n'
+            f'[[parameters]]\npath = "screen.bulge_mm"\nvalues = {grid(300, 0.01)}\n'
+            f'[[parameters]]\npath = "patterns.noise_std"\nvalues = {grid(300, 0.01)}\n'
+            f'[[parameters]]\npath = "cameras.left.angles_deg[2]"\nmode = "offset"\nvalues = {grid(100, 0.001)}\n')
+    study = load_study(_write(tmp_path, text))
+    assert study.n_cases == 9_000_000
+    seen = []
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
+        def progress(d):
+            seen.append((time.perf_counter(), len(client.futures)))
+            if d["done"] == 12:
+                raise KeyboardInterrupt
+
+        t0 = time.perf_counter()
+        with pytest.raises(KeyboardInterrupt):
+            run_study(study, tmp_path / "out", client=client, progress=progress)
+    assert seen[0][0] - t0 < 30  # the eager version built 9 M cases first (≈ 12 h)
+    assert max(n for _, n in seen) <= MIN_IN_FLIGHT  # 1 Dask thread: at most 8 cases in flight
+    assert len(_records(tmp_path / "out")) >= 12 and not (tmp_path / "out" / RESULTS_PARQUET).exists()
