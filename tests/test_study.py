@@ -765,3 +765,28 @@ def test_huge_grid_starts_at_once_with_bounded_futures(tmp_path):
     assert seen[0][0] - t0 < 30  # the eager version built 9 M cases first (≈ 12 h)
     assert max(n for _, n in seen) <= MIN_IN_FLIGHT  # 1 Dask thread: at most 8 cases in flight
     assert len(_records(tmp_path / "out")) >= 12 and not (tmp_path / "out" / RESULTS_PARQUET).exists()
+
+
+@pytest.mark.slow
+def test_progress_bar_in_a_terminal(tmp_path):
+    """stderr a terminal (a pseudo-terminal): a progress bar, not one line per case."""
+    import pty
+
+    master, slave = pty.openpty()
+    study = _write(tmp_path, GOOD)
+    proc = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(tmp_path / "out"),
+                             "--workers", "1"], env=_env(), stdout=subprocess.DEVNULL, stderr=slave)
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # EIO: the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    os.close(master)
+    assert proc.wait(timeout=120) == 0
+    text = b"".join(chunks).decode()
+    assert "study" in text and "2/2" in text and " done, " not in text, text
