@@ -466,13 +466,16 @@ def study_cmd(study_file, out_dir, scheduler, workers, connect_timeout_s, quiet)
 
 class _StudyProgress:
     """A study's progress on stderr: a bar in a terminal; otherwise one line per ``every`` cases
-    (a twentieth of the study, 1 … 1000) and one per failed case."""
+    (a twentieth of the study, 1 … 1000) or per minute, whichever comes first, and one per failed
+    case."""
 
     def __init__(self, total: int, quiet: bool):
-        self.total, self.quiet = total, quiet
+        import time
+
+        self.total, self.quiet, self.clock = total, quiet, time.monotonic
         self.tty = sys.stderr.isatty()
         self.every = max(1, min(1000, total // 20))
-        self.bar, self.shown = None, 0
+        self.bar, self.shown, self.last = None, 0, time.monotonic()
 
     def __enter__(self):
         if self.tty and not self.quiet:
@@ -487,8 +490,8 @@ class _StudyProgress:
         if self.bar is not None:
             self.bar.update(d["done"] - self.shown)
             self.shown = d["done"]
-        elif d["done"] - self.shown >= self.every or d["done"] == d["total"]:
-            self.shown = d["done"]
+        elif d["done"] - self.shown >= self.every or d["done"] == d["total"] or self.clock() - self.last >= 60:
+            self.shown, self.last = d["done"], self.clock()
             eta = d["eta_s"]
             left = "?" if eta != eta else f"{eta:.0f} s"
             click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}", err=True)
