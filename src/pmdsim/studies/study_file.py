@@ -436,7 +436,7 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
     for i, n in enumerate(names):
         if n in names[:i]:
             raise StudyError(f"{source}: parameters[{i}].name {n!r} repeats parameters[{names.index(n)}]")
-        if n in RESERVED_COLUMNS or n in METRICS[action]:
+        if n in RESERVED_COLUMNS or n in METRICS[action] or (n == "seed" and params[i].path != "seed"):
             raise StudyError(f"{source}: parameters[{i}].name {n!r} is a column of the results table already "
                              "(choose another name)")
 
