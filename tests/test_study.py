@@ -28,6 +28,7 @@ from pmdsim.setup import default_setup
 from pmdsim.studies.experiment1 import run_experiment1_case
 from pmdsim.studies.study import CASES_DIR, run_study
 from pmdsim.studies.study_file import StudyError, load_study, parse_study
+from pmdsim.studies.study_results import wide_rows
 from pmdsim.studies.study_summary import QUANTILES, metric_quantiles
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,8 +46,9 @@ def _env(**extra) -> dict:
 
 
 def _rows(out) -> list[dict]:
+    """One dict per case (``{camera}.{metric}``) from the tidy results.parquet."""
     return [{k: v for k, v in r.items() if k not in RUN_COLUMNS}
-            for r in pq.read_table(Path(out) / "results.parquet").to_pylist()]
+            for r in wide_rows(pq.read_table(Path(out) / "results.parquet"))]
 
 
 def _records(out) -> dict[str, dict]:
@@ -89,6 +91,12 @@ values = [0.0, 1.0]
      "parameters[1].values[0]"),
     (GOOD.replace("values = [0.0, 1.0]", "values = [0.0, 1.0]\napplies_to = \"model\"")
      .replace("simulate+evaluate", "simulate"), "parameters[0].applies_to"),
+    # Two parameters on one setup key would collapse into one case (issue 24), also as a list entry.
+    (GOOD + '[[parameters]]\npath = "screen.bulge_mm"\nname = "again"\nvalues = [2.0]\n', "parameters[1].path"),
+    (GOOD + '[[parameters]]\npath = "cameras.left.angles_deg"\nmode = "offset"\nvalues = [0.1]\n'
+     '[[parameters]]\npath = "cameras.left.angles_deg[2]"\nvalues = [9.0]\n', "parameters[2].path"),
+    (GOOD + '[[parameters]]\npath = "screen.bulge_mm"\nname = "camera"\napplies_to = "model"\nvalues = [2.0]\n',
+     "parameters[1].name"),
 ])
 def test_bad_study_file_refused_naming_the_key(tmp_path, text, key):
     p = _write(tmp_path, text)
@@ -147,7 +155,7 @@ def test_monte_carlo_draws_are_seeded_per_sample():
     for c in cases:
         rng = np.random.default_rng([11, c.mc_sample])  # the documented draw, in parameter order
         assert c.params["patterns.noise_std"] == rng.uniform(0.5, 2.0)
-        assert c.params["cameras.left.focal_length_px"] == rng.normal(0.0, 3.0)
+        assert c.params["offset(cameras.left.focal_length_px)"] == rng.normal(0.0, 3.0)
     # The same sample index draws the same values at every grid point; the keys all differ.
     assert [c.params["patterns.noise_std"] for c in cases[:3]] == [c.params["patterns.noise_std"] for c in cases[3:]]
     assert len({c.key for c in cases}) == 6
@@ -181,7 +189,7 @@ def test_example_serial_physics(example_serial):
         right = {tuple(r[k] for k in r if k.startswith("right.")) for r in rows if r["screen.bulge_mm"] == bulge}
         assert len(right) == 1
     # No bulge, no focal error: the reconstruction of the true plane is exact to < 0.1 µm.
-    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["model.cameras.left.focal_length_px"] == 0.0]
+    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["offset(model.cameras.left.focal_length_px)"] == 0.0]
     assert r0["left.max_height_diff_um"] < 0.1 and r0["right.max_height_diff_um"] < 0.1
 
 
@@ -191,6 +199,8 @@ def test_example_on_local_cluster_equals_serial(tmp_path, example_serial):
                          env=_env(), capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "32 cases computed, 0 reused, 0 failed, 0 missing" in res.stderr
+    # Not a terminal: one progress line per max(1, min(1000, 32 // 20)) = 1 case.
+    assert sum(" done, " in line for line in res.stderr.splitlines()) == 32
     assert _rows(tmp_path / "out") == example_serial
     workers = {r["worker"] for r in _records(tmp_path / "out").values()}
     assert len(workers) == min(2, os.cpu_count())  # the cases ran in the LocalCluster's worker processes
@@ -522,7 +532,7 @@ def test_identical_cases_run_once(tmp_path):
     assert (run.n_cases, run.n_computed, run.n_missing) == (2, 1, 0)
     a, b = _rows(tmp_path / "out")
     assert a["case_key"] == b["case_key"] and a["status"] == b["status"] == "ok"
-    assert (a["case_index"], b["case_index"]) == (0, 1)
+    assert (a["case_id"], b["case_id"]) == (0, 1)
 
 
 def test_setup_path_relative_to_the_study_file(tmp_path, small_toml):
@@ -541,3 +551,242 @@ def test_workers_with_scheduler_refused(tmp_path):
     res = CliRunner().invoke(main, ["study", str(EXAMPLE), "--out", str(tmp_path / "out"),
                                     "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"])
     assert res.exit_code == 2 and "--workers" in res.output and not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------- failing fast (issue 23)
+@pytest.mark.parametrize("address, expected", [
+    ("not-an-address", "scheduler address 'not-an-address' is not valid"),
+    (None, "cannot connect to the Dask scheduler 'tcp://127.0.0.1:"),  # a loopback port nobody listens on
+])
+def test_bad_scheduler_is_one_line_and_leaves_nothing(tmp_path, address, expected):
+    import socket
+
+    if address is None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    study = _write(tmp_path, GOOD)
+    res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(tmp_path / "out"),
+                          "--scheduler", address, "--connect-timeout", "2"], env=_env(), capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert lines[-1].startswith("pmdsim: error: ") and expected in lines[-1], res.stderr
+    assert "Traceback" not in res.stderr and len(lines) == 2  # the study's header line, the error
+    assert not (tmp_path / "out").exists()
+
+
+def _fake_pmdsim(root: Path, init: str) -> Path:
+    (root / "pmdsim").mkdir(parents=True)
+    (root / "pmdsim" / "__init__.py").write_text(init, encoding="utf-8")
+    return root
+
+
+@pytest.mark.slow
+def test_workers_with_another_or_no_pmdsim_are_named(tmp_path):
+    """A real ``dask scheduler`` and ``dask worker`` processes: a worker whose ``import pmdsim``
+    finds another version (a package earlier on its PYTHONPATH), then one where it fails, then
+    none at all; each is refused before OUT is created, naming the worker."""
+    from pmdsim import __version__
+    from pmdsim.studies.study_cluster import check_workers
+
+    dask_cli = Path(sys.executable).with_name("dask")
+    sched_file = tmp_path / "scheduler.json"
+    procs = [_start([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
+    other = _fake_pmdsim(tmp_path / "other", '__version__ = "0.0.1.fake"\n')
+    broken = _fake_pmdsim(tmp_path / "broken", 'raise ModuleNotFoundError("No module named \'pmdsim\'")\n')
+    study = _write(tmp_path, GOOD)
+
+    def worker(pythonpath: Path, name: str) -> subprocess.Popen:
+        return subprocess.Popen([str(dask_cli), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+                                 "--no-nanny", "--no-dashboard"], env=_env(PYTHONPATH=str(pythonpath)),
+                                stdout=(tmp_path / f"{name}.log").open("w"), stderr=subprocess.STDOUT,
+                                start_new_session=True)
+
+    def cli(timeout="30") -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out",
+                               str(tmp_path / "out"), "--scheduler", address, "--connect-timeout", timeout],
+                              env=_env(), capture_output=True, text=True, timeout=120)
+
+    from distributed import Client
+
+    try:
+        t0 = time.monotonic()
+        while not sched_file.exists() and time.monotonic() - t0 < 60:
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        for pythonpath, name, words in ((other, "other", ["runs pmdsim 0.0.1.fake", f"pmdsim {__version__}"]),
+                                        (broken, "broken", ["cannot import pmdsim", "ModuleNotFoundError"])):
+            w = worker(pythonpath, name)
+            procs.append(w)
+            with Client(address, timeout=60) as c:
+                c.wait_for_workers(1, timeout=120)
+                (addr,) = c.scheduler_info(n_workers=-1)["workers"]
+            res = cli()
+            assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+            err = res.stderr.strip().splitlines()[-1]
+            assert err.startswith("pmdsim: error: worker " + addr) and f"pid {w.pid}" in err, err
+            assert all(word in err for word in words), err
+            assert not (tmp_path / "out").exists()
+            w.kill()
+            w.wait(timeout=30)
+            with Client(address, timeout=60) as c:  # the scheduler notices the lost worker
+                t0 = time.monotonic()
+                while c.scheduler_info(n_workers=-1)["workers"] and time.monotonic() - t0 < 60:
+                    time.sleep(0.2)
+        with Client(address, timeout=60) as c:  # no worker at all
+            with pytest.raises(StudyError, match=r"has no workers \(waited 1 s\)"):
+                check_workers(c, timeout_s=1)
+    finally:
+        for p in procs[::-1]:
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_all_workers_gone_stops_the_study(tmp_path, dask_cluster):
+    address, workers = dask_cluster
+    study, out = load_study(_write(tmp_path, SLOW16)), tmp_path / "out"
+
+    def kill_all(d):  # the first finished case: both workers die (no nanny restarts them)
+        if d["done"] == 1:
+            for w in workers:
+                w.kill()
+                w.wait(timeout=30)
+
+    with pytest.raises(StudyError, match=r"all workers of the Dask scheduler .* are gone \(none for 3 s\)"):
+        run_study(study, out, scheduler=address, progress=kill_all, worker_timeout_s=3)
+    rows = _rows(out)  # the finished cases are recorded, the rest marked missing
+    assert len(rows) == 16 and 1 <= sum(r["status"] == "ok" for r in rows) < 16
+
+
+def test_run_study_on_the_callers_client(tmp_path):
+    from distributed import Client, LocalCluster
+
+    study = load_study(_write(tmp_path, GOOD))
+    run_study(study, tmp_path / "serial", serial=True)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
+        run = run_study(study, tmp_path / "out", client=client)
+        assert (run.n_computed, run.n_missing) == (2, 0)
+        assert client.status == "running"  # the caller's client is left open
+        assert client.submit(sum, [1, 2]).result() == 3
+    assert _rows(tmp_path / "out") == _rows(tmp_path / "serial")
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_terminal_is_one_line_and_leaves_nothing(tmp_path):
+    """SIGINT to the whole foreground process group, as a terminal sends it on Ctrl-C: the
+    LocalCluster's worker processes get it too and must not print tracebacks."""
+    study, out = _write(tmp_path, SLOW16), tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(out),
+                             "--workers", "2", "--quiet"], env=_env(), stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_foreground, start_new_session=True)
+    _wait_for_records(out, 1, proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    lines = err.strip().splitlines()
+    assert lines[-1].startswith("pmdsim: interrupted (SIGINT); the finished cases are recorded"), err
+    assert len(lines) == 3, err  # the header, the cluster, the interruption
+    left = [p.name for p in tmp_path.rglob(".*") if ".partial-" in p.name or p.name.endswith(".lock")]
+    assert not left
+
+
+# ---------------------------------------------------------------------------- tidy tables (issue 23)
+def test_tidy_results_schema_units_and_rerun(tmp_path):
+    """results.parquet read back with pyarrow: one row per case and camera, values equal to the
+    records on disk, every column of its declared type (also when all null), the same schema
+    before any case is computed and after."""
+    import pyarrow as pa
+
+    from pmdsim.studies.study_results import RESULTS_WIDE_CSV, write_results
+
+    text = GOOD + ('[[parameters]]\npath = "cameras.left.focal_length_px"\napplies_to = "model"\nmode = "offset"\n'
+                   'values = [-5.0]\n')
+    study = load_study(_write(tmp_path, text))
+    out = tmp_path / "out"
+    assert write_results(out.mkdir() or out, study) == {"ok": 0, "failed": 0, "missing": 2}
+    before = pq.read_schema(out / "results.parquet")
+    run_study(study, out, serial=True)
+    table = pq.read_table(out / "results.parquet")
+    assert table.schema.equals(before, check_metadata=True)
+    assert not any(pa.types.is_null(f.type) for f in table.schema)
+    f = table.schema.field("max_height_diff_um")
+    assert f.type == pa.float64() and f.metadata[b"units"] == b"um"
+    assert table.schema.field("tilt_urad").metadata[b"units"] == b"urad"
+    assert table.schema.field("n_pixels").type == pa.int64()
+    p = table.schema.field("offset(model.cameras.left.focal_length_px)")  # it holds the offset, says so
+    assert p.metadata == {b"units": b"pixel", b"setup_key": b"cameras.left.focal_length_px",
+                          b"applies_to": b"model", b"mode": b"offset"}
+    rows = table.to_pylist()
+    recs = _records(out)
+    assert [(r["case_id"], r["camera"]) for r in rows] == [(0, "left"), (0, "right"), (1, "left"), (1, "right")]
+    for r in rows:
+        rec = recs[r["case_key"]]
+        assert r["screen.bulge_mm"] == rec["screen.bulge_mm"] and r["status"] == "ok"
+        assert r["offset(model.cameras.left.focal_length_px)"] == -5.0
+        for m in study.metrics:
+            assert r[m] == rec[f"{r['camera']}.{m}"]
+    wide = (out / RESULTS_WIDE_CSV).read_text().splitlines()
+    assert len(wide) == 3 and '"left.max_height_diff_um"' in wide[0]
+
+
+def test_huge_grid_starts_at_once_with_bounded_futures(tmp_path):
+    """9 million cases (300 × 300 × 100): the first cases finish within seconds and the client
+    never holds more than the documented number of cases in flight; stopped after 12 cases,
+    the study leaves their records (the tables of 9 million rows are left to a rerun)."""
+    from distributed import Client, LocalCluster
+
+    from pmdsim.studies.study import MIN_IN_FLIGHT, RESULTS_PARQUET
+
+    grid = lambda n, step: "[" + ", ".join(f"{step * i:g}" for i in range(n)) + "]"  # noqa: E731
+    text = ('format = "pmdsim-study"\naction = "simulate"\ndownsample = 8\n'
+            f'[[parameters]]\npath = "screen.bulge_mm"\nvalues = {grid(300, 0.01)}\n'
+            f'[[parameters]]\npath = "patterns.noise_std"\nvalues = {grid(300, 0.01)}\n'
+            f'[[parameters]]\npath = "cameras.left.angles_deg[2]"\nmode = "offset"\nvalues = {grid(100, 0.001)}\n')
+    study = load_study(_write(tmp_path, text))
+    assert study.n_cases == 9_000_000
+    seen = []
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
+        def progress(d):
+            seen.append((time.perf_counter(), len(client.futures)))
+            if d["done"] == 12:
+                raise KeyboardInterrupt
+
+        t0 = time.perf_counter()
+        with pytest.raises(KeyboardInterrupt):
+            run_study(study, tmp_path / "out", client=client, progress=progress)
+    assert seen[0][0] - t0 < 30  # the eager version built 9 M cases first (≈ 12 h)
+    assert max(n for _, n in seen) <= MIN_IN_FLIGHT  # 1 Dask thread: at most 8 cases in flight
+    assert len(_records(tmp_path / "out")) >= 12 and not (tmp_path / "out" / RESULTS_PARQUET).exists()
+
+
+@pytest.mark.slow
+def test_progress_bar_in_a_terminal(tmp_path):
+    """stderr a terminal (a pseudo-terminal): a progress bar, not one line per case."""
+    import pty
+
+    master, slave = pty.openpty()
+    study = _write(tmp_path, GOOD)
+    proc = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(tmp_path / "out"),
+                             "--workers", "1"], env=_env(), stdout=subprocess.DEVNULL, stderr=slave)
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # EIO: the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    os.close(master)
+    assert proc.wait(timeout=120) == 0
+    text = b"".join(chunks).decode()
+    assert "study" in text and "2/2" in text and " done, " not in text, text

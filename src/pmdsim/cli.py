@@ -470,14 +470,18 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
               "default: a LocalCluster on this machine.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="LocalCluster worker processes (default: one per core; numba threads = cores // workers).")
+@click.option("--connect-timeout", "connect_timeout_s", type=click.FloatRange(min=0.1), default=30.0, show_default=True,
+              help="Seconds to wait for the scheduler and for its first worker.")
 @click.option("--quiet", is_flag=True, help="No progress lines.")
-def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
-    """Run a parameter sweep / Monte-Carlo study (STUDY.toml) on Dask: OUT/results.parquet, .csv,
-    summary.txt and figures."""
+def study_cmd(study_file, out_dir, scheduler, workers, connect_timeout_s, quiet) -> None:
+    """Run a parameter sweep / Monte-Carlo study (STUDY.toml) on Dask: OUT/results.parquet (one row per
+    case and camera), results.csv, results_wide.csv, summary.txt and figures."""
+    from .io.outputs import reused_output_dir
     from .errors import require_extra
 
     require_extra("study", "distributed", "pyarrow", feature="pmdsim study")  # pmdsim[study]: one line, exit 2
     from .studies.study import run_study
+    from .studies.study_cluster import open_cluster
     from .studies.study_file import load_study
     from .studies.study_summary import write_study_outputs
 
@@ -487,26 +491,20 @@ def study_cmd(study_file, out_dir, scheduler, workers, quiet) -> None:
     study = load_study(study_file)
     click.echo(f"study {study.name!r}: {study.n_cases} cases, action {study.action} "
                f"({'scheduler ' + scheduler if scheduler else 'LocalCluster'})", err=True)
-
-    def progress(d: dict) -> None:
-        if not quiet:
-            eta = d["eta_s"]
-            left = "?" if eta != eta else f"{eta:.0f} s"
-            rec = d["record"]
-            note = f"  [case {rec['case_index']} failed: {rec['error']}]" if rec["status"] == "failed" else ""
-            click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}{note}", err=True)
-
-    from .io.outputs import reused_output_dir
-
-    with reused_output_dir(out_dir, inputs=[study_file], command=_command()):  # marked, locked
-        try:
-            run = run_study(study, out_dir, scheduler=scheduler, n_workers=workers, progress=progress)
-        except KeyboardInterrupt:
-            signum = interrupts.received() or signal.SIGINT
-            click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}); the finished cases are recorded in "
-                       f"{out_dir}: rerun the same command to compute the rest", err=True)
-            sys.exit(interrupts.exit_code(signum))
-        written = write_study_outputs(study, out_dir)
+    # The scheduler, its workers and their pmdsim are checked before OUT is touched (issue 23).
+    with open_cluster(scheduler, workers, timeout_s=connect_timeout_s) as cluster, _StudyProgress(study.n_cases, quiet) as progress:
+        click.echo(f"  on {cluster.describe()}", err=True)
+        with reused_output_dir(out_dir, inputs=[study_file], command=_command()):  # marked, locked
+            try:
+                run = run_study(study, out_dir, client=cluster.client, progress=progress,
+                                connect_timeout_s=connect_timeout_s)
+            except KeyboardInterrupt:
+                progress.close()
+                signum = interrupts.received() or signal.SIGINT
+                click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}); the finished cases are recorded "
+                           f"in {out_dir}: rerun the same command to compute the rest", err=True)
+                sys.exit(interrupts.exit_code(signum))
+            written = write_study_outputs(study, out_dir)
     click.echo(f"{run.n_computed} cases computed, {run.n_reused} reused, {run.n_failed} failed, "
                f"{run.n_missing} missing, in {run.elapsed_s:.1f} s → {out_dir} ({', '.join(written)})", err=True)
     if run.n_missing:
@@ -533,6 +531,49 @@ def _refuse_inapplicable(number: str) -> None:
         opt = "--" + name.replace("_", "-")
         raise click.UsageError(f"{opt} does not apply to experiment {number} (it is an option of experiment"
                                f"{'s' if len(applies) > 1 else ''} {', '.join(applies)}); drop it")
+
+
+class _StudyProgress:
+    """A study's progress on stderr: a bar in a terminal; otherwise one line per ``every`` cases
+    (a twentieth of the study, 1 … 1000) or per minute, whichever comes first, and one per failed
+    case."""
+
+    def __init__(self, total: int, quiet: bool):
+        import time
+
+        self.total, self.quiet, self.clock = total, quiet, time.monotonic
+        self.tty = sys.stderr.isatty()
+        self.every = max(1, min(1000, total // 20))
+        self.bar, self.shown, self.last = None, 0, time.monotonic()
+
+    def __enter__(self):
+        if self.tty and not self.quiet:
+            self.bar = click.progressbar(length=self.total, label="study", file=sys.stderr, show_pos=True,
+                                         show_eta=True).__enter__()
+        return self
+
+    def __call__(self, d: dict) -> None:
+        if self.quiet:
+            return
+        rec = d["record"]
+        if self.bar is not None:
+            self.bar.update(d["done"] - self.shown)
+            self.shown = d["done"]
+        elif d["done"] - self.shown >= self.every or d["done"] == d["total"] or self.clock() - self.last >= 60:
+            self.shown, self.last = d["done"], self.clock()
+            eta = d["eta_s"]
+            left = "?" if eta != eta else f"{eta:.0f} s"
+            click.echo(f"  {d['done']}/{d['total']} done, {d['failed']} failed, time left ≈ {left}", err=True)
+        if rec["status"] == "failed":
+            click.echo(f"  case {rec['case_index']} failed: {rec['error']}", err=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+            self.bar = None
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet) -> None:

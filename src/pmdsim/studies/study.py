@@ -3,9 +3,16 @@
 * :func:`run_case` — one case, in plain data in and out (runs on a worker; never raises: a
   failing case returns a record with ``status = "failed"`` and its error);
 * :func:`run_study` — every case not yet recorded in ``OUT/cases/``, on a Dask cluster (a
-  :class:`distributed.LocalCluster` of processes by default, or an existing scheduler), each
-  record written atomically as its case finishes; then :func:`write_results` combines the
-  records into ``OUT/results.parquet`` and ``OUT/results.csv`` (one row per case).
+  :class:`distributed.LocalCluster` of processes by default, an existing scheduler, or the
+  caller's :class:`distributed.Client`; checked first by :mod:`.study_cluster`), each record
+  written atomically as its case finishes; then :func:`~.study_results.write_results`
+  combines the records into ``OUT/results.parquet`` (tidy: one row per case and camera),
+  ``results.csv`` (the same) and ``results_wide.csv`` (one row per case).
+
+Cases are streamed (:meth:`~.study_file.Study.iter_cases`): each is built when a worker
+thread is about to be free, with at most :data:`IN_FLIGHT_PER_THREAD` cases per Dask worker
+thread (and at least :data:`MIN_IN_FLIGHT`) submitted and not finished — a grid of millions of
+cases starts at once and the client's memory does not grow with the grid.
 
 Cases are keyed by a hash of their inputs (:class:`~.study_file.CaseSpec`), so a rerun of an
 interrupted study (Ctrl-C, a killed worker, a lost node) computes only the missing cases. A
@@ -36,15 +43,23 @@ from ..simulation.imaging import decoder_response
 from .. import __version__, interrupts
 from ..io.outputs import partial_file
 from .experiment1 import CaseResult
+from .study_cluster import StudyCluster, open_cluster
 from .study_file import CaseSpec, Study, StudyError
+from .study_results import (CASES_DIR, RESULTS_CSV, RESULTS_PARQUET, RESULTS_WIDE_CSV, read_record,
+                            write_results)
 
 __all__ = ["run_case", "run_study", "StudyRun", "write_results", "read_records", "CASES_DIR", "MAPS_DIR",
-           "RESULTS_PARQUET", "RESULTS_CSV"]
+           "RESULTS_PARQUET", "RESULTS_CSV", "RESULTS_WIDE_CSV", "IN_FLIGHT_PER_THREAD", "MIN_IN_FLIGHT"]
 
-CASES_DIR = "cases"
 MAPS_DIR = "maps"
-RESULTS_PARQUET = "results.parquet"
-RESULTS_CSV = "results.csv"
+
+#: Cases submitted and not yet finished, per Dask worker thread of the cluster …
+IN_FLIGHT_PER_THREAD = 4
+#: … and at least this many: the bound on the client's memory (a case is ≈ 10 kB of TOML).
+MIN_IN_FLIGHT = 8
+#: An interrupted study rewrites its tables (the finished cases, the rest ``missing``) only up
+#: to this many cases: a larger grid would take ≈ 5 ms per case to list (the next run writes them).
+RESULTS_ON_INTERRUPT_MAX = 100_000
 
 
 # ============================================================================ one case
@@ -138,9 +153,10 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None, m
         The case (setups as TOML text; see :mod:`.study_file`).
     metrics : tuple of str
         The metrics to record per camera.
-    numba_threads : int, optional
-        Numba threads of this case (``numba.set_num_threads``, at most the pool size); None:
-        numba's default. (Setting ``NUMBA_NUM_THREADS`` in a worker's environment instead
+    numba_threads : int or dict, optional
+        Numba threads of this case (``numba.set_num_threads``, at most the pool size), or a
+        mapping host name → threads (:func:`socket.gethostname` of the worker); None: numba's
+        default. (Setting ``NUMBA_NUM_THREADS`` in a worker's environment instead
         breaks numba's first compilation there: the pool was already launched.)
     maps_path : str, optional
         Also write the reconstructions (height, error, points, valid per camera) to this HDF5
@@ -156,6 +172,8 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None, m
 
     from ..setup import parse_setup
 
+    if isinstance(numba_threads, dict):
+        numba_threads = numba_threads.get(socket.gethostname())
     if numba_threads is not None:
         import numba
 
@@ -204,17 +222,14 @@ def _write_json_atomic(path: Path, obj) -> None:
         raise
 
 
-def read_records(out: str | Path, cases: list[CaseSpec]) -> dict[str, dict]:
+def read_records(out: str | Path, cases) -> dict[str, dict]:
     """The records already in ``OUT/cases/`` for these cases: case key → record (unreadable or
     partial files count as missing)."""
-    d = Path(out) / CASES_DIR
     found = {}
     for c in cases:
-        p = d / f"{c.key}.json"
-        try:
-            found[c.key] = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            continue
+        r = read_record(out, c.key)
+        if r is not None:
+            found[c.key] = r
     return found
 
 
@@ -230,37 +245,6 @@ def _atomic_write_via(target: Path, writer: Callable[[str], None]) -> None:
         raise
 
 
-def write_results(out: str | Path, study: Study, cases: list[CaseSpec]) -> list[dict]:
-    """Combine the records of ``cases`` into ``OUT/results.parquet`` and ``OUT/results.csv``
-    (atomically), one row per case in case order; cases without a record are rows with
-    ``status = "missing"``. Returns the rows."""
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
-    import pyarrow.parquet as pq
-
-    out = Path(out)
-    recs = read_records(out, cases)
-    rows = []
-    for c in cases:
-        r = recs.get(c.key)
-        if r is None:
-            r = {"case_key": c.key, "case_index": c.index, **c.params, "mc_sample": c.mc_sample, "seed": c.seed,
-                 "status": "missing", "error": None}
-        # (identical cases share a record; each keeps its own row index)
-        r = {k: v for k, v in r.items() if k != "traceback"} | {"case_index": c.index}
-        for k, v in list(r.items()):
-            if isinstance(v, list):  # a list-valued setup key: a string column (parquet needs one type)
-                r[k] = json.dumps(v)
-        rows.append(r)
-    columns: list[str] = []
-    for r in rows:
-        columns += [k for k in r if k not in columns]
-    table = pa.Table.from_pylist([{k: r.get(k) for k in columns} for r in rows])
-    _atomic_write_via(out / RESULTS_PARQUET, lambda p: pq.write_table(table, p))
-    _atomic_write_via(out / RESULTS_CSV, lambda p: pacsv.write_csv(table, p))
-    return rows
-
-
 # ============================================================================ the engine
 @dataclass(frozen=True)
 class StudyRun:
@@ -269,12 +253,14 @@ class StudyRun:
     Attributes
     ----------
     n_cases, n_reused, n_computed, n_failed, n_missing : int
-        All cases; cases recorded before this run; computed now; failed (recorded, either run);
-        still without a record (a worker died too often, or the run was interrupted). Identical
-        cases (the same key) count once in all but ``n_cases``.
+        All cases; cases whose record an earlier run wrote; computations this run (identical
+        cases — the same key — are computed once); cases whose record says failed (either
+        run); cases still without a record (a worker died too often, or the run was stopped).
     run_id : str
         This invocation's id (the ``run_id`` of the records it wrote).
     elapsed_s : float
+    cluster : str
+        The workers and threads the cases ran on (empty for a serial run).
     """
 
     n_cases: int
@@ -284,129 +270,191 @@ class StudyRun:
     n_missing: int
     run_id: str
     elapsed_s: float
+    cluster: str = ""
 
 
 Progress = Callable[[dict], None]
 
 
-def _local_cluster(n_workers: int | None):
-    from distributed import LocalCluster
+def _study_json(study: Study) -> dict:
+    """What ``OUT/study.json`` records: the study, not its expanded cases (those are the rows
+    of the results tables; a grid of millions of cases is not listed before it starts)."""
+    def param(p):
+        d = {"name": p.name, "path": p.path, "applies_to": p.applies_to, "mode": p.mode}
+        if p.values is not None:
+            d["values"] = list(p.values)
+        else:
+            d["distribution"] = list(p.distribution)
+        return d
 
-    cores = os.cpu_count() or 1
-    n = max(1, n_workers or cores)
-    # workers × numba threads = cores (run_case sets the threads); one Dask thread per worker.
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           host="127.0.0.1")
-    return cluster, max(1, cores // n)
+    return {"pmdsim_version": __version__, "study": study.source, "name": study.name, "action": study.action,
+            "n_cases": study.n_cases, "parameters": [param(p) for p in study.parameters],
+            "monte_carlo": None if not study.mc_samples else {"samples": study.mc_samples, "seed": study.mc_seed},
+            "cameras": list(study.all_cameras), "metrics": list(study.metrics)}
 
 
 def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_workers: int | None = None,
-              progress: Progress | None = None, serial: bool = False, connect_timeout_s: float = 30.0) -> StudyRun:
+              progress: Progress | None = None, serial: bool = False, connect_timeout_s: float = 30.0,
+              client=None, worker_timeout_s: float = 60.0) -> StudyRun:
     """Run every case of ``study`` that ``OUT/cases/`` does not hold yet, then write the results.
 
     Parameters
     ----------
     study : Study
     out : path
-        Output directory (created; reused by a rerun).
+        Output directory (created once the cluster is checked; reused by a rerun).
     scheduler : str, optional
         Address of an existing Dask scheduler (``tcp://host:port``); None: a LocalCluster of
         ``n_workers`` processes (default: one per core) with numba threads = cores // workers.
+    client : distributed.Client, optional
+        Run on this client's cluster instead (it is checked, used and left open).
     progress : callable, optional
-        Called with ``{"done", "failed", "total", "eta_s", "record"}`` after each finished case.
+        Called with ``{"done", "failed", "total", "eta_s", "record"}`` after each computed case
+        (``done`` counts cases, also those recorded before this run).
     serial : bool
         Run the cases in this process, one after another (no Dask; the reference of the tests).
     connect_timeout_s : float
-        How long to try to reach the scheduler.
+        How long to try to reach the scheduler and to wait for a first worker.
+    worker_timeout_s : float
+        How long the cluster may have no worker at all during the run before the study stops.
 
     Raises
     ------
     StudyError
-        The scheduler cannot be reached (nothing is computed).
+        Before anything is written: the scheduler cannot be reached, has no worker, or a worker
+        runs another pmdsim (:func:`.study_cluster.check_workers`). During the run: every worker
+        is gone for ``worker_timeout_s`` (the finished cases are recorded).
     """
     t0 = time.perf_counter()
     out = Path(out)
-    (out / CASES_DIR).mkdir(parents=True, exist_ok=True)
-    cases = study.cases()
-    _write_json_atomic(out / "study.json", {
-        "pmdsim_version": __version__, "study": study.source, "name": study.name, "action": study.action,
-        "n_cases": len(cases), "parameters": [p.name for p in study.parameters],
-        "cases": [{"case_key": c.key, "case_index": c.index, **c.params} for c in cases]})
-    unique = list({c.key: c for c in cases}.values())  # identical cases (same key) run once
-    have = read_records(out, unique)
-    todo = [c for c in unique if c.key not in have]
+    if client is not None and scheduler is not None:
+        raise StudyError("give either a scheduler address or a client, not both")
+    cluster = None if serial else open_cluster(scheduler, n_workers, client=client, timeout_s=connect_timeout_s)
     run_id = uuid.uuid4().hex[:12]
-    state = {"done": len(have), "failed": sum(r.get("status") == "failed" for r in have.values()), "computed": 0}
-
-    def finished(rec: dict) -> None:
-        rec["run_id"] = run_id
-        _write_json_atomic(out / CASES_DIR / f"{rec['case_key']}.json", rec)
-        state["done"] += 1
-        state["computed"] += 1
-        state["failed"] += rec["status"] == "failed"
-        if progress is not None:
-            left = len(unique) - state["done"]
-            rate = state["computed"] / (time.perf_counter() - t_start)
-            progress({"done": state["done"], "failed": state["failed"], "total": len(unique),
-                      "eta_s": left / rate if rate > 0 else float("nan"), "record": rec})
-
-    maps_dir = (out / MAPS_DIR).resolve() if study.save_maps else None
-    maps = {c.key: None if maps_dir is None else str(maps_dir / f"{c.key}.h5") for c in todo}
-    t_start = time.perf_counter()
+    state = {"done": 0, "failed": 0, "computed": 0, "reused": 0, "t_start": time.perf_counter()}
+    interrupted = False
     try:
-        if serial or not todo:
-            for c in todo:
-                finished(run_case(c, study.metrics, None, maps[c.key]))
-                interrupts.check()
-        else:
-            _run_on_dask(todo, study.metrics, maps, finished, scheduler, n_workers, connect_timeout_s)
+        (out / CASES_DIR).mkdir(parents=True, exist_ok=True)
+        _write_json_atomic(out / "study.json", _study_json(study))
+        maps_dir = (out / MAPS_DIR).resolve() if study.save_maps else None
+        engine = _Engine(study, out, run_id, state, progress, maps_dir, cluster, worker_timeout_s)
+        engine.run()
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
     finally:
-        write_results(out, study, cases)
-    recs = read_records(out, unique)
-    return StudyRun(len(cases), len(have), state["computed"],
-                    sum(r.get("status") == "failed" for r in recs.values()), len(unique) - len(recs), run_id,
-                    time.perf_counter() - t0)
+        try:
+            if cluster is not None:
+                cluster.close()
+        finally:
+            if out.is_dir() and (not interrupted or study.n_cases <= RESULTS_ON_INTERRUPT_MAX):
+                counts = write_results(out, study)
+    return StudyRun(study.n_cases, state["reused"], state["computed"], counts["failed"], counts["missing"], run_id,
+                    time.perf_counter() - t0, "" if cluster is None else cluster.describe())
 
 
 #: How often (s) the study loop looks for a signal that was recorded but not raised.
 _POLL_S = 0.5
 
 
-def _run_on_dask(todo: list[CaseSpec], metrics: tuple, maps: dict, finished, scheduler: str | None,
-                 n_workers: int | None, connect_timeout_s: float) -> None:
-    from distributed import Client, wait
+class _Engine:
+    """The streaming loop of :func:`run_study` (one instance per run)."""
 
-    cluster, threads = (None, None) if scheduler else _local_cluster(n_workers)
-    try:
-        client = Client(scheduler if scheduler else cluster, timeout=connect_timeout_s)
-    except (OSError, TimeoutError) as e:
-        if cluster is not None:
-            cluster.close()
-        raise StudyError(f"cannot connect to the Dask scheduler {scheduler or cluster.scheduler_address!r} "
-                         f"within {connect_timeout_s:g} s: {e}") from None
-    try:
-        futures = [client.submit(run_case, c, metrics, threads, maps[c.key], key=f"pmdsim-case-{c.key}", pure=False)
-                   for c in todo]
-        pending = set(futures)
-        while pending:
-            # A signal that landed in a finaliser (a Future's __del__, a weakref callback: dask
-            # runs many in this thread) is only recorded by pmdsim.interrupts, not raised: look
-            # for it at least every _POLL_S, not only when the study ends.
-            interrupts.check()
-            try:
-                done = wait(list(pending), timeout=_POLL_S, return_when="FIRST_COMPLETED").done
-            except TimeoutError:
-                continue
-            for fut in sorted(done, key=lambda f: f.key):
-                pending.discard(fut)
+    def __init__(self, study: Study, out: Path, run_id: str, state: dict, progress, maps_dir,
+                 cluster: StudyCluster | None, worker_timeout_s: float):
+        self.study, self.out, self.run_id, self.state, self.progress = study, out, run_id, state, progress
+        self.maps_dir, self.cluster, self.worker_timeout_s = maps_dir, cluster, worker_timeout_s
+        self.pending: dict = {}  # case key → [future, number of cases waiting for it]
+        self.limit = 0 if cluster is None else max(MIN_IN_FLIGHT, IN_FLIGHT_PER_THREAD * cluster.n_threads)
+        self.no_worker_since: float | None = None
+
+    def maps_path(self, c: CaseSpec) -> str | None:
+        return None if self.maps_dir is None else str(self.maps_dir / f"{c.key}.h5")
+
+    def run(self) -> None:
+        try:
+            self._run()
+        except BaseException:
+            if self.pending:  # stopped: the cases still queued or running are not wanted any more
+                futures = [f for f, _ in self.pending.values()]
                 try:
-                    rec = fut.result()
-                except Exception:  # noqa: BLE001 — the worker died too often: left for the next run
-                    continue
-                finished(rec)
-                fut.release()
+                    self.cluster.client.cancel(futures)
+                except Exception:  # noqa: BLE001 — the cluster may be gone already
+                    pass
+                self.pending.clear()
+            raise
+
+    def _run(self) -> None:
+        for c in self.study.iter_cases():
+            interrupts.check()
+            if c.key in self.pending:  # an identical case is being computed: it counts for both
+                self.pending[c.key][1] += 1
+                continue
+            rec = read_record(self.out, c.key)
+            if rec is not None:
+                self.state["done"] += 1
+                self.state["failed"] += rec.get("status") == "failed"
+                self.state["reused"] += rec.get("run_id") != self.run_id
+                continue
+            if self.cluster is None:
+                self.finished(run_case(c, self.study.metrics, None, self.maps_path(c)), 1)
+                continue
+            while len(self.pending) >= self.limit:
+                self.drain()
+            fut = self.cluster.client.submit(run_case, c, self.study.metrics, self.cluster.numba_threads,
+                                             self.maps_path(c), key=f"pmdsim-case-{c.key}", pure=False)
+            self.pending[c.key] = [fut, 1]
+        while self.pending:
+            self.drain()
         interrupts.check()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+
+    def finished(self, rec: dict, n: int) -> None:
+        rec["run_id"] = self.run_id
+        _write_json_atomic(self.out / CASES_DIR / f"{rec['case_key']}.json", rec)
+        st = self.state
+        st["done"] += n
+        st["computed"] += 1
+        st["failed"] += n * (rec["status"] == "failed")
+        if self.progress is not None:
+            left = self.study.n_cases - st["done"]
+            rate = st["computed"] / (time.perf_counter() - st["t_start"])
+            self.progress({"done": st["done"], "failed": st["failed"], "total": self.study.n_cases,
+                           "eta_s": left / rate if rate > 0 else float("nan"), "record": rec})
+
+    def drain(self) -> None:
+        """Wait (at most ``_POLL_S``) for cases to finish and record them."""
+        from distributed import wait
+
+        # A signal that landed in a finaliser (a Future's __del__, a weakref callback: dask runs
+        # many in this thread) is only recorded by pmdsim.interrupts, not raised: look for it at
+        # least every _POLL_S, not only when the study ends.
+        interrupts.check()
+        try:
+            with self.cluster.client.as_current():  # also a client that is not the default one
+                done = wait([f for f, _ in self.pending.values()], timeout=_POLL_S,
+                            return_when="FIRST_COMPLETED").done
+        except TimeoutError:
+            self.check_workers_alive()
+            return
+        for fut in sorted(done, key=lambda f: f.key):
+            key = fut.key.removeprefix("pmdsim-case-")
+            _, n = self.pending.pop(key)
+            try:
+                rec = fut.result()
+            except Exception:  # noqa: BLE001 — the worker died too often: left for the next run
+                fut.release()
+                continue
+            fut.release()
+            self.finished(rec, n)
+
+    def check_workers_alive(self) -> None:
+        n = len(self.cluster.client.scheduler_info(n_workers=-1).get("workers", {}))
+        if n:
+            self.no_worker_since = None
+            return
+        now = time.monotonic()
+        self.no_worker_since = self.no_worker_since or now
+        if now - self.no_worker_since >= self.worker_timeout_s:
+            raise StudyError(f"all workers of the Dask scheduler {self.cluster.address} are gone (none for "
+                             f"{self.worker_timeout_s:g} s); {self.state['done']} of {self.study.n_cases} cases are "
+                             f"recorded in {self.out}: rerun the same command when workers are back")

@@ -4,8 +4,8 @@
   line per value of a second grid parameter (if any);
 * :func:`mc_histogram_figure` — histograms of the metric columns over Monte-Carlo cases.
 
-``rows`` are the result rows of :func:`~.study.write_results` (dicts; ``status`` ``ok`` rows
-are drawn); metric columns are ``{camera}.{metric}``. Every function returns the Figure and
+``rows`` are the result rows of a study, one per case (dicts; :func:`~.study_results.wide_rows`
+of ``results.parquet``; ``status`` ``ok`` rows are drawn); metric columns are ``{camera}.{metric}``. Every function returns the Figure and
 saves it only when ``path`` is given.
 """
 

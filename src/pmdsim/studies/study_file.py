@@ -42,6 +42,9 @@ fastest) times the Monte-Carlo samples. A parameter is applied to the setup's pl
 key works and is validated by the setup parser; values apply to the unbinned setup (pixels of
 the full-resolution camera), then the cameras are binned ``downsample`` × ``downsample``.
 
+Two parameters may not vary the same setup key (or one an entry of the other's list) for the
+same setup (truth or model): their values would collapse into one case.
+
 Every problem raises :class:`StudyError` naming the file and key before anything runs.
 """
 
@@ -56,7 +59,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -89,6 +92,10 @@ METRICS = {
        "position_error_mm", "rotation_error_deg", "table_turn_deg"),
 }
 
+#: Columns of the results tables that a parameter name may not take (``seed`` may: the case
+#: option ``seed`` is that column).
+RESERVED_COLUMNS = ("case_id", "case_key", "mc_sample", "camera", "status", "error", "elapsed_s", "worker", "run_id")
+
 _TOP_KEYS = ("format", "name", "setup", "action", "downsample", "seed", "method", "screen_model", "cameras",
              "metrics", "save_maps", "parameters", "monte_carlo")
 _PARAM_KEYS = ("path", "name", "applies_to", "mode", "values", "distribution", "mean", "std", "low", "high")
@@ -108,7 +115,9 @@ class Parameter:
     path : str
         TOML path of the setup key (``screen.bulge_mm``).
     name : str
-        Column name in the results (default: the path, prefixed ``model.`` for model keys).
+        Column name in the results (default: the path, prefixed ``model.`` for model keys, and
+        for an ``offset`` / ``scale`` parameter wrapped as ``offset(path)`` / ``scale(path)``:
+        the column holds the value added / the factor, not the key's value).
     applies_to : {"truth", "model"}
     mode : {"set", "offset", "scale"}
         The value replaces the key, is added to it, or multiplies it (every entry of a list).
@@ -193,15 +202,18 @@ class Study:
         n = math.prod(len(p.values) for p in self.grid_parameters)
         return n * (self.mc_samples or 1)
 
-    def cases(self) -> list[CaseSpec]:
-        """All cases, in order (grid product, last parameter fastest; then Monte-Carlo samples).
+    def iter_cases(self) -> Iterator[CaseSpec]:
+        """The cases one at a time, in order (grid product, last parameter fastest; then
+        Monte-Carlo samples), built lazily: a grid of millions of cases starts at once and
+        holds one case in memory (building one takes ≈ 5 ms: two setups parsed, binned and
+        written as TOML).
 
         Monte-Carlo draws of sample k come from ``default_rng([mc_seed, k])`` in parameter
         order, so a case's values do not depend on the order cases run in.
         """
         grid = self.grid_parameters
         mc = self.mc_parameters
-        out = []
+        index = 0
         samples = range(self.mc_samples) if self.mc_samples else [None]
         for combo in itertools.product(*[p.values for p in grid]):
             for k in samples:
@@ -210,8 +222,17 @@ class Study:
                     rng = np.random.default_rng([self.mc_seed, k])
                     vals += [(p, p.draw(rng)) for p in mc]
                 truth, model = build_case_setups(self.base, vals, self.downsample)
-                out.append(_case_spec(self, len(out), vals, truth, model, k))
-        return out
+                yield _case_spec(self, index, vals, truth, model, k)
+                index += 1
+
+    def cases(self) -> list[CaseSpec]:
+        """All cases as a list (:meth:`iter_cases`; for small studies and tests)."""
+        return list(self.iter_cases())
+
+    @property
+    def all_cameras(self) -> tuple:
+        """The cameras each case reports on (``cameras``, default: every camera of the setup)."""
+        return self.cameras or tuple(self.base.cameras)
 
 
 def _case_spec(study: Study, index: int, vals, truth: Setup, model: Setup, mc_sample) -> CaseSpec:
@@ -404,10 +425,20 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
         r.fail("parameters", "must be an array of tables ([[parameters]])")
     choices = {"screen_model": screen_choices, "method": ("stepwise", "least_squares")}
     params = [_parse_parameter(t, i, source, base, action, downsample, choices) for i, t in enumerate(raw)]
+    for i, p in enumerate(params):  # two parameters on one key would collapse into one case (issue 24)
+        for j, q in enumerate(params[:i]):
+            if q.applies_to == p.applies_to and _same_key(p.path, q.path):
+                raise StudyError(f"{source}: parameters[{i}].path {p.path!r} varies the same "
+                                 f"{'case option' if p.path in OPTION_PATHS else 'setup key'} as parameters[{j}] "
+                                 f"({q.path!r}{', both applied to the ' + p.applies_to if p.path not in OPTION_PATHS else ''}); "
+                                 "give all its values in one parameter")
     names = [p.name for p in params]
     for i, n in enumerate(names):
         if n in names[:i]:
             raise StudyError(f"{source}: parameters[{i}].name {n!r} repeats parameters[{names.index(n)}]")
+        if n in RESERVED_COLUMNS or n in METRICS[action] or (n == "seed" and params[i].path != "seed"):
+            raise StudyError(f"{source}: parameters[{i}].name {n!r} is a column of the results table already "
+                             "(choose another name)")
 
     mc_samples, mc_seed = None, 0
     has_mc = any(p.distribution is not None for p in params)
@@ -432,6 +463,15 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
                  tuple(params), mc_samples, mc_seed, save_maps)
 
 
+def _same_key(a: str, b: str) -> bool:
+    """Whether two parameter paths change the same setup value: equal, or one an entry of the
+    other (``cameras.left.angles_deg`` and ``cameras.left.angles_deg[2]``)."""
+    if a == b:
+        return True
+    short, long = sorted((a, b), key=len)
+    return long.startswith(short) and long[len(short)] == "["
+
+
 def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, downsample: int,
                      choices: dict) -> Parameter:
     k = _Keys(t, f"parameters[{i}].", source, _PARAM_KEYS)
@@ -443,7 +483,10 @@ def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, dow
         k.fail("applies_to", f"'model' needs action 'simulate+evaluate' (the evaluation's setup), "
                              f"the study's action is {action!r}")
     mode = k.str("mode", "set", ("set", "offset", "scale"))
-    name = k.str("name", path if applies_to == "truth" else f"model.{path}")
+    key = path if applies_to == "truth" else f"model.{path}"
+    # The column holds the value given (issue 23): the setup key's value, or what was added to
+    # it / multiplied with it — named so, not as if it held the key's value.
+    name = k.str("name", key if mode == "set" else f"{mode}({key})")
     values, dist = None, None
     if "values" in t:
         if "distribution" in t:

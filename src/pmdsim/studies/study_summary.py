@@ -1,5 +1,9 @@
 """A study's summary (quantiles per metric column) and its figures, from OUT/results.parquet.
 
+The tidy table (one row per case and camera, :mod:`.study_results`) is read back as one row per
+case with ``{camera}.{metric}`` columns (:func:`~.study_results.wide_rows`): the summary has one
+line per camera and metric.
+
 :func:`metric_quantiles` gives, per metric column, the count of finite values, mean, standard
 deviation (n − 1), min, the 5/25/50/75/95 % quantiles (linear interpolation between order
 statistics, numpy's default = Hyndman & Fan type 7) and max over the ``ok`` cases;
@@ -62,7 +66,7 @@ def summary_text(study: Study, rows: list[dict]) -> str:
                                              (f"{s[k]:>11.4g}" if k in s else f"{'—':>11}") for k in keys))
     failed = [r for r in rows if r.get("status") == "failed"]
     if failed:
-        lines += ["", "failed cases:"] + [f"  case {r['case_index']} ({r['case_key']}): {r['error']}" for r in failed]
+        lines += ["", "failed cases:"] + [f"  case {r['case_id']} ({r['case_key']}): {r['error']}" for r in failed]
     return "\n".join(lines) + "\n"
 
 
@@ -77,9 +81,10 @@ def write_study_outputs(study: Study, out: str | Path) -> list[str]:
 
     from .study import RESULTS_PARQUET, _atomic_write_via
     from .study_figures import mc_histogram_figure, metric_vs_parameter_figure
+    from .study_results import wide_rows
 
     out = Path(out)
-    rows = pq.read_table(out / RESULTS_PARQUET).to_pylist()
+    rows = wide_rows(pq.read_table(out / RESULTS_PARQUET))
     cols = metric_columns(study, rows)
     written = ["summary.txt", "summary.json"]
     text = summary_text(study, rows)
