@@ -325,6 +325,10 @@ def run_study(study: Study, out: str | Path, *, scheduler: str | None = None, n_
         runs another pmdsim (:func:`.study_cluster.check_workers`). During the run: every worker
         is gone for ``worker_timeout_s`` (the finished cases are recorded).
     """
+    from ..errors import require_extra
+
+    # pmdsim[study]: results are Arrow tables, cases run on Dask (serial runs still write Parquet)
+    require_extra("study", "pyarrow", *(() if serial else ("distributed",)), feature="run_study")
     t0 = time.perf_counter()
     out = Path(out)
     if client is not None and scheduler is not None:
