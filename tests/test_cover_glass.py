@@ -151,3 +151,26 @@ def test_setup_keys_round_trip_and_bad_values():
         bad["screen"][key] = value
         with pytest.raises(SetupError, match=msg.replace("(", r"\(")):
             parse_setup(bad)
+
+
+def test_simulate_and_evaluate_with_glass_round_trip():
+    """Simulate with a 3 mm glass on the deformed screen, evaluate with it (true screen model):
+    the true (flat) sample comes back; ignoring the glass does not."""
+    from pmdsim.evaluation.phase import ScreenCoordinates
+    from pmdsim.evaluation.pipeline import evaluate_decoded
+    from pmdsim.simulation import trace_setup_camera
+
+    truth = default_setup().binned(10).with_bulge(3.0).with_cover_glass(3.0, 1.52)
+    cam = "left"
+    m = trace_setup_camera(truth, cam, store_points=True)
+    z = np.zeros(m.valid.shape + (2,))
+    dec = ScreenCoordinates(m.screen_xy_mm, m.valid, np.zeros(m.valid.shape, np.uint8), z, z, z)
+    seed = (m.valid.shape[0] // 2, m.valid.shape[1] // 2)
+    errs = {}
+    for label, model in (("glass", truth), ("ignored", truth.with_cover_glass(0.0))):
+        _, rec = evaluate_decoded(model, cam, dec, screen_model=truth.screen.surface, seed_pixel=seed,
+                                  seed_height_mm=float(m.p_sample_mm[seed][2]))
+        assert rec.reconstructed.sum() > 0.9 * m.valid.sum()
+        errs[label] = np.nanmax(np.abs(rec.height_mm))  # the true sample is the plane z = 0
+    assert errs["glass"] < 1e-6, errs
+    assert errs["ignored"] > 1e-3, errs
