@@ -15,8 +15,8 @@ Cover glass (issue 21, docs/conventions.md "Cover glass"): the decoded point Q i
 refracted there, so the straight line from the sample point P to Q is not the reflected ray.
 With a ``glass``, :func:`register` solves for A given P (:meth:`CoverGlass.apparent_points`: a
 fixed-point iteration on A through the forward trace) and returns, instead of Q, the
-*apparent point* on the straight line P → A, which the reconstruction then uses like a screen
-point. P is unknown before the reconstruction: it is taken on the plane z = ``sample_height_mm``
+*apparent point* where the straight line P → A meets the emitting surface, which the
+reconstruction then uses like a screen point. P is unknown before the reconstruction: it is taken on the plane z = ``sample_height_mm``
 of the reconstruction frame (the view ray's point there), or given as ``sample_points_ref_mm``
 (e.g. a first reconstruction: :func:`pmdsim.evaluation.pipeline.evaluate_decoded` registers,
 reconstructs, registers again at the reconstructed points and reconstructs again).

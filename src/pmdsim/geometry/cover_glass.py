@@ -239,9 +239,9 @@ class CoverGlass:
         Returns
         -------
         ndarray (..., 3)
-            The *apparent* point: on the straight line P → A, at the distance |PQ| from P (the
+            The *apparent* point: where the straight line P → A meets the emitting surface (the
             point a glass-free screen would have to show for that line). NaN where P or Q is
-            not finite or the trace fails.
+            not finite or a trace fails.
         """
         p, q = np.broadcast_arrays(np.asarray(p_mm, dtype=float), np.asarray(q_mm, dtype=float))
         if not self.present:
@@ -259,8 +259,6 @@ class CoverGlass:
             q1, st1 = self.trace(surface, ps, a - ps, qs, status=st)
             good = st1 == 0
             a = np.where(good[..., None], a + (qs - q1), a)
-        q1, st1 = self.trace(surface, ps, a - ps, qs, status=st)
-        lam = np.linalg.norm(qs - ps, axis=-1) / np.linalg.norm(a - ps, axis=-1)
-        out = ps + (a - ps) * lam[..., None]
+        _t, out, st1 = surface.intersect(ps, a - ps)
         out[~(ok & (st1 == 0))] = np.nan
         return out
