@@ -42,7 +42,9 @@ DEFAULT_GLASS_INDEX = 1.5
 #: Foot-point iterations of the outer-surface intersection (converges in 2–4 on real screens).
 _FOOT_MAX_ITER = 30
 #: Convergence of the foot point (mm).
-_FOOT_TOL_MM = 1e-10
+_FOOT_TOL_MM = 1e-9
+#: Newton steps of the emitting-surface hit before the safeguarded solver.
+_NEWTON_STEPS = 4
 #: Fixed-point iterations of the inverse problem (error shrinks ≈ t/(n·distance) per step).
 _INVERSE_ITER = 8
 
@@ -57,7 +59,12 @@ def plate_shift_mm(thickness_mm, index, theta_rad):
     return thickness_mm * s * (1.0 - np.cos(theta_rad) / np.sqrt(index * index - s * s))
 
 
-@numba.njit(cache=True, error_model="numpy")
+# As the tracer's kernels (pmdsim.simulation.trace): inlined, no reference counting (the arrays
+# handed to the surface kernels are not incref'd per ray), fastmath only for FMA contraction.
+_JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
+
+
+@numba.njit(**_JIT, inline="always")
 def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, dx, dy, dz, x0, y0, z0,
                          tol, max_iter):
     """One ray o + s·d (screen frame, towards the screen) through the cover glass.
@@ -70,7 +77,7 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
 
     Outer-surface hit: with the foot point u, the outer surface is replaced by its tangent plane
     at A(u) (normal m(u)), the ray's point X on it is taken, and u ← (X − t·m(u))_xy, until u
-    moves less than 1e-10 mm (Newton's method on the offset surface, whose tangent plane at
+    moves less than 1e-9 mm (Newton's method on the offset surface, whose tangent plane at
     A(u) has normal m(u)).
     """
     nan = np.nan
@@ -121,7 +128,21 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
     rx = eta * ex + f * mx
     ry = eta * ey + f * my
     rz = eta * ez + f * mz
-    _s, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, ax, ay, az, rx, ry, rz, tol, z0, False)
+    # The emitting-surface hit: Newton steps from the foot point's height (Q lies ≈ t·tanθ_g from
+    # the foot), each accepted by its error bound (intersect_kernel); the safeguarded solver only
+    # if they do not settle.
+    # Start: the refracted ray's point on the emitting surface's tangent plane at the foot point.
+    h = eval_kernel(kind, gx, gy, coef, ux, uy)[0]
+    rm = rx * mx + ry * my + rz * mz
+    s_plane = ((ux - ax) * mx + (uy - ay) * my + (h - az) * mz) / rm
+    z = az + s_plane * rz
+    if not np.isfinite(z):
+        z = h
+    st = _NEEDS_SOLVE
+    for _ in range(_NEWTON_STEPS):
+        _s, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, ax, ay, az, rx, ry, rz, tol, z, False)
+        if st != _NEEDS_SOLVE:
+            break
     if st == _NEEDS_SOLVE:
         _s, x, y, z, _hx, _hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ax, ay, az, rx, ry, rz,
                                                     tol, max_iter, z)
@@ -130,7 +151,7 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
     return x, y, z, 0
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(**_JIT)
 def _trace_range(start, end, kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, o, d, q, tol, max_iter, out, status):
     for i in range(start, end):
         if status[i] != 0:

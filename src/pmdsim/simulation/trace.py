@@ -395,7 +395,8 @@ def _refract_through_glass(glass, screen, T_screen_sample, p_s, q_p, screen_xy, 
     idx = np.flatnonzero(valid)
     if idx.size == 0:
         return
-    o = T_screen_sample.apply(p_s[idx])
+    # (the rotation as one matrix product: RigidTransform.apply is ~30× slower on 2 M points)
+    o = p_s[idx] @ T_screen_sample.rotation.T + T_screen_sample.translation
     q0 = q_p[idx]
     q, st = glass.trace(screen, o, q0 - o, q0, tol_mm=tol_mm)
     ok = st == 0
