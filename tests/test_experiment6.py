@@ -10,7 +10,7 @@ from pmdsim.studies.experiment6 import run_experiment6_case
 
 @pytest.fixture(scope="module")
 def records():
-    truth = default_setup().binned(12).with_bulge(0.0).with_cover_glass(3.0, 1.52)
+    truth = default_setup().binned(16).with_bulge(0.0).with_cover_glass(3.0, 1.52)
     return run_experiment6_case(truth, 0.0, models=("ignored", "nominal", "calibrated"))
 
 
