@@ -1,6 +1,6 @@
 """Time the mapping (trace one camera, 1920×1200 px, Table 1 setup) for A/B between source trees.
 
-    python benchmarks/bench_trace.py [--bulge-mm 3] [--repeat 10] [--save FILE.npz] [--json]
+    python benchmarks/bench_trace.py [--bulge-mm 3] [--glass-mm T] [--repeat 10] [--save FILE.npz] [--json]
     PYTHONPATH=<other tree>/src python benchmarks/bench_trace.py --save other.npz --json
 
 Prints best and median wall time, Mrays/s, the CPU time of the best call, the 1-minute load
@@ -34,6 +34,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bulge-mm", type=float, default=3.0)
     ap.add_argument("--camera", default="left")
+    ap.add_argument("--glass-mm", type=float, default=0.0, help="cover glass thickness (n = 1.52); 0: none")
     ap.add_argument("--repeat", type=int, default=10)
     ap.add_argument("--save", default="")
     ap.add_argument("--json", action="store_true")
@@ -51,10 +52,14 @@ def main() -> None:
     cam = setup.cameras[args.camera]
     rays = cam.camera.sensor_rays()
     n = rays[0].shape[0] * rays[0].shape[1]
+    extra = {}
+    if args.glass_mm > 0:  # (a tree without cover glass runs the script without --glass-mm)
+        from pmdsim.geometry.cover_glass import CoverGlass
+        extra["glass"] = CoverGlass(args.glass_mm, 1.52)
 
     def mapping():
         return trace_camera(cam.camera, cam.T_world_cam, setup.sample.T_world_sample, setup.sample.surface,
-                            setup.screen.T_world_screen, setup.screen.surface, rays=rays)
+                            setup.screen.T_world_screen, setup.screen.surface, rays=rays, **extra)
 
     m = mapping()  # compilation or cache load
     load_before = os.getloadavg()[0]

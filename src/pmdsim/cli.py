@@ -6,7 +6,7 @@
     pmdsim import sofast --measurement M.h5 --camera C.h5 --display D.h5 --orientation O.h5
                          --calibration CAL.h5 [--facet F.json] --out DIR
     pmdsim calibrate POSE_DIRS... [--setup FILE] --out FILE
-    pmdsim experiment 1|2|3|4|5 --out DIR
+    pmdsim experiment 1|2|3|4|5|6 --out DIR
     pmdsim study STUDY.toml --out OUT [--scheduler ADDRESS] [--workers N]
 
 Every pmdsim error becomes one line ``pmdsim: error: …`` and exit code 2. SIGINT, SIGTERM and
@@ -371,7 +371,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
 
 
 @main.command("experiment")
-@click.argument("number", type=click.Choice(["1", "2", "3", "4", "5"]))
+@click.argument("number", type=click.Choice(["1", "2", "3", "4", "5", "6"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output directory.")
 @click.option("--setup", "setup_path", type=click.Path(dir_okay=False), help="Base setup (default: Table 1).")
 @click.option("--downsample", type=click.IntRange(min=1), default=1, show_default=True,
@@ -405,7 +405,8 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
     the paper's bulges, mismatching deformations and a non-planar calibration mirror;
     4 = error budget of realistic image formation (sensor, display, optics; Δh = 3 mm, 3×3 screen);
     5 = a warped printed foil (the paper's application): mono with a seed and stereo without,
-    each with the planar-screen and the free 3×3 screen calibration (docs/stereo.md).
+    each with the planar-screen and the free 3×3 screen calibration (docs/stereo.md);
+    6 = the screen's cover glass (0.7, 1.1, 3 mm; Δh = 0, 3 mm): ignored, nominal or calibrated.
     """
     from .studies.experiment3 import SCREEN_DEFORMATIONS
     from .studies.runs import experiment_steps, write_experiment, write_experiment3
@@ -432,6 +433,15 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
         return
     if number == "4":
         _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
+        return
+    if number == "6":  # the screen's cover glass (issue 21)
+        from .studies.experiment6 import GLASS_MODELS, GLASS_THICKNESSES_MM, write_experiment6
+
+        with _bar(2 * len(GLASS_THICKNESSES_MM) * (1 + len(GLASS_MODELS)), "experiment 6", quiet) as bar:
+            out = write_experiment6(out_dir, base, downsample=downsample, method=method, seed=seed, force=force,
+                                    command=_command(), progress=lambda msg: bar.update(1))
+        click.echo(out.table)
+        click.echo(out.summary(out_dir), err=True)
         return
     if number == "3":
         bulges = _parse_list(bulges_mm, float, "--bulges-mm") if bulges_mm.strip() else []

@@ -302,4 +302,5 @@ def register_model(model, camera: str, decoded, *, screen_model=None):
         scr = model.screen
         screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
     return register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
-                    decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample)
+                    decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample,
+                    glass=model.screen.cover_glass)  # with a glass: P on the sample plane z = 0

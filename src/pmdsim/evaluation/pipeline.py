@@ -88,14 +88,18 @@ def evaluate_decoded(model: Setup, camera: str, decoded: ScreenCoordinates, *, s
     """Registration with the model's camera and screen pose, then reconstruction (paper §2.5).
 
     Heights are in the model's sample frame. ``screen_model`` defaults to the plane z = 0 of the
-    screen frame over the model's screen grid: the paper's planar-screen assumption.
+    screen frame over the model's screen grid: the paper's planar-screen assumption. With a cover
+    glass in the model (``model.screen.cover_glass``), registration and reconstruction run twice,
+    the second registration at the first reconstruction's points (registration.py).
     """
     cs = model.cameras[camera]
     if screen_model is None:
         scr = model.screen
         screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
+    glass = model.screen.cover_glass
     reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
-                   decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample)
+                   decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample, glass=glass,
+                   sample_height_mm=seed_height_mm)
     if seed_pixel is None:
         # The documented default shared with the CLI: the registered pixel nearest the centroid
         # of the registered pixels (pmdsim.evaluation.anchor.default_seed_pixel).
@@ -104,4 +108,12 @@ def evaluate_decoded(model: Setup, camera: str, decoded: ScreenCoordinates, *, s
         seed_pixel = default_seed_pixel(reg.valid)
     rec = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, method=method,
                       seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
+    if glass.present:
+        # The glass's apparent points depend on the sample point (registration.py): register
+        # again at the reconstructed points and reconstruct again.
+        reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen,
+                       decoded.screen_xy_mm, decoded.valid, model.sample.T_world_sample, glass=glass,
+                       sample_points_ref_mm=rec.p_sample_mm, sample_height_mm=seed_height_mm)
+        rec = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, method=method,
+                          seed_pixel=seed_pixel, seed_height_mm=seed_height_mm)
     return reg, rec

@@ -9,6 +9,17 @@ deformed (calibrated) screen model can be used as well.
 
 The result is expressed in a reconstruction frame ``ref`` (usually the sample frame), whose +z
 is the height direction of the reconstruction (:mod:`pmdsim.evaluation.reconstruction`).
+
+Cover glass (issue 21, docs/conventions.md "Cover glass"): the decoded point Q is on the
+*emitting* surface, but the light left the glass at a point A of its outer surface and was
+refracted there, so the straight line from the sample point P to Q is not the reflected ray.
+With a ``glass``, :func:`register` solves for A given P (:meth:`CoverGlass.apparent_points`: a
+fixed-point iteration on A through the forward trace) and returns, instead of Q, the
+*apparent point* where the straight line P → A meets the emitting surface, which the
+reconstruction then uses like a screen point. P is unknown before the reconstruction: it is taken on the plane z = ``sample_height_mm``
+of the reconstruction frame (the view ray's point there), or given as ``sample_points_ref_mm``
+(e.g. a first reconstruction: :func:`pmdsim.evaluation.pipeline.evaluate_decoded` registers,
+reconstructs, registers again at the reconstructed points and reconstructs again).
 """
 
 from __future__ import annotations
@@ -19,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.camera import Camera
+from ..geometry.cover_glass import CoverGlass
 from ..geometry.transform import RigidTransform
 from ..geometry.compact import compact_repr
 
@@ -72,6 +84,9 @@ def register(
     T_world_ref: RigidTransform,
     *,
     rays: tuple[np.ndarray, np.ndarray] | None = None,
+    glass: CoverGlass | None = None,
+    sample_points_ref_mm: np.ndarray | None = None,
+    sample_height_mm: float = 0.0,
 ) -> Registration:
     """Register decoded pattern coordinates to 3-D screen points (paper §2.5).
 
@@ -89,6 +104,14 @@ def register(
         Pixels the decoder accepted.
     rays : (d_cam, converged), optional
         Precomputed ``camera.sensor_rays()``.
+    glass : CoverGlass, optional
+        The screen's cover glass; present: ``q_ref_mm`` holds the apparent points (module
+        docstring). None or zero thickness: the emitting-surface points, as without glass.
+    sample_points_ref_mm : ndarray (H, W, 3), optional
+        With a glass: the sample points P in the reconstruction frame (NaN: use the plane).
+    sample_height_mm : float
+        With a glass: the height of the plane of the reconstruction frame on which P is taken
+        where ``sample_points_ref_mm`` gives none.
 
     Returns
     -------
@@ -120,9 +143,22 @@ def register(
     T_ref_world = T_world_ref.inv()
     T_ref_screen = T_ref_world @ T_world_screen
     T_ref_cam = T_ref_world @ T_world_cam
+    o_ref = T_ref_cam.translation.copy()
+    d_ref = T_ref_cam.apply_vector(d_cam)
+    if glass is not None and glass.present:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p_ref = o_ref + ((sample_height_mm - o_ref[2]) / d_ref[..., 2])[..., None] * d_ref
+        if sample_points_ref_mm is not None:
+            given = np.asarray(sample_points_ref_mm, dtype=float)
+            p_ref = np.where(np.isfinite(given).all(axis=-1)[..., None], given, p_ref)
+        p_screen = T_ref_screen.inv().apply(p_ref)
+        q_app = glass.apparent_points(screen_model, np.where(valid[..., None], p_screen, np.nan), q_screen)
+        lost = valid & ~np.isfinite(q_app).all(axis=-1)
+        status[lost] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
+        q_screen = q_app
     return Registration(
-        o_ref_mm=T_ref_cam.translation.copy(),
-        d_ref=T_ref_cam.apply_vector(d_cam),
+        o_ref_mm=o_ref,
+        d_ref=d_ref,
         q_ref_mm=T_ref_screen.apply(q_screen),
         status=status,
     )

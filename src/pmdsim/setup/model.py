@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..geometry.camera import DISTORTION_NAMES, Camera
+from ..geometry.cover_glass import DEFAULT_GLASS_INDEX, CoverGlass
 from ..errors import SetupError
 from .fringes import FringeSequence
 from ..geometry.surface import SplineSurface
@@ -119,6 +120,24 @@ class ScreenSetup:
     grid_y_mm: tuple[float, ...]
     heights_mm: tuple[tuple[float, ...], ...] | None = None
     bulge_mm: float | None = 0.0
+    # Cover glass (issue 21, docs/conventions.md "Cover glass"): thickness t ≥ 0 (0 = none)
+    # and index n > 1 (None: 1.5 when t > 0).
+    cover_glass_thickness_mm: float = 0.0
+    cover_glass_index: float | None = None
+
+    def __post_init__(self) -> None:
+        t = self.cover_glass_thickness_mm
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+            raise SetupError(f"screen.cover_glass_thickness_mm must be a finite number ≥ 0 (mm), got {t!r}")
+        n = self.cover_glass_index
+        if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float)) or not math.isfinite(n) or n <= 1):
+            raise SetupError(f"screen.cover_glass_index must be a finite number > 1, got {n!r}")
+
+    @property
+    def cover_glass(self) -> CoverGlass:
+        """The screen's :class:`~pmdsim.geometry.cover_glass.CoverGlass` (thickness 0: none)."""
+        n = DEFAULT_GLASS_INDEX if self.cover_glass_index is None else self.cover_glass_index
+        return CoverGlass(float(self.cover_glass_thickness_mm), float(n))
 
     def control_heights(self) -> np.ndarray:
         """(n_y, n_x) control heights with the bulge applied."""
@@ -533,6 +552,13 @@ class Setup:
             )
         return replace(self, screen=replace(self.screen, bulge_mm=float(bulge_mm)))
 
+    def with_cover_glass(self, thickness_mm: float, index: float | None = None) -> "Setup":
+        """The same setup with the screen's cover glass set (docs/conventions.md, "Cover glass");
+        ``index`` None keeps the screen's index (1.5 if it had none)."""
+        n = self.screen.cover_glass_index if index is None else float(index)
+        return replace(self, screen=replace(self.screen, cover_glass_thickness_mm=float(thickness_mm),
+                                            cover_glass_index=n))
+
     def with_screen_heights(self, grid_x_mm, grid_y_mm, heights_mm) -> "Setup":
         """The same setup with the screen's control grid and full (n_y, n_x) height matrix
         replaced (no bulge override); the screen's pose is kept."""
@@ -636,6 +662,9 @@ class Setup:
             scr["heights_mm"] = [[float(v) for v in r] for r in self.screen.control_heights()]
         if self.screen.bulge_mm is not None:
             scr["bulge_mm"] = self.screen.bulge_mm
+        if self.screen.cover_glass_thickness_mm > 0 or self.screen.cover_glass_index is not None:
+            scr["cover_glass_thickness_mm"] = self.screen.cover_glass_thickness_mm
+            scr["cover_glass_index"] = self.screen.cover_glass.index
         smp: dict[str, Any] = {
             "origin_world_mm": list(self.sample.pose.origin_world_mm),
             "angles_deg": list(self.sample.pose.angles_deg),

@@ -49,7 +49,8 @@ _KNOWN_KEYS = {
     "camera": ("image_size_px", "focal_length_px", "principal_point_px", "distortion", "origin_world_mm", "angles_deg",
                "rotvec_deg", "rvec", "tvec", "opencv"),
     "distortion": DISTORTION_NAMES,
-    "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm"),
+    "screen": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "bulge_mm",
+               "cover_glass_thickness_mm", "cover_glass_index"),
     "sample": ("origin_world_mm", "angles_deg", "grid_x_mm", "grid_y_mm", "heights_mm", "shape", "radius_mm",
                "focal_length_x_mm", "focal_length_y_mm", "axis_angle_deg", "vertex_xy_mm", "height_map",
                "height_map_dataset", "height_map_units", "height_map_grid_units", "height_map_x_dataset",
@@ -389,8 +390,13 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=N
                 f"screen.bulge_mm = {bulge:g} and the centre of screen.heights_mm (row {len(gy) // 2}, column "
                 f"{len(gx) // 2}) = {centre:g} disagree: bulge_mm sets that control height; delete bulge_mm to use "
                 f"heights_mm as given, or make them equal")
+    glass_t = s.number("cover_glass_thickness_mm", 0.0, nonneg=True)
+    glass_n = s.number("cover_glass_index") if s.has("cover_glass_index") else None
+    s.used.add("cover_glass_index")
+    if glass_n is not None and not glass_n > 1:
+        raise SetupError(f"{s.key('cover_glass_index')} must be > 1 (a refractive index), got {glass_n!r}")
     s.finish()
-    screen = ScreenSetup(screen_pose, gx, gy, heights, bulge)
+    screen = ScreenSetup(screen_pose, gx, gy, heights, bulge, glass_t, glass_n)
 
     m = r.table_("sample")
     sample_pose = _pose(m)
@@ -516,7 +522,9 @@ _COMMENTS = {
     "screen": "Pattern screen (paper §2.3, §2.5). heights_mm (optional) is (len(grid_y_mm), len(grid_x_mm));\n"
     "bulge_mm sets the central control point (Δh); +z of the screen points away from the sample,\n"
     "so a positive bulge is concave as seen from the sample. When you add heights_mm, delete bulge_mm\n"
-    "(or make it equal to the centre of heights_mm: a setup where they differ is refused).",
+    "(or make it equal to the centre of heights_mm: a setup where they differ is refused).\n"
+    "cover_glass_thickness_mm (default 0: none) and cover_glass_index (default 1.5) model the cover glass\n"
+    "on the sample side of the emitting surface.",
     "sample": "Sample surface: a plane unless heights_mm (len(grid_y_mm) × len(grid_x_mm)) is given, or shape =\n"
     "\"sphere\" | \"paraboloid\" | \"cylinder\" (radius_mm / focal_length_x_mm, focal_length_y_mm; + = convex as seen\n"
     "from the cameras; exact over the grid's rectangle), or height_map = \"file\" (HDF5/NPY/CSV, resampled onto the grid).",

@@ -31,6 +31,7 @@ def trace_setup_camera(setup: Setup, camera: str, *, store_points: bool = False)
         setup.screen.T_world_screen,
         setup.screen.surface,
         store_points=store_points,
+        glass=setup.screen.cover_glass,
     )
 
 

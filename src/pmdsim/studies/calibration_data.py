@@ -72,7 +72,7 @@ def simulate_calibration_observations(truth: Setup, *, image_sink=None, progress
             if progress is not None:
                 progress(f"pose {k} ({label}), camera {cam}")
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface, store_points=needs_points(truth))
+                             truth.screen.surface, store_points=needs_points(truth), glass=truth.screen.cover_glass)
             # One independent noise stream per pose (stream 0 is left to the sample's images).
             sink = None if image_sink is None else (lambda spec, img, k=k: image_sink(k, spec, img))
             # Only the pixels the calibration uses are decoded (u, v ≡ 0 mod the stride).
@@ -101,7 +101,7 @@ def trace_calibration_poses(truth: Setup, stride: int = 1) -> list:
     for k, (_, T_world_mirror) in enumerate(cal.mirror_poses(truth.sample)):
         for cam, cs in truth.cameras.items():
             m = trace_camera(cs.camera, cs.T_world_cam, T_world_mirror, mirror, truth.screen.T_world_screen,
-                             truth.screen.surface)
+                             truth.screen.surface, glass=truth.screen.cover_glass)
             out.append((k, cam, m if stride == 1 else Mapping(m.screen_xy_mm[::stride, ::stride],
                                                                m.status[::stride, ::stride])))
     return out
