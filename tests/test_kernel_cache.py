@@ -85,3 +85,39 @@ def test_numba_cache_dir_is_checked_where_numba_puts_it(tmp_path, monkeypatch):
     expected = os.path.join(str(tmp_path / "nc"),
                             locator.get_suitable_cache_subpath(str(root / "geometry" / "callee.py")))
     assert dirs[0] == expected
+
+
+def _pmdsim(env: dict, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pmdsim", *args], capture_output=True, text=True, env=env,
+                          timeout=120)
+
+
+def test_a_cold_cache_is_announced_once_and_a_warm_one_is_not(tmp_path, monkeypatch):
+    """Issue 23 item 6 / 25 item 2: one line before a command compiles on a cold cache (a fresh
+    NUMBA_CACHE_DIR, as after an install), none once real numba caching has filled it. The run
+    stops at a missing setup file, after the note and before any kernel is compiled."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nc"),
+           "PYTHONPATH": os.pathsep.join([str(Path(pmdsim.__file__).parents[1]), os.environ.get("PYTHONPATH", "")])}
+    args = ("simulate", "--setup", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "out"), "--quiet")
+    note = "pmdsim: note: numba kernels not compiled yet"
+    for quiet in (("--help",), ("--version",)):
+        r = _pmdsim(env, *(("simulate",) if quiet == ("--help",) else ()), *quiet)
+        assert r.returncode == 0 and note not in r.stderr + r.stdout
+    r = _pmdsim(env, *args)
+    assert r.returncode == 2 and "missing.toml" in r.stderr, r.stderr
+    lines = [line for line in r.stderr.splitlines() if note in line]
+    assert len(lines) == 1 and "(geometry, simulation)" in lines[0], r.stderr
+    # compile one real kernel of each package simulate uses (numba writes its own index files)
+    warm = ("from pmdsim.geometry.fast_trig import sincos\n"
+            "from pmdsim.simulation.optics import jinc, JINC_TABLE\n"
+            "sincos(0.5); jinc(0.5, JINC_TABLE)\n")
+    assert subprocess.run([sys.executable, "-c", warm], env=env, timeout=120).returncode == 0
+    r = _pmdsim(env, *args)
+    assert r.returncode == 2 and "missing.toml" in r.stderr and note not in r.stderr, r.stderr
+    # new kernel sources elsewhere would drop the cache (the stamp): cold again, announced again
+    monkeypatch.setenv("NUMBA_CACHE_DIR", env["NUMBA_CACHE_DIR"])
+    stamp = Path(pmdsim._numba_cache_dirs(os.path.dirname(pmdsim.__file__))[0]) / pmdsim._STAMP
+    assert stamp.parent.name.startswith("geometry_") and stamp.exists()
+    stamp.write_text("0" * 64 + "\n")
+    r = _pmdsim(env, *args)
+    assert "(geometry)" in r.stderr and note in r.stderr, r.stderr

@@ -211,6 +211,28 @@ def _drop_stale_kernel_cache(root: str | None = None) -> int:
     return removed
 
 
+def _cold_kernel_packages(packages=_KERNEL_PACKAGES, root: str | None = None) -> list[str]:
+    """The kernel subpackages among ``packages`` whose numba cache is cold: its directory (where
+    numba puts it, :func:`_numba_cache_dirs`) holds no index file (``*.nbi``) of a kernel
+    compiled for this Python — a fresh install, a new cache directory, or one whose kernels
+    :func:`_drop_stale_kernel_cache` removed. Per package, not per module: a command that uses
+    only some of a package's kernels would otherwise count as cold on every warm run. Imports
+    nothing; a directory listing per package (well under a millisecond)."""
+    root = os.path.dirname(os.path.abspath(__file__)) if root is None else root
+    tag = f".py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}.nbi"
+    cold = []
+    for pkg, cache in zip(_KERNEL_PACKAGES, _numba_cache_dirs(root)):
+        if pkg not in packages:
+            continue
+        try:
+            names = os.listdir(cache)
+        except OSError:
+            names = []
+        if not any(n.endswith(tag) for n in names):
+            cold.append(pkg)
+    return cold
+
+
 _numba_cache_fallback()
 _drop_stale_kernel_cache()
 

@@ -58,9 +58,40 @@ def _inputs(setup_path: str | None, setup: Setup | None = None) -> list[str]:
     return out
 
 
+#: The kernel subpackages each command compiles on first use, and the cold time measured for it
+#: (docs/benchmarks.md, "First run"); the first-run note (:class:`_Command`) names them.
+_KERNELS = {
+    "simulate": (("geometry", "simulation"), "about 90 s"),
+    "evaluate": (("geometry", "evaluation"), None),
+    "calibrate": (("geometry", "evaluation", "calibration"), None),
+    "experiment": (("geometry", "simulation", "evaluation"), None),
+    "study": (("geometry", "simulation", "evaluation"), None),
+}
+
+
+class _Command(click.Command):
+    """A command that says, in one line on stderr before it starts, that it is compiling numba
+    kernels when their cache is cold (:func:`pmdsim._cold_kernel_packages`: a fresh install or
+    new sources); silent on warm runs. ``--help`` and ``--version`` never get here. Printed with
+    ``--quiet`` too (that flag hides progress bars, not notes): a silent minute is what it explains."""
+
+    def invoke(self, ctx):
+        packages, took = _KERNELS.get(self.name, ((), None))
+        if packages:
+            from . import _cold_kernel_packages
+
+            cold = _cold_kernel_packages(packages)
+            if cold:
+                click.echo(f"pmdsim: note: numba kernels not compiled yet ({', '.join(cold)}): this run compiles "
+                           f"them first ({took or 'minutes'} on 2 cores), later runs use the cache", err=True)
+        return super().invoke(ctx)
+
+
 class _Group(click.Group):
     """Turns pmdsim's own errors into a one-line message (no traceback): exit code 2 for bad
     input, 1 for a computation that failed (:class:`~pmdsim.errors.ComputationError`)."""
+
+    command_class = _Command
 
     def parse_args(self, ctx, args):
         # The command line as invoked (also when main() is called with args, not from sys.argv),
