@@ -36,12 +36,13 @@ def _package(tmp_path: Path, value: float) -> Path:
     return root
 
 
-def _run(tmp_path: Path, *, check: bool) -> str:
+def _run(tmp_path: Path, *, check: bool, xdg: Path | None = None, log: list | None = None) -> str:
     code = ("import sys, pmdsim\n"
             f"n = pmdsim._drop_stale_kernel_cache({str(tmp_path / 'probe')!r})\n"
             "from probe.geometry.caller import f\n"
             "print(f(1.0), n)\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(pmdsim.__file__).parents[1])])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(pmdsim.__file__).parents[1])]),
+           "XDG_CACHE_HOME": str(xdg or tmp_path / "xdg"), "NUMBA_DEBUG_CACHE": "1"}
     env.pop("NUMBA_CACHE_DIR", None)
     if check:
         env.pop("PMDSIM_NO_CACHE_CHECK", None)
@@ -49,7 +50,10 @@ def _run(tmp_path: Path, *, check: bool) -> str:
         env["PMDSIM_NO_CACHE_CHECK"] = "1"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stderr
-    return r.stdout.split()
+    out = [line for line in r.stdout.splitlines() if not line.startswith("[cache]")]
+    if log is not None:
+        log.append(r.stdout)
+    return out[-1].split()
 
 
 def test_an_edit_of_a_called_file_alone_recompiles_the_caller(tmp_path):
@@ -96,7 +100,7 @@ def test_a_cold_cache_is_announced_once_and_a_warm_one_is_not(tmp_path, monkeypa
     """Issue 23 item 6 / 25 item 2: one line before a command compiles on a cold cache (a fresh
     NUMBA_CACHE_DIR, as after an install), none once real numba caching has filled it. The run
     stops at a missing setup file, after the note and before any kernel is compiled."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nc"),
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nc"), "XDG_CACHE_HOME": str(tmp_path / "xdg"),
            "PYTHONPATH": os.pathsep.join([str(Path(pmdsim.__file__).parents[1]), os.environ.get("PYTHONPATH", "")])}
     args = ("simulate", "--setup", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "out"), "--quiet")
     note = "pmdsim: note: numba kernels not compiled yet"
@@ -121,3 +125,28 @@ def test_a_cold_cache_is_announced_once_and_a_warm_one_is_not(tmp_path, monkeypa
     stamp.write_text("0" * 64 + "\n")
     r = _pmdsim(env, *args)
     assert "(geometry)" in r.stderr and note in r.stderr, r.stderr
+
+
+def test_another_install_of_identical_sources_reuses_the_compiled_kernels(tmp_path):
+    """Issue 25 item 2: a second install of byte-identical sources at another path (``pip
+    install -e .`` after ``pip install .``) loads the kernels the first compiled instead of
+    compiling them again (numba's own cache log says which); an install whose sources differ in
+    one file is not served the other's kernels (the stale-kernel guard holds)."""
+    import numba
+
+    xdg = tmp_path / "xdg"
+    regular, editable, edited = tmp_path / "site", tmp_path / "src", tmp_path / "edited"
+    for where in (regular, editable, edited):
+        _package(where, 1.0)
+    (edited / "probe" / "geometry" / "callee.py").write_text(CALLEE.format(value=10.0))
+    log: list[str] = []
+    assert _run(regular, check=True, xdg=xdg, log=log)[0] == "2.0"
+    assert "data saved" in log[-1] and "data loaded" not in log[-1]
+    assert _run(editable, check=True, xdg=xdg, log=log)[0] == "2.0"
+    content_stamp = tuple(int(x) for x in numba.__version__.split(".")[:2]) >= (0, 68)
+    if content_stamp:  # numba >= 0.68 checks a cached kernel by its source's content
+        assert "data loaded" in log[-1] and "data saved" not in log[-1], log[-1]
+    assert any((editable / "probe" / "geometry" / "__pycache__").glob("caller.*.nbi"))
+    assert _run(edited, check=True, xdg=xdg, log=log)[0] == "11.0"  # compiled from its own sources
+    assert "data saved" in log[-1]
+    assert _run(editable, check=True, xdg=xdg, log=log)[0] == "2.0"

@@ -184,14 +184,12 @@ def _drop_stale_kernel_cache(root: str | None = None) -> int:
     except OSError:
         return 0
     removed = 0
-    for cache in _numba_cache_dirs(root):
+    current = []  # (package, cache directory) whose stamp is this fingerprint
+    for pkg, cache in zip(_KERNEL_PACKAGES, _numba_cache_dirs(root)):
         stamp = os.path.join(cache, _STAMP)
-        try:
-            with open(stamp, encoding="ascii") as f:
-                if f.read().strip() == fingerprint:
-                    continue
-        except (OSError, ValueError):
-            pass
+        if _read_stamp(cache) == fingerprint:
+            current.append((pkg, cache))
+            continue
         if not _writable_dir(cache):
             continue
         try:
@@ -208,7 +206,111 @@ def _drop_stale_kernel_cache(root: str | None = None) -> int:
             os.replace(tmp, stamp)
         except OSError:
             continue
+        current.append((pkg, cache))
+    _share_kernel_caches(current, fingerprint)
     return removed
+
+
+def _read_stamp(cache: str) -> str | None:
+    try:
+        with open(os.path.join(cache, _STAMP), encoding="ascii") as f:
+            return f.read().strip()
+    except (OSError, ValueError):
+        return None
+
+
+def _index_tag() -> str:
+    """How numba's index files of this Python end (``<module>.<function>-<line>.py312.nbi``)."""
+    return f".py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}.nbi"
+
+
+def _share_kernel_caches(current: list[tuple[str, str]], fingerprint: str) -> int:
+    """Reuse kernels compiled by another install of byte-identical kernel sources (issue 25 item 2).
+
+    numba caches a kernel in a directory named by its source file's *path* (``__pycache__``
+    next to it, or ``<cache dir>/<package>_<sha1 of the path>``), so an editable install after a
+    regular one — same sources, other path — starts cold. Every cache directory stamped with
+    the current fingerprint is listed in ``$XDG_CACHE_HOME/pmdsim/kernel-caches.txt``; a cold
+    one (no index file for this Python) copies the kernels of a listed directory of the same
+    subpackage whose stamp is *still* this fingerprint — compiled from the same bytes of every
+    kernel source, so the stale-kernel guard holds. Each kernel's index and its data files are
+    copied together (data first, each by an atomic rename) and only where the target has none
+    of them, so an index never points at another compilation's data; the source's stamp is read
+    again after the copy, and the copies are removed if it changed meanwhile. numba ≥ 0.68 validates
+    a cached kernel by a hash of its source's content and accepts the copies; older numba
+    compares the file's mtime, rejects them and recompiles (nothing wrong, nothing gained).
+    Returns the number of kernels copied."""
+    if not current:
+        return 0
+    xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    registry = os.path.join(xdg, "pmdsim", "kernel-caches.txt")
+    try:
+        with open(registry, encoding="utf-8") as f:
+            known = [tuple(line.rstrip("\n").split("\t", 1)) for line in f if "\t" in line]
+    except (OSError, ValueError):
+        known = []
+    tag, copied = _index_tag(), 0
+    for pkg, cache in current:
+        try:
+            names = os.listdir(cache)
+        except OSError:
+            continue
+        if any(n.endswith(tag) for n in names):
+            continue
+        for other_pkg, other in known:
+            if other_pkg != pkg or os.path.realpath(other) == os.path.realpath(cache) \
+                    or _read_stamp(other) != fingerprint:
+                continue
+            n = _copy_kernels(other, cache, tag)
+            if n and _read_stamp(other) != fingerprint:  # recompiled from other sources meanwhile
+                try:
+                    for x in os.listdir(cache):
+                        if x.endswith((".nbi", ".nbc")):
+                            os.unlink(os.path.join(cache, x))
+                except OSError:
+                    pass
+                n = 0
+            copied += n
+            if n:
+                break
+    entries = list(dict.fromkeys([*((p, c) for p, c in known if os.path.isdir(c)), *current]))[-64:]
+    if entries != known:
+        try:
+            os.makedirs(os.path.dirname(registry), exist_ok=True)
+            tmp = f"{registry}.{os.getpid()}.tmp"
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.writelines(f"{p}\t{c}\n" for p, c in entries)
+            os.replace(tmp, registry)
+        except OSError:
+            pass
+    return copied
+
+
+def _copy_kernels(src: str, dst: str, tag: str) -> int:
+    """Copy each kernel's index file with its data files from ``src`` to ``dst`` where ``dst``
+    holds none of them (see :func:`_share_kernel_caches`). Returns the number of kernels copied."""
+    import shutil
+
+    try:
+        names, have = os.listdir(src), set(os.listdir(dst))
+    except OSError:
+        return 0
+    n = 0
+    for index in (x for x in names if x.endswith(tag)):
+        base = index[:-len(".nbi")]
+        data = [x for x in names if x.startswith(base + ".") and x.endswith(".nbc")
+                and x[len(base) + 1:-len(".nbc")].isdigit()]
+        if not data or any(x in have for x in [index, *data]):
+            continue
+        try:
+            for x in [*data, index]:
+                tmp = os.path.join(dst, f".{x}.{os.getpid()}.tmp")
+                shutil.copyfile(os.path.join(src, x), tmp)
+                os.replace(tmp, os.path.join(dst, x))
+        except OSError:
+            continue
+        n += 1
+    return n
 
 
 def _cold_kernel_packages(packages=_KERNEL_PACKAGES, root: str | None = None) -> list[str]:
@@ -219,7 +321,7 @@ def _cold_kernel_packages(packages=_KERNEL_PACKAGES, root: str | None = None) ->
     only some of a package's kernels would otherwise count as cold on every warm run. Imports
     nothing; a directory listing per package (well under a millisecond)."""
     root = os.path.dirname(os.path.abspath(__file__)) if root is None else root
-    tag = f".py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}.nbi"
+    tag = _index_tag()
     cold = []
     for pkg, cache in zip(_KERNEL_PACKAGES, _numba_cache_dirs(root)):
         if pkg not in packages:
