@@ -236,9 +236,9 @@ def _share_kernel_caches(current: list[tuple[str, str]], fingerprint: str) -> in
     kernel source, so the stale-kernel guard holds. Each kernel's index and its data files are
     copied together (data first, each by an atomic rename) and only where the target has none
     of them, so an index never points at another compilation's data; the source's stamp is read
-    again after the copy, and the copies are removed if it changed meanwhile. numba ≥ 0.68 validates
-    a cached kernel by a hash of its source's content and accepts the copies; older numba
-    compares the file's mtime, rejects them and recompiles (nothing wrong, nothing gained).
+    again after the copy, and the copies are removed if it changed meanwhile. numba ≥ 0.68
+    validates a cached kernel by a hash of its source's content and accepts the copies; older
+    numba compares the file's mtime, rejects them and recompiles (nothing wrong, nothing gained).
     Returns the number of kernels copied."""
     if not current:
         return 0
