@@ -327,6 +327,7 @@ def test_simulate_runs_the_setup_checks(tmp_path):
     (["4", "--bulges-mm", "1"], "--bulges-mm does not apply to experiment 4"),
     (["4", "--grids", "5"], "--grids does not apply to experiment 4"),
     (["5", "--effects", "ideal"], "--effects does not apply to experiment 5"),
+    (["6", "--grids", "3"], "--grids does not apply to experiment 6"),
     (["4", "--effects", "ideal,ideal"], "--effects lists ideal more than once"),
     (["1", "--bulges-mm", "1,1"], "--bulges-mm lists 1 more than once"),
 ])

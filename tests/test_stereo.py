@@ -92,6 +92,22 @@ def test_flat_true_setup_within_1um_no_seed(base, flat_decoded):
     _check_within_1um(base, res, flat_decoded)
 
 
+def test_api_stereo_results_are_read_only_and_equal_the_evaluation(base, flat_decoded):
+    """Issue 23: `pmdsim.evaluate_stereo` returns values — its arrays cannot be written (and
+    are the same heights as the evaluation layer's)."""
+    import pmdsim
+
+    res = pmdsim.evaluate_stereo(flat_decoded, base)
+    _, ref = evaluate_stereo_decoded(base, flat_decoded)
+    for name, cam in res.cameras.items():
+        np.testing.assert_array_equal(cam.height_mm, ref.cameras[name].height_mm)
+        for arr in (cam.height_mm, cam.overlap, cam.normal_disagreement_urad, cam.anchor_pixels,
+                    cam.reconstruction.p_sample_mm):
+            assert not arr.flags.writeable
+        with pytest.raises(ValueError):
+            cam.height_mm[0, 0] = 1.0
+
+
 def test_foil_true_setup_within_1um(base):
     truth = _foil(base)
     dec = _decode_all(truth)

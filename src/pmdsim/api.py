@@ -417,6 +417,7 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
     StereoReconstruction
         ``cameras[name]``: ``height_mm`` (H, W), ``reconstruction``, ``overlap``,
         ``normal_disagreement_urad``, ``height_discrepancy_um``, the anchors; ``summary()``.
+        Its arrays are read-only.
     """
     from .evaluation.stereo import evaluate_stereo_decoded
 
@@ -431,6 +432,9 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
     decoded = {c: (decode(d, setup) if isinstance(d, Measurement) else d) for c, d in decoded.items()}
     _, result = evaluate_stereo_decoded(setup, decoded, screen_model=None if screen == "planar" else setup.screen.surface,
                                         search_range_mm=search_range_mm, **options)
+    for cam in result.cameras.values():  # read-only results, as evaluate's (issue 23)
+        _frozen(cam)
+        _frozen(cam.reconstruction)
     return result
 
 

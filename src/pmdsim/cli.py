@@ -555,7 +555,7 @@ def study_cmd(study_file, out_dir, scheduler, workers, connect_timeout_s, quiet)
 
 
 #: The experiment options and the experiments they apply to (the others refuse them, issue 24).
-_EXPERIMENT_OPTIONS = {"bulges_mm": ("1", "2", "3", "5"), "seed": ("2", "4", "5"), "write_images": ("1",),
+_EXPERIMENT_OPTIONS = {"bulges_mm": ("1", "2", "3", "5"), "seed": ("2", "4", "5", "6"), "write_images": ("1",),
                        "grids": ("3",), "deformations": ("3",), "mirror_sags_um": ("3",), "sag_bulge_mm": ("3",),
                        "effects": ("4",)}
 
