@@ -231,9 +231,12 @@ def decode(images: dict, setup: Setup, *, camera: str | None = None, scale: floa
     if consistency and not (setup.imaging is not None and setup.imaging.any_on):
         seq = setup.patterns.sequence
         noise = float(np.hypot(setup.patterns.noise_std, 1.0 / np.sqrt(12.0)))
+        # a curved sample's orientation reference is the mapping traced through it, as in the CLI
+        expected = (trace_setup_camera(setup, camera).screen_xy_mm
+                    if camera is not None and setup.sample.curved else None)
         decoded, cons = consistency_checked(setup, camera, [stacks[("x", float(p))] for p in seq.periods_x_mm],
                                             seq.periods_x_mm, [stacks[("y", float(p))] for p in seq.periods_y_mm],
-                                            seq.periods_y_mm, decoded, noise)
+                                            seq.periods_y_mm, decoded, noise, expected_xy_mm=expected)
         _warn_consistency(camera or "images", cons)
     return _frozen(decoded)
 

@@ -43,11 +43,12 @@ def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordin
 
 
 def consistency_checked(setup: Setup, camera: str | None, x_stacks, x_periods_mm, y_stacks, y_periods_mm,
-                        decoded: ScreenCoordinates, noise_std=None):
+                        decoded: ScreenCoordinates, noise_std=None, *, expected_xy_mm=None):
     """The consistency checks of ``pmdsim evaluate`` (docs/reliability.md) for one camera's
-    decoded images, with the orientation check against the setup's nominal flat sample (when
-    ``camera`` is given); one
-    definition for the CLI's evaluate job and :func:`pmdsim.decode` / :func:`pmdsim.evaluate`.
+    decoded images, with the orientation check (when ``camera`` is given) against
+    ``expected_xy_mm`` (H, W, 2), the screen coordinates the setup predicts — default: the
+    nominal flat sample's, in closed form; for a curved sample (``setup.sample.curved``) pass the
+    mapping traced through it, as the CLI's evaluate job and :func:`pmdsim.decode` do.
 
     Returns ``(decoded, result)``: the decoded coordinates with the consistency bits OR-ed into
     ``flags`` (and those pixels invalid), and the
@@ -55,11 +56,13 @@ def consistency_checked(setup: Setup, camera: str | None, x_stacks, x_periods_mm
     """
     from .consistency import check_consistency, nominal_screen_xy, with_consistency
 
-    expected = None
-    if camera is not None:  # the orientation check needs the camera's nominal mapping
+    expected = expected_xy_mm
+    if camera is not None and expected is None:  # the orientation check needs the camera's nominal mapping
         cs = setup.cameras[camera]
         expected = nominal_screen_xy(cs.camera, cs.T_world_cam, setup.sample.T_world_sample,
                                      setup.screen.T_world_screen)
+    elif camera is None:
+        expected = None
     cons = check_consistency(x_stacks, x_periods_mm, y_stacks, y_periods_mm, decoded, setup.screen.size_mm, noise_std,
                              expected_xy_mm=expected)
     return with_consistency(decoded, cons), cons

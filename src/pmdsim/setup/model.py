@@ -185,6 +185,14 @@ class SampleSetup:
             raise SetupError(f"sample: the height map {self.shape.file!r} has not been resampled onto the grid "
                              f"(use Setup.with_sample_height_map)")
 
+    @property
+    def curved(self) -> bool:
+        """True for a shape, a height map or non-zero ``heights_mm``: the sample is not its frame's
+        x–y plane (then the consistency checks' orientation reference is the mapping traced
+        through it, not the nominal plane's; docs/reliability.md, issue 24)."""
+        return self.shape is not None or (self.heights_mm is not None
+                                          and any(v != 0.0 for row in self.heights_mm for v in row))
+
     @cached_property
     def surface(self) -> SplineSurface:
         """The sample surface in its frame: a SplineSurface, or a QuadricSurface for a shape."""

@@ -313,8 +313,7 @@ def _expected_screen_xy(setup: Setup, cam: str) -> np.ndarray:
     legitimately inverts the image (seen beyond its focal distance) is not read as a reversed
     shift order, nor its caustics as defects."""
     s = setup.sample
-    curved = s.shape is not None or (s.heights_mm is not None and any(v != 0.0 for row in s.heights_mm for v in row))
-    if not curved:
+    if not s.curved:
         cs = setup.cameras[cam]
         return nominal_screen_xy(cs.camera, cs.T_world_cam, s.T_world_sample, setup.screen.T_world_screen)
     return trace_setup_camera(setup, cam).screen_xy_mm
