@@ -38,6 +38,23 @@ def test_inverse_and_composition_eq1():
     np.testing.assert_allclose((T_w_a @ T_w_a.inv()).as_matrix(), np.eye(4), atol=1e-13)
 
 
+def test_apply_leaves_its_input_and_matches_scipy():
+    # apply adds the translation in place to the rotated copy: the input stays untouched, and
+    # the result is scipy's rotation plus the translation, for a single point, a (N, 3) list
+    # and an (H, W, 3) image of points (read-only input included).
+    rng = np.random.default_rng(7)
+    rotvec, t = rng.normal(size=3), rng.normal(size=3) * 50
+    T = RigidTransform(Rotation.from_rotvec(rotvec).as_matrix(), t)
+    for p in (rng.normal(size=3), rng.normal(size=(6, 3)), rng.normal(size=(4, 5, 3))):
+        keep = p.copy()
+        p.flags.writeable = False
+        out = T.apply(p)
+        assert np.array_equal(p, keep) and out.shape == p.shape and out.dtype == np.float64
+        ref = Rotation.from_rotvec(rotvec).apply(keep.reshape(-1, 3)).reshape(p.shape) + t
+        np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
+    assert np.array_equal(T.apply([[1, 2, 3]]), T.apply(np.array([[1.0, 2.0, 3.0]])))  # ints are cast
+
+
 def test_rejects_bad_rotation():
     with pytest.raises(ValueError, match="rotation"):
         RigidTransform(np.diag([1.0, 1.0, -1.0]), np.zeros(3))

@@ -260,7 +260,7 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
 @numba.njit(cache=True, parallel=True)
 def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj,
                    h_unit, want_normal, jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w):
-    for c in numba.prange(c_start.shape[0]):
+    for c in numba.prange(0, c_start.shape[0]):
         s, sw, b = _chunk_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, intr, rot, cen, mir,
                               e1, e2, units, wx, wy, fi, fj, h_unit, want_normal, jtj[c], jtr[c],
                               sandwich, slope, qstd)
@@ -353,7 +353,7 @@ def _avv_kernel(c_start, c_end, c_cam, c_pose, uv, q, q_t, intr, rot, cen, mir, 
     screen points; δ in natural units per block: ``d_cam`` (C, 14), ``d_mir`` (K, 3), ``d_h``
     (F,). ``out`` (chunks, 17 + F) receives Jᵀ·r_vv in internal units (block parameters, then
     the free screen heights), ``nbad`` (chunks,) the skipped correspondences."""
-    for c in numba.prange(c_start.shape[0]):
+    for c in numba.prange(0, c_start.shape[0]):
         nbad[c] = _avv_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, q_t, intr, rot, cen, mir, e1, e2,
                            intr_t, rot_t, cen_t, mir_t, e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit,
                            h, out[c])
@@ -364,7 +364,7 @@ def _screen_points_kernel(q, wx, wy, heights, out):
     """out[m] = (q[m, 0], q[m, 1], Σ_j Σ_i wy[m, j]·heights[j, i]·wx[m, i]): the correspondences'
     screen points with z = h(x_q, y_q) of the screen model (1-D basis weights per correspondence)."""
     ny, nx = heights.shape
-    for m in numba.prange(q.shape[0]):
+    for m in numba.prange(0, q.shape[0]):
         z = 0.0
         for j in range(ny):
             s = 0.0

@@ -196,7 +196,7 @@ def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_ou
     fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns")."""
     n, h, w = images.shape
     two_pi = 2.0 * math.pi
-    for v in numba.prange(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             sa = 0.0
             sc = 0.0

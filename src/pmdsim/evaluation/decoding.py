@@ -302,7 +302,7 @@ def _decode_kernel(images, w_a, w_c, w_s, check_saturation, max_value, dark_leve
     h = images.shape[1]
     w = images.shape[2]
     inv_period = 1.0 / period
-    for v in numba.prange(h):
+    for v in numba.prange(0, h):
         sa = np.empty(w)
         sc = np.empty(w)
         ss = np.empty(w)

@@ -273,7 +273,7 @@ def _points_normals(o, d, q, z, points, normals):
     ox = o[0]
     oy = o[1]
     oz = o[2]
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         for u in range(W):
             zz = z[v, u]
             if np.isnan(zz):

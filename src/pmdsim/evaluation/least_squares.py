@@ -141,7 +141,7 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     nb = min(H, _ASSEMBLY_BLOCKS)
     bD = np.zeros((nb, W))
     brhs = np.zeros((nb, W))
-    for blk in numba.prange(nb):
+    for blk in numba.prange(0, nb):
         v0 = blk * H // nb
         v1 = (blk + 1) * H // nb
         geo = np.empty((2, W, 8))
@@ -196,7 +196,7 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
         for u in range(W):
             D[v1 + 1, u + 1] += bD[blk, u]
             rhs[v1 + 1, u + 1] += brhs[blk, u]
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         for u in range(W):
             dd = D[v + 1, u + 1]
             if dd > 0.0:

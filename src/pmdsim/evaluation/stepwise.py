@@ -289,7 +289,7 @@ def _fill_kernel(o, d, q, S, z, tol, max_iter, nb_dv, nb_du):
     oy = o[1]
     oz = o[2]
     state = np.empty((H, W, 4))
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         for u in range(W):
             state[v, u, 1] = np.nan  # slopes not computed
             if not S[v, u]:
@@ -301,7 +301,7 @@ def _fill_kernel(o, d, q, S, z, tol, max_iter, nb_dv, nb_du):
     n_invalidated = 1
     while n_invalidated > 0:  # until no known pixel next to an unknown one is unusable
         n_invalidated = 0
-        for v in numba.prange(H):
+        for v in numba.prange(0, H):
             for u in range(W):
                 if state[v, u, 3] != 1.0 or np.isfinite(state[v, u, 1]):
                     continue

@@ -203,7 +203,7 @@ def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, 
     out_z: height (NaN if none), out_r: |r| at it (rad), out_n: number of distinct refined
     minima with |r| ≤ max(2·best, best + 20 µrad)."""
     n = rows.size
-    for k in numba.prange(n):
+    for k in numba.prange(0, n):
         v = rows[k]
         u = cols[k]
         dx = d[v, u, 0]
@@ -269,7 +269,7 @@ def _report_kernel(oA, d, q, zA, oB, qB, okB, zB, okzB, RB, tB, camB, ang_out, d
     """Per pixel of A with a height: the angle between A's and B's implied normals (rad) and
     z_A − z_B along A's ray (mm); NaN where B does not see the point."""
     H, W = zA.shape
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         buf = np.empty(3)
         r0 = np.empty(6)
         hb = np.empty(1)

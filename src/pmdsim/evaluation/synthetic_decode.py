@@ -148,7 +148,7 @@ def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
     """One period, one parallel pass over image rows (:func:`_render_decode_row`)."""
     h = valid.shape[0]
     n_redo = np.zeros(h, np.int64)
-    for v in numba.prange(h):
+    for v in numba.prange(0, h):
         n_redo[v] = _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
                                        render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                                        min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,

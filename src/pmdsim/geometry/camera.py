@@ -214,7 +214,7 @@ def _undistort_one(xd, yd, c, rational, prism, tol, max_iter):
 def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
     c, rational, prism = _unpack(coeffs)
     n = xyd.shape[0]
-    for i in numba.prange(n):
+    for i in numba.prange(0, n):
         x, y, conv = _undistort_one(xyd[i, 0], xyd[i, 1], c, rational, prism, tol, max_iter)
         out[i, 0] = x
         out[i, 1] = y
@@ -229,7 +229,7 @@ def _rays_kernel(uv, grid_w, fx, fy, ppx, ppy, coeffs, distorted, tol, max_iter,
     :meth:`Camera.pixel_to_normalized` + :func:`_undistort_one`."""
     c, rational, prism = _unpack(coeffs)
     n = d.shape[0]
-    for i in numba.prange(n):
+    for i in numba.prange(0, n):
         if grid_w > 0:
             u = float(i % grid_w)
             v = float(i // grid_w)

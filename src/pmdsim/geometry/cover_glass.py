@@ -173,7 +173,7 @@ _CHUNK = 2048
 @numba.njit(cache=True, parallel=True)
 def _trace_many(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, o, d, q, tol, max_iter, out, status):
     n = o.shape[0]
-    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+    for c in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
         _trace_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, o, d, q,
                      tol, max_iter, out, status)
 

@@ -551,7 +551,7 @@ def _eval_range(start, end, kind, gx, gy, coef, x, y, out):
 @numba.njit(cache=True, parallel=True)
 def _eval_many(kind, gx, gy, coef, x, y, out):
     n = x.shape[0]
-    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+    for c in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
         _eval_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, x, y, out)
 
 
@@ -572,7 +572,7 @@ def _intersect_range(start, end, kind, gx, gy, coef, z_min, z_max, dmax, o, d, t
 @numba.njit(cache=True, parallel=True)
 def _intersect_many(kind, gx, gy, coef, z_min, z_max, dmax, o, d, tol, max_iter, t_out, p_out, status):
     n = o.shape[0]
-    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+    for c in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
         _intersect_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, dmax, o, d,
                          tol, max_iter, t_out, p_out, status)
 

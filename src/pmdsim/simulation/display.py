@@ -109,7 +109,7 @@ def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_x
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, table, out):
     h, wd = out.shape
-    for v in numba.prange(h):
+    for v in numba.prange(0, h):
         for u in range(wd):
             f = 1.0
             for a in range(2):

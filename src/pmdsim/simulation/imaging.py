@@ -280,7 +280,7 @@ def _imaging_kernel(coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac,
                     scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, hold_tol, out):
     h = valid.shape[0]
     rows = 16
-    for b in numba.prange((h + rows - 1) // rows):
+    for b in numba.prange(0, (h + rows - 1) // rows):
         _imaging_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac,
                       hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias,
                       hold_tol, out)

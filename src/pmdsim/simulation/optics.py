@@ -213,7 +213,7 @@ def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform,
 def _moments_kernel(p, q, o, ex, ey, grad, hess, aperture, fpath, cov, centroid, cos_view):
     """Per pixel: the footprint covariance and centroid of :func:`defocus_moments` (flat arrays)."""
     c0 = aperture * aperture / 16.0
-    for i in numba.prange(p.shape[0]):
+    for i in numba.prange(0, p.shape[0]):
         dx = p[i, 0] - o[0]
         dy = p[i, 1] - o[1]
         dz = p[i, 2] - o[2]

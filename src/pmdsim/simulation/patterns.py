@@ -23,7 +23,7 @@ __all__ = ["PatternFrame", "FringeSequence", "render", "render_period", "render_
 def _render_kernel(screen_xy, valid, axis, period, shift, mean, amp, full_scale, noise, out):
     h, w = valid.shape
     two_pi_over_p = 2.0 * np.pi / period
-    for v in numba.prange(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             if not valid[v, u]:
                 out[v, u] = 0
@@ -151,7 +151,7 @@ def _render_stack_rows(v0, v1, screen_xy, valid, axis, period, cos_d, sin_d, mea
 def _render_stack_kernel(screen_xy, valid, axis, period, cos_d, sin_d, mean, amp, full_scale, noise, out):
     h = valid.shape[0]
     rows = 16
-    for b in numba.prange((h + rows - 1) // rows):
+    for b in numba.prange(0, (h + rows - 1) // rows):
         _render_stack_rows(b * rows, min(h, (b + 1) * rows), screen_xy, valid, axis, period, cos_d, sin_d, mean,
                            amp, full_scale, noise, out)
 

@@ -251,7 +251,7 @@ def _trace_kernel(
     tol, max_iter, sample_codes, screen_codes,
     screen_xy, status, p_sample, q_screen, store,
 ):
-    for band in numba.prange(z_rows.shape[0]):
+    for band in numba.prange(0, z_rows.shape[0]):
         _trace_run(
             band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
