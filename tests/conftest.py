@@ -35,6 +35,19 @@ def make_small_toml(default_toml: str) -> str:
     return t
 
 
+def pytest_sessionstart(session):
+    """Progress from the start (issue 25 item 4): on a cold numba cache the first tests compile
+    the kernels for minutes before the first result appears; say so before they start (also
+    with ``-q``; nothing on a warm cache)."""
+    import pmdsim
+
+    cold = pmdsim._cold_kernel_packages()
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if cold and reporter is not None:
+        reporter.write_line(f"pmdsim: numba kernels not compiled yet ({', '.join(cold)}): the first tests using them "
+                            "compile them (minutes on 2 cores, no output meanwhile); later runs use the cache")
+
+
 @pytest.fixture(scope="session")
 def default_toml() -> str:
     """The built-in (Table 1) setup as TOML text."""
