@@ -421,14 +421,18 @@ def trace_row(
                 S[_C * B + i] = code
             # 2. The sample intersection.
             _intersect_block(n, s_kind, s_gx, s_gy, s_coef, s_dmax, tol, True, S, P)
-            _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, True, _VX, S)
+            # np.bool_/np.int64: run-time values, not literals, so that numba compiles _fixup once
+            # for both calls (a literal specialisation each cost 10–20 s of a cold start).
+            _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, np.bool_(True),
+                   np.int64(_VX), S)
         # 3. Grazing incidence, reflection (eq. 17), the reflected ray in the screen frame.
         for i in range(n):
             _to_screen(i, S[_C * B + i], S[_VX * B + i], S[_VY * B + i], S[_VZ * B + i], S[_X * B + i],
                        S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i], cos2_max, bm, zq1, zq2, S)
         # 4. The screen intersection.
         _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
-        _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, False, _WX, S)
+        _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, np.bool_(False), np.int64(_WX),
+               S)
         # 5. Status codes and stores (three loops: each vectorises with few alias checks).
         for i in range(n):
             k = kc + np.uint64(i)
