@@ -278,7 +278,7 @@ def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac
         c = cam_idx[k]
         p = pose_idx[k]
         ru, rv, good = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr[c], rot[c],
-                                  cen[c], mir[p], e1[p], e2[p], True, tmp)
+                                  cen[c], mir[p], e1[p], e2[p], np.bool_(True), tmp)
         res[k, 0] = ru
         res[k, 1] = rv
         ok[k] = good
@@ -305,10 +305,12 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
     mir_tk, e1_tk, e2_tk = mir_t[pose], e1_t[pose], e2_t[pose]
     inv_h = 1.0 / h
     for k in range(start, end):
+        # np.bool_: a run-time flag, not a literal, so that _model_row compiles once for all its
+        # callers (each literal is a compile of its own on a cold cache).
         ru, rv, ok = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr_c, rot_c, cen_c, mir_k, e1_k,
-                                e2_k, True, jac)
+                                e2_k, np.bool_(True), jac)
         rut, rvt, ok_t = _model_row(uv[k, 0], uv[k, 1], q_t[k, 0], q_t[k, 1], q_t[k, 2], intr_tc, rot_tc, cen_tc,
-                                    mir_tk, e1_tk, e2_tk, False, dummy)
+                                    mir_tk, e1_tk, e2_tk, np.bool_(False), dummy)
         if not (ok and ok_t):
             nbad += 1
             continue
