@@ -57,7 +57,8 @@ def main(repeat: int = 3) -> None:
         res[f"reversed_fraction_{key}"] = round(float(dec.reversed.any(-1).mean()), 4)
         if on:
             ok = dec.valid & rev
-            res["max_abs_error_um_corrected"] = round(float(np.nanmax(np.abs(dec.screen_xy_mm[ok][:, 0] - x[ok]))) * 1e3, 2)
+            err_mm = np.nanmax(np.abs(dec.screen_xy_mm[ok][:, 0] - x[ok]))
+            res["max_abs_error_um_corrected"] = round(float(err_mm) * 1e3, 2)
     res["extra_s"] = round(res["decode_s_on"] - res["decode_s_off"], 3)
     dump_json(res)
 
