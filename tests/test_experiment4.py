@@ -83,18 +83,19 @@ def test_slope_metrics_of_tilted_normals():
 
 def test_the_remedy_for_defocus_longer_periods_restores_the_all_effects_budget(tmp_path):
     """At the Table 1 periods (finest 2 mm) the f/8 blur spot (σ ≈ 0.5–0.9 mm on the screen)
-    has the transfer 2·J₁(x)/x, x = 4πσ/p ≈ 3–5.7: reversed or near zero on most pixels, which the
-    decoder flags, so with every effect on the calibration mirror's images no longer give enough
-    correspondences (or the decoded pixels no longer connect) and the case fails, saying why; with
-    a finest period of 8 mm (transfer 0.77–0.93) every pixel decodes and the budget is finite."""
+    has the transfer 2·J₁(x)/x, x = 4πσ/p ≈ 3–5.7: reversed (corrected by the decoder, but weak)
+    or near a zero (flagged LOW_MODULATION) on most pixels, so with every effect on the case
+    reconstructs from fewer pixels with a larger slope error; with a finest period of 8 mm
+    (transfer 0.77–0.93) every pixel decodes and the slope error is smaller."""
     out = tmp_path / "o"
     r = CliRunner().invoke(main, ["experiment", "4", "--out", str(out), "--downsample", "8", "--effects",
                                   "all_uncorrected,all_uncorrected_p8mm", "--quiet"])
     assert r.exit_code == 0, r.output
     recs = {(x["effect"], x["camera"]): x for x in json.loads((out / "results.json").read_text())}
     for cam in default_setup().cameras:
-        failed = recs[("all_uncorrected", cam)]
-        assert failed["rms_um"] is None
-        assert "fringes washed out" in failed["error"] or "valid correspondences" in failed["error"]
+        blurred = recs[("all_uncorrected", cam)]
+        assert blurred["rms_um"] is not None, blurred.get("error")
+        assert blurred["n_pixels"] < 0.8 * 240 * 150
         fixed = recs[("all_uncorrected_p8mm", cam)]
+        assert blurred["slope_rms_urad"] > fixed["slope_rms_urad"]
         assert fixed["n_pixels"] == 240 * 150 and 0 < fixed["rms_um"] < 1.0

@@ -94,6 +94,9 @@ def test_evaluation_h5_opens_with_named_dims_and_open_evaluation(sim_eval):
     assert left["normals"].dims == ("v", "u", "component")
     assert left["height_mm"].attrs["frame"] == "sample" and left["height_mm"].attrs["units"] == "mm"
     assert left["fit_residual_ratio"].attrs["units"] == "1"
+    # issue 20: the decoder's contrast-reversal map, per direction (none in ideal images).
+    assert left["reversed_contrast"].dims == ("v", "u", "component_xy")
+    assert left["reversed_contrast"].dtype == bool and not left["reversed_contrast"].values.any()
     ds = pmdsim.open_evaluation(ev / "evaluation.h5")
     assert isinstance(ds, xr.Dataset)
     assert ds["height_mm"].dims == ("camera", "v", "u") and list(ds["camera"].values) == ["left", "right"]

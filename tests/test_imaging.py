@@ -235,16 +235,21 @@ def test_lens_transfer_matches_a_pupil_sampled_plane_mirror_with_its_contrast_re
             assert ((ref * np.exp(-2j * np.pi * m.screen_xy_mm[vv, uu, 0] / p)).real < 0).mean() > 0.3
 
 
-def test_decoder_flags_the_pixels_whose_contrast_the_lens_reversed(flat):
+def test_decoder_corrects_or_flags_the_pixels_whose_contrast_the_lens_reversed(flat):
     """Finest period 2 mm at f/8: every pixel whose pupil-sampled transfer (numpy plane mirror) is
-    reversed (Re T·e^{−iφ_chief} < −0.05) in x is flagged by the decoder with a reason, not
-    decoded half a period off; at 4 mm, where nothing is reversed, every pixel decodes."""
+    reversed (Re T·e^{−iφ_chief} < −0.05) in x is corrected by π and marked ``reversed`` by the
+    decoder, or flagged LOW_MODULATION (near a zero); with ``correct_reversal=False`` it is
+    flagged with a reason, never decoded half a period off; at 4 mm, where nothing is reversed,
+    every pixel decodes. (The corrected coordinates against the reference:
+    tests/test_reversal.py.)"""
     from pmdsim.evaluation.phase import PhaseFlag, decode_direction
 
     s, m = flat
     imgs = _images(s, m)
     periods = s.patterns.sequence.periods_x_mm
-    dec = decode_direction([np.stack(imgs[("x", p)]) for p in periods], periods, s.screen.size_mm[0], 65535)
+    stacks = [np.stack(imgs[("x", p)]) for p in periods]
+    dec = decode_direction(stacks, periods, s.screen.size_mm[0], 65535, correct_reversal=False)
+    fixed = decode_direction(stacks, periods, s.screen.size_mm[0], 65535)
     pix = [(v, u) for v in range(2, 150, 4) for u in range(2, 240, 4) if m.valid[v, u]]
     hits, wts = _plane_mirror_pupil_hits(s, m, imaging_maps(s, CAM, m).focus_distance_mm, pix, 16, 32)
     vv, uu = np.array(pix).T
@@ -255,6 +260,10 @@ def test_decoder_flags_the_pixels_whose_contrast_the_lens_reversed(flat):
     # modulation.
     reason = dec.flags[vv[rev], uu[rev]] & (PhaseFlag.UNWRAP_INCONSISTENT | PhaseFlag.LOW_MODULATION)
     assert np.all(reason != 0)
+    low = (fixed.flags[vv[rev], uu[rev]] & PhaseFlag.LOW_MODULATION) != 0
+    assert np.all(fixed.reversed[vv[rev], uu[rev]] | low)
+    assert np.all(fixed.valid[vv[rev], uu[rev]] | low) and not low.all()
+    assert not fixed.reversed[vv[t > 0.05], uu[t > 0.05]].any()
     # Not indiscriminate: with a 4 mm finest period (transfer ≈ 0.4–0.8, nowhere reversed) every
     # traced pixel decodes.
     s4 = s.with_patterns(periods_x_mm=(720.0, 48.0, 4.0))

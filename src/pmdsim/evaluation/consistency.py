@@ -18,7 +18,9 @@ themselves show, and mark the pixels that fail with :class:`~.phase.PhaseFlag` b
     c_{k−1} − c_k is noise with σ² = σ_{k−1}² + σ_k², σ_j = p_j/(2π)·√(2/N_j)·σ_I/B_j (the
     decoder's σ model). A pixel is flagged if |c_{k−1} − c_k| > z_{α/2}·σ. A wrong period, a
     period's images shifted against the others, a missing shift (N taken as 3 for 4 displayed)
-    make the periods disagree by far more than their noise.
+    make the periods disagree by far more than their noise. Where the decoder corrected a
+    period's reversed contrast by π (``decoded.reversed``, :mod:`.unwrapping`), the same
+    correction is applied here first, so a corrected pixel is not flagged for its π flip.
 ``GEOMETRY`` — per pixel.
     The coordinate lies outside the screen by more than 1 % of its extent, or the local
     orientation of the pixel → screen mapping disagrees with the nominal one: with J the
@@ -59,6 +61,7 @@ from .phase import (
     ScreenCoordinates,
     equal_shifts,
 )
+from .unwrapping import REVERSAL_CONTRAST_RATIO, _refine_reversal
 
 __all__ = [
     "DEFAULT_FALSE_ALARM",
@@ -320,10 +323,12 @@ def _coarse_kernel(phi, p0, origin, upper, out):
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _period_level_kernel(c, phi, p, sig_prev, sig, z, tested, mis_ratio, bad):
+def _period_level_kernel(c, phi, p, sig_prev, sig, z, tested, mis_ratio, bad, rev, con, con_prev):
     """The PERIOD_MISMATCH test of one finer period: c_k from the coarser c (updated in place),
     ratio = |c − c_k|/(z·hypot(σ_prev, σ)); keeps the largest ratio; ``bad`` = tested & ratio
-    > 1. Returns the count of bad."""
+    > 1. Where ``rev`` (the decoder corrected a reversed contrast), φ is corrected as the
+    decoder did (contrasts ``con``, ``con_prev``: B/A of this and the coarser period). Returns
+    the count of bad."""
     h, w = c.shape
     two_pi = 2.0 * math.pi
     n_bad = 0
@@ -332,6 +337,9 @@ def _period_level_kernel(c, phi, p, sig_prev, sig, z, tested, mis_ratio, bad):
             fine = p * phi[v, u] / two_pi
             cc = c[v, u]
             ck = fine + p * math.floor((cc - fine) / p + 0.5)
+            if rev[v, u]:
+                ck, _, _ = _refine_reversal(cc, phi[v, u], p, 1.0 / p, 0.5, con[v, u], con_prev[v, u],
+                                            REVERSAL_CONTRAST_RATIO)
             ratio = abs(cc - ck) / (z * math.hypot(sig_prev[v, u], sig[v, u]))
             c[v, u] = ck
             if not tested[v, u]:
@@ -561,6 +569,7 @@ def check_consistency(
             sig_prev = None
             dir_bad = np.zeros((h, w), bool)
             bad = np.empty((h, w), bool)
+            rev = np.ascontiguousarray(decoded.reversed[..., axis])
             for level, it in enumerate(items):
                 s2, top = sigma2(it["A"])
                 noise_max = max(noise_max, float(np.sqrt(top)))
@@ -583,7 +592,8 @@ def check_consistency(
                     c = np.empty((h, w))
                     _coarse_kernel(it["phi"], p0, float(origin[axis]), float(origin[axis] + ext + margin), c)
                 else:
-                    n_bad = _period_level_kernel(c, it["phi"], it["p"], sig_prev, sig, z, tested, mis_ratio, bad)
+                    n_bad = _period_level_kernel(c, it["phi"], it["p"], sig_prev, sig, z, tested, mis_ratio, bad,
+                                                 rev, it["B"] / it["A"], items[level - 1]["B"] / items[level - 1]["A"])
                     if n_tested and n_bad > limit:
                         # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
                         # where it agrees, it does so by chance.
@@ -657,7 +667,7 @@ def with_consistency(decoded: ScreenCoordinates, result: ConsistencyResult, *,
         for d in range(2):
             std[..., d] *= result.noise_std_at(decoded.offset[..., d]) / given
     return ScreenCoordinates(screen_xy_mm=xy, valid=valid, flags=flags, std_xy_mm=std,
-                             modulation=decoded.modulation, offset=decoded.offset)
+                             modulation=decoded.modulation, offset=decoded.offset, reversed=decoded.reversed)
 
 
 def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sample: RigidTransform,

@@ -43,8 +43,17 @@ from .phase_flags import (
     DEFAULT_UNWRAP_TOLERANCE,
     PhaseDecodingError,
 )
+from .fast_atan import _phase_0_2pi
 from .phase_noise import _noise_map, coordinate_std_scale
-from .unwrapping import _check_extent, _check_periods, _coarse_coord, _refine, _resolve_margin
+from .unwrapping import (
+    REVERSAL_CONTRAST_RATIO,
+    _check_extent,
+    _check_periods,
+    _coarse_coord,
+    _refine_reversal,
+    _resolve_margin,
+    _zeros_like_flags,
+)
 
 __all__ = [
     "PhaseResult",
@@ -109,6 +118,9 @@ class DirectionResult:
     std_mm : ndarray, shape (H, W), float64
         Predicted standard deviation of ``coord_mm`` in mm (see :func:`decode_direction`);
         NaN where not valid.
+    reversed : ndarray, shape (H, W), bool
+        A period's contrast was reversed (a lens transfer beyond a zero of 2·J₁(x)/x) and its
+        phase corrected by π (:func:`~pmdsim.evaluation.unwrapping.unwrap_hierarchical`).
     """
 
     coord_mm: np.ndarray
@@ -117,6 +129,10 @@ class DirectionResult:
     modulation: np.ndarray
     offset: np.ndarray
     std_mm: np.ndarray
+    reversed: np.ndarray | None = None
+
+    def __post_init__(self):
+        _zeros_like_flags(self, self.flags.shape)
 
 
 @dataclass(frozen=True)
@@ -137,6 +153,9 @@ class ScreenCoordinates:
         Modulation B (grey levels) of the finest x and y period.
     offset : ndarray, shape (H, W, 2), float64
         Offset A (grey levels) of the finest x and y period.
+    reversed : ndarray, shape (H, W, 2), bool
+        Per direction (x, y): a period's contrast was reversed by the lens and its phase
+        corrected by π (:attr:`DirectionResult.reversed`). Default (None): all False.
     """
 
     __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
@@ -147,53 +166,15 @@ class ScreenCoordinates:
     std_xy_mm: np.ndarray
     modulation: np.ndarray
     offset: np.ndarray
+    reversed: np.ndarray | None = None
+
+    def __post_init__(self):
+        _zeros_like_flags(self, self.flags.shape + (2,))
 
 
 # --------------------------------------------------------------------------------------------
 # Kernels
 # --------------------------------------------------------------------------------------------
-
-# atan2 as a rational approximation (Cephes ``atan``, accurate to ~1 ulp, max. deviation from
-# libm's atan2 8.9e-16 rad over 4e6 random inputs): libm's atan2 called per pixel was 2–7×
-# slower and dominated the decoding time.
-_ATAN_P0 = -8.750608600031904122785e-1
-_ATAN_P1 = -1.615753718733365076637e1
-_ATAN_P2 = -7.500855792314704667340e1
-_ATAN_P3 = -1.228866684490136173410e2
-_ATAN_P4 = -6.485021904942025371773e1
-_ATAN_Q0 = 2.485846490142306297962e1
-_ATAN_Q1 = 1.650270098316988542046e2
-_ATAN_Q2 = 4.328810604912902668951e2
-_ATAN_Q3 = 4.853903996359136964868e2
-_ATAN_Q4 = 1.945506571482613964425e2
-_ATAN_MOREBITS = 6.123233995736765886130e-17  # π/2 − fl(π/2)
-_TAN_3PI_8 = 2.41421356237309504880
-_PI = math.pi
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _phase_0_2pi(s, c):
-    """atan2(s, c) mapped to [0, 2π); 0 for s = c = 0. NaN in, NaN out.
-
-    Branch-free (selects only) so that loops calling it vectorise."""
-    ay = abs(s)
-    ax = abs(c)
-    big = ay > _TAN_3PI_8 * ax  # atan(ay/ax) = π/2 + atan(−ax/ay)
-    mid = ay > 0.66 * ax  # atan(ay/ax) = π/4 + atan((ay − ax)/(ay + ax))
-    num = -ax if big else (ay - ax if mid else ay)
-    den = ay if big else (ay + ax if mid else ax)
-    den = den if den != 0.0 else 1.0  # s = c = 0: num = 0, result 0
-    base = 0.5 * _PI if big else (0.25 * _PI if mid else 0.0)
-    extra = _ATAN_MOREBITS if big else (0.5 * _ATAN_MOREBITS if mid else 0.0)
-    x = num / den
-    z = x * x
-    p = (((_ATAN_P0 * z + _ATAN_P1) * z + _ATAN_P2) * z + _ATAN_P3) * z + _ATAN_P4
-    q = ((((z + _ATAN_Q0) * z + _ATAN_Q1) * z + _ATAN_Q2) * z + _ATAN_Q3) * z + _ATAN_Q4
-    t = base + (x + x * (z * p / q) + extra)  # atan(ay / ax) in [0, π/2]
-    left = _PI + t if s < 0.0 else _PI - t
-    right = _TWO_PI - t if s < 0.0 else t
-    r = left if c < 0.0 else right
-    return 0.0 if r >= _TWO_PI else r  # 2π − tiny rounds to 2π
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
@@ -240,8 +221,10 @@ def _accumulate_row(images, v, w_a, w_c, w_s, sa, sc, ss, mx):
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
 def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
                 min_ratio, mode, period, inv_period, origin, upper, tolerance, store, finish,
-                std_scale, noise, out, flags, modulation, offset, std):
-    """Row v of :func:`_decode_kernel` from the accumulated sums."""
+                std_scale, noise, out, flags, modulation, offset, std, contrast, rev, rev_ratio):
+    """Row v of :func:`_decode_kernel` from the accumulated sums. ``contrast`` holds the
+    coarser level's B/A and receives this level's; ``rev`` is set where this level's contrast
+    was reversed and corrected (``rev_ratio``: :data:`REVERSAL_CONTRAST_RATIO`, < 0: off)."""
     sv = 1 if noise.shape[0] > 1 else 0  # broadcasting strides of the noise map
     su = 1 if noise.shape[1] > 1 else 0
     w = sa.shape[0]
@@ -268,9 +251,14 @@ def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_
         elif mode == _MODE_COARSE:
             val = _coarse_coord(phi, period, origin, upper)
         else:
-            val, bad = _refine(out[v, u], phi, period, inv_period, tolerance)
+            val, bad, r = _refine_reversal(out[v, u], phi, period, inv_period, tolerance, b / a,
+                                           contrast[v, u], rev_ratio)
             if bad:
                 f |= _UNWRAP_INCONSISTENT
+            if r:
+                rev[v, u] = True
+        if mode != _MODE_PHASE:
+            contrast[v, u] = b / a
         f |= flags[v, u]
         flags[v, u] = f
         if store:
@@ -290,14 +278,16 @@ def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _decode_kernel(images, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                    min_modulation, min_ratio, mode, period, origin, upper, tolerance,
-                   store, finish, std_scale, noise, out, flags, modulation, offset, std):
+                   store, finish, std_scale, noise, out, flags, modulation, offset, std,
+                   contrast, rev, rev_ratio):
     """Decode one image stack; one parallel pass over image rows.
 
     Per pixel A = Σ w_a I, B cos φ = Σ w_c I, B sin φ = Σ w_s I, max sample; quality flags are
     OR-ed into ``flags``. ``mode`` selects what goes into ``out`` (phase, coarse coordinate or
     refined coordinate, see _MODE_*). ``store``: write ``modulation`` and ``offset``.
     ``finish`` (last level): set ``out`` to NaN where ``flags`` != 0 and write
-    ``std = std_scale · σ_I / B`` (NaN where invalid); ``noise`` is (1|H, 1|W).
+    ``std = std_scale · σ_I / B`` (NaN where invalid); ``noise`` is (1|H, 1|W). ``contrast``,
+    ``rev``, ``rev_ratio``: the contrast reversal (:func:`_finish_row`).
     """
     h = images.shape[1]
     w = images.shape[2]
@@ -310,7 +300,7 @@ def _decode_kernel(images, w_a, w_c, w_s, check_saturation, max_value, dark_leve
         _accumulate_row(images, v, w_a, w_c, w_s, sa, sc, ss, mx)
         _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
                     min_ratio, mode, period, inv_period, origin, upper, tolerance, store, finish,
-                    std_scale, noise, out, flags, modulation, offset, std)
+                    std_scale, noise, out, flags, modulation, offset, std, contrast, rev, rev_ratio)
 
 
 @numba.njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
@@ -435,6 +425,7 @@ def _shift_weights(n: int, shifts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 _NO_NOISE = np.zeros((1, 1))
 _DUMMY_2D = np.empty((1, 1))
+_DUMMY_BOOL = np.zeros((1, 1), np.bool_)
 
 
 def _phase_into(stack, shifts, max_value, dark_fraction, min_modulation_fraction,
@@ -444,7 +435,7 @@ def _phase_into(stack, shifts, max_value, dark_fraction, min_modulation_fraction
         stack, w_a, w_c, w_s, bool(check_saturation), float(max_value),
         dark_fraction * max_value, min_modulation_fraction * max_value, min_modulation_ratio,
         _MODE_PHASE, 1.0, 0.0, 0.0, 0.25, True, False, 1.0, _NO_NOISE,
-        phase, flags, modulation, offset, _DUMMY_2D,
+        phase, flags, modulation, offset, _DUMMY_2D, _DUMMY_2D, _DUMMY_BOOL, -1.0,
     )
 
 
@@ -534,6 +525,7 @@ def decode_direction(
     tolerance: float = DEFAULT_UNWRAP_TOLERANCE,
     margin_mm: float | None = None,
     check_saturation: bool = True,
+    correct_reversal: bool = True,
 ) -> DirectionResult:
     """Decode the screen coordinate along one fringe direction from multi-period image stacks.
 
@@ -568,13 +560,18 @@ def decode_direction(
         Validity thresholds of :func:`wrapped_phase`, applied to every period.
     tolerance, margin_mm
         Unwrapping parameters of :func:`unwrap_hierarchical`.
+    correct_reversal : bool
+        Correct a period whose contrast the lens reversed by π and mark it in ``reversed``
+        (:func:`unwrap_hierarchical`, ``contrasts``); False: such pixels are
+        UNWRAP_INCONSISTENT. Default True.
 
     Returns
     -------
     DirectionResult
         ``coord_mm`` (H, W) mm (NaN where invalid), ``valid`` (H, W) bool, ``flags`` (H, W)
         uint8 (OR over all periods and the unwrapping), ``modulation`` and ``offset`` (H, W)
-        grey levels of the finest period, ``std_mm`` (H, W) mm (NaN where invalid).
+        grey levels of the finest period, ``std_mm`` (H, W) mm (NaN where invalid),
+        ``reversed`` (H, W) bool.
 
     Raises
     ------
@@ -585,6 +582,7 @@ def decode_direction(
     prep = _prepare_direction(
         images_by_period, periods_mm, extent_mm, max_value, noise_std, origin_mm,
         dark_fraction, min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm,
+        correct_reversal,
     )
     h, w = prep.shape
     coord = np.empty((h, w), np.float64)
@@ -592,9 +590,10 @@ def decode_direction(
     modulation = np.empty((h, w), np.float64)
     offset = np.empty((h, w), np.float64)
     std = np.empty((h, w), np.float64)
-    _decode_direction_into(prep, check_saturation, coord, flags, modulation, offset, std)
+    rev = np.zeros((h, w), np.bool_)
+    _decode_direction_into(prep, check_saturation, coord, flags, modulation, offset, std, rev)
     return DirectionResult(coord_mm=coord, valid=flags == 0, flags=flags,
-                           modulation=modulation, offset=offset, std_mm=std)
+                           modulation=modulation, offset=offset, std_mm=std, reversed=rev)
 
 
 @dataclass(frozen=True)
@@ -611,6 +610,7 @@ class _DirectionInput:
     min_ratio: float
     tolerance: float
     noise: np.ndarray  # (1|H, 1|W) float64, C-contiguous
+    rev_ratio: float  # REVERSAL_CONTRAST_RATIO, or −1 (reversal correction off)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -619,7 +619,7 @@ class _DirectionInput:
 
 def _prepare_direction(images_by_period, periods_mm, extent_mm, max_value, noise_std, origin_mm,
                        dark_fraction, min_modulation_fraction, min_modulation_ratio, tolerance,
-                       margin_mm) -> _DirectionInput:
+                       margin_mm, correct_reversal=True) -> _DirectionInput:
     if isinstance(images_by_period, np.ndarray) and images_by_period.ndim == 3:
         raise PhaseDecodingError(
             "images_by_period: expected a sequence of (N, H, W) stacks, one per period, "
@@ -653,13 +653,15 @@ def _prepare_direction(images_by_period, periods_mm, extent_mm, max_value, noise
     return _DirectionInput(
         stacks=stacks, periods=periods, origin=org, upper=org + ext + margin, max_value=mv,
         dark_level=dark * mv, min_modulation=min_mod * mv, min_ratio=ratio, tolerance=tol,
-        noise=_noise_map(noise_std, hw),
+        noise=_noise_map(noise_std, hw), rev_ratio=REVERSAL_CONTRAST_RATIO if correct_reversal else -1.0,
     )
 
 
-def _decode_direction_into(d: _DirectionInput, check_saturation, coord, flags, modulation, offset, std):
-    """Decode coarse → fine, one fused kernel pass per period. ``flags`` must be 0 on entry."""
+def _decode_direction_into(d: _DirectionInput, check_saturation, coord, flags, modulation, offset, std, rev):
+    """Decode coarse → fine, one fused kernel pass per period. ``flags`` and ``rev`` must be 0
+    on entry."""
     n_p = len(d.stacks)
+    contrast = np.empty(coord.shape)
     n_f = d.stacks[-1].shape[0]
     std_scale = coordinate_std_scale(d.periods[-1], n_f)
     for level, stack in enumerate(d.stacks):
@@ -669,7 +671,7 @@ def _decode_direction_into(d: _DirectionInput, check_saturation, coord, flags, m
             stack, w_a, w_c, w_s, bool(check_saturation), d.max_value, d.dark_level,
             d.min_modulation, d.min_ratio, _MODE_COARSE if level == 0 else _MODE_REFINE,
             float(d.periods[level]), d.origin, d.upper, d.tolerance, last, last, std_scale,
-            d.noise, coord, flags, modulation, offset, std,
+            d.noise, coord, flags, modulation, offset, std, contrast, rev, d.rev_ratio,
         )
 
 
@@ -689,6 +691,7 @@ def decode_screen_coordinates(
     tolerance: float = DEFAULT_UNWRAP_TOLERANCE,
     margin_mm: float | None = None,
     check_saturation: bool = True,
+    correct_reversal: bool = True,
 ) -> ScreenCoordinates:
     """Decode the pixel → screen mapping (x_q, y_q) from x- and y-fringe image stacks.
 
@@ -710,7 +713,8 @@ def decode_screen_coordinates(
     screen_origin_mm : (float, float)
         Lowest (x_q, y_q) on the screen in mm; default (0, 0), i.e. the screen covers
         [0, width] × [0, height].
-    dark_fraction, min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm, check_saturation
+    dark_fraction, min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm
+    check_saturation, correct_reversal
         As in :func:`decode_direction`, applied to both directions (``margin_mm`` None means
         half the unused part of each direction's coarsest period).
 
@@ -719,7 +723,7 @@ def decode_screen_coordinates(
     ScreenCoordinates
         ``screen_xy_mm`` (H, W, 2) mm, NaN where invalid; ``valid`` (H, W) bool; ``flags``
         (H, W) uint8, OR of both directions; ``std_xy_mm`` (H, W, 2) mm; ``modulation`` and
-        ``offset`` (H, W, 2) grey levels of the finest x and y period.
+        ``offset`` (H, W, 2) grey levels of the finest x and y period; ``reversed`` (H, W, 2).
 
     Raises
     ------
@@ -739,7 +743,7 @@ def decode_screen_coordinates(
         try:
             preps.append(_prepare_direction(
                 stacks, periods, size[i], max_value, noise_std, origin[i], dark_fraction,
-                min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm,
+                min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm, correct_reversal,
             ))
         except PhaseDecodingError as exc:
             raise PhaseDecodingError(f"direction {axis!r}: {exc}") from exc
@@ -751,7 +755,8 @@ def decode_screen_coordinates(
     per_dir = []
     for prep in preps:
         arrays = dict(coord=np.empty((h, w)), flags=np.zeros((h, w), np.uint8),
-                      modulation=np.empty((h, w)), offset=np.empty((h, w)), std=np.empty((h, w)))
+                      modulation=np.empty((h, w)), offset=np.empty((h, w)), std=np.empty((h, w)),
+                      rev=np.zeros((h, w), np.bool_))
         _decode_direction_into(prep, check_saturation, **arrays)
         per_dir.append(arrays)
     rx, ry = per_dir
@@ -764,4 +769,4 @@ def decode_screen_coordinates(
                     rx["modulation"], ry["modulation"], rx["offset"], ry["offset"],
                     xy, flags, std, modulation, offset)
     return ScreenCoordinates(screen_xy_mm=xy, valid=flags == 0, flags=flags, std_xy_mm=std,
-                             modulation=modulation, offset=offset)
+                             modulation=modulation, offset=offset, reversed=np.stack([rx["rev"], ry["rev"]], -1))

@@ -64,9 +64,11 @@ class PhaseFlag(enum.IntFlag):
                                        ``min_modulation_ratio`` (includes constant pixels)
     ``UNWRAP_INCONSISTENT``     8      in a hierarchical unwrapping step the coarser
                                        coordinate disagrees with the finer one by more than
-                                       ``tolerance ·`` (finer period); also a period whose
-                                       contrast the lens reversed (defocus beyond the first
-                                       zero of 2·J₁(x)/x: a π flip, half a period off)
+                                       ``tolerance ·`` (finer period). A period whose
+                                       contrast the lens reversed (a π flip: half a period
+                                       off, weak contrast) is corrected instead and marked
+                                       in the results' ``reversed`` map
+                                       (:mod:`pmdsim.evaluation.unwrapping`)
     ``NONFINITE``               16     a sample or phase is NaN or infinite
     ``FIT_RESIDUAL``            32     an image deviates from the sinusoid fitted to its
                                        period's N images by more than the noise allows

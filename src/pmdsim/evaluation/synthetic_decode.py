@@ -36,7 +36,7 @@ from .phase_flags import (
     DEFAULT_UNWRAP_TOLERANCE,
     PhaseDecodingError,
 )
-from .unwrapping import _check_extent, _resolve_margin
+from .unwrapping import REVERSAL_CONTRAST_RATIO, _check_extent, _resolve_margin
 
 __all__ = ["decode_rendered_fringes"]
 
@@ -120,7 +120,7 @@ def _render_accumulate_row(v, screen_xy, valid, axis, two_pi_over_p, cos_d, sin_
 def _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
                        w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio,
                        mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
-                       tie_guard, out, flags, modulation, offset, std):
+                       tie_guard, out, flags, modulation, offset, std, contrast, rev, rev_ratio):
     """Row v of one period: render (in registers) and decode; the arguments after
     ``render_noise`` are those of ``decoding._decode_kernel``. Returns the number of pixels
     recomputed with libm's sin and cos (see ``_render_accumulate_row``)."""
@@ -136,7 +136,7 @@ def _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
                                     full_scale, render_noise, w_a, w_c, w_s, tie_guard, sa, sc, ss, mx, cb, sb, redo)
     _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
                 min_ratio, mode, period, 1.0 / period, origin, upper, tolerance, store, finish,
-                std_scale, noise_sigma, out, flags, modulation, offset, std)
+                std_scale, noise_sigma, out, flags, modulation, offset, std, contrast, rev, rev_ratio)
     return n_redo
 
 
@@ -144,7 +144,7 @@ def _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
 def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
                           w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio,
                           mode, period, origin, upper, tolerance, store, finish, std_scale, noise_sigma,
-                          tie_guard, out, flags, modulation, offset, std):
+                          tie_guard, out, flags, modulation, offset, std, contrast, rev, rev_ratio):
     """One period, one parallel pass over image rows (:func:`_render_decode_row`)."""
     h = valid.shape[0]
     n_redo = np.zeros(h, np.int64)
@@ -153,7 +153,7 @@ def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
                                        render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                                        min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,
                                        finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset,
-                                       std)
+                                       std, contrast, rev, rev_ratio)
     return n_redo.sum()
 
 
@@ -161,7 +161,7 @@ def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
 def _render_decode_kernel_serial(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale, render_noise,
                                  w_a, w_c, w_s, check_saturation, max_value, dark_level, min_modulation,
                                  min_ratio, mode, period, origin, upper, tolerance, store, finish, std_scale,
-                                 noise_sigma, tie_guard, out, flags, modulation, offset, std):
+                                 noise_sigma, tie_guard, out, flags, modulation, offset, std, contrast, rev, rev_ratio):
     """:func:`_render_decode_kernel` in the calling thread: for small images (e.g. the
     calibration's strided pixels) a parallel region's wake-up of the other threads can cost
     more than the work on a loaded machine."""
@@ -170,7 +170,8 @@ def _render_decode_kernel_serial(screen_xy, valid, axis, cos_d, sin_d, mean, amp
         n_redo += _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
                                      render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                                      min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,
-                                     finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset, std)
+                                     finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset, std,
+                                     contrast, rev, rev_ratio)
     return n_redo
 
 
@@ -275,7 +276,7 @@ def decode_rendered_fringes(
                     rx["modulation"], ry["modulation"], rx["offset"], ry["offset"],
                     xy_out, flags, std, modulation, offset)
     return ScreenCoordinates(screen_xy_mm=xy_out, valid=flags == 0, flags=flags, std_xy_mm=std,
-                             modulation=modulation, offset=offset)
+                             modulation=modulation, offset=offset, reversed=np.stack([rx["rev"], ry["rev"]], -1))
 
 
 def _decode_directions(kernel, xy, ok, sequence, size, n, full, cos_d, sin_d, w_a, w_c, w_s, sigma, noise_source,
@@ -291,7 +292,8 @@ def _decode_directions(kernel, xy, ok, sequence, size, n, full, cos_d, sin_d, w_
         upper = org + ext + _resolve_margin(None, periods[order[0]], ext)
         std_scale = periods[order[-1]] / _TWO_PI * math.sqrt(2.0 / n)
         arrays = dict(out=np.empty((h, w)), flags=np.zeros((h, w), np.uint8),
-                      modulation=np.empty((h, w)), offset=np.empty((h, w)), std=np.empty((h, w)))
+                      modulation=np.empty((h, w)), offset=np.empty((h, w)), std=np.empty((h, w)),
+                      contrast=np.empty((h, w)), rev=np.zeros((h, w), np.bool_))
         for level, i in enumerate(order):
             p = float(periods[i])
             last = level == len(order) - 1
@@ -300,7 +302,8 @@ def _decode_directions(kernel, xy, ok, sequence, size, n, full, cos_d, sin_d, w_
                 xy, ok, axis, cos_d, sin_d, sequence.mean_level, sequence.amplitude, full, noise,
                 w_a, w_c, w_s, True, full, DEFAULT_DARK_FRACTION * full, DEFAULT_MIN_MODULATION_FRACTION * full,
                 DEFAULT_MIN_MODULATION_RATIO, _MODE_COARSE if level == 0 else _MODE_REFINE, p, org, upper,
-                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, tie_guard, **arrays)
+                DEFAULT_UNWRAP_TOLERANCE, last, last, std_scale, sigma, tie_guard, **arrays,
+                rev_ratio=REVERSAL_CONTRAST_RATIO)
         per_dir.append(arrays)
     return per_dir
 

@@ -4,12 +4,23 @@ The per-pixel steps :func:`_coarse_coord` and :func:`_refine` are numba function
 decoding kernel of :mod:`pmdsim.evaluation.decoding` calls too, so a coordinate unwrapped here and
 one decoded there are the same arithmetic. Fringe model and units: docs/conventions.md
 ("Fringe patterns").
+
+Contrast reversal (issue 20). A defocused lens multiplies a fringe of period p by the transfer
+2·J₁(x)/x, x = 4πσ/p (:mod:`pmdsim.simulation.optics`); beyond its first zero (σ > 0.305·p) the
+transfer is negative: the recorded fringe is the displayed one shifted by half a period (a π
+phase flip) and weak (|2·J₁(x)/x| ≤ 0.132 in the first negative lobe). A refinement step whose
+finer coordinate lies half a period (± :data:`REVERSAL_PHASE_TOLERANCE` periods) from the
+coarser one, and whose contrast B/A is at most :data:`REVERSAL_CONTRAST_RATIO` times the
+coarser period's, is taken as reversed: its phase is shifted by π and the pixel is marked in
+``reversed`` (not a flag: the coordinate is right). A pixel half a period off with a strong
+contrast is a real inconsistency and stays UNWRAP_INCONSISTENT; a pixel near a zero of the
+transfer has no usable contrast and is LOW_MODULATION.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -23,7 +34,21 @@ from .phase_flags import (
     PhaseDecodingError,
 )
 
-__all__ = ["UnwrapResult", "unwrap_hierarchical"]
+__all__ = ["REVERSAL_CONTRAST_RATIO", "REVERSAL_PHASE_TOLERANCE", "UnwrapResult", "unwrap_hierarchical"]
+
+#: A finer period is taken as reversed only if its contrast B/A is at most this fraction of the
+#: coarser period's (the negative lobes of 2·J₁(x)/x reach 0.132; a coarser period at the same
+#: blur has a transfer ≥ 0.5 wherever the finer one has reversed, for period ratios ≥ 2).
+REVERSAL_CONTRAST_RATIO = 0.25
+#: … and only if its coordinate lies within this many periods of half a period from the coarser
+#: one (the π flip; beyond it the pixel is UNWRAP_INCONSISTENT).
+REVERSAL_PHASE_TOLERANCE = 0.125
+
+
+def _zeros_like_flags(obj, shape) -> None:
+    """Set a frozen result's ``reversed`` to an all-False array of ``shape`` if it is None."""
+    if obj.reversed is None:
+        object.__setattr__(obj, "reversed", np.zeros(shape, bool))
 
 
 @dataclass(frozen=True)
@@ -37,10 +62,17 @@ class UnwrapResult:
         Not masked: flagged pixels keep their (unreliable) value; NaN only where a phase is NaN.
     flags : ndarray, shape (H, W), uint8
         :class:`PhaseFlag` bits UNWRAP_INCONSISTENT and NONFINITE.
+    reversed : ndarray, shape (H, W), bool
+        A period's contrast was reversed and its phase corrected by π (only with ``contrasts``
+        given to :func:`unwrap_hierarchical`; else all False).
     """
 
     coord_mm: np.ndarray
     flags: np.ndarray
+    reversed: np.ndarray | None = field(default=None)
+
+    def __post_init__(self):
+        _zeros_like_flags(self, self.flags.shape)
 
     def __iter__(self):
         return iter((self.coord_mm, self.flags))
@@ -66,9 +98,23 @@ def _refine(c, phi, p, inv_p, tolerance):
     return ck, abs(c - ck) > tolerance * p
 
 
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _refine_reversal(c, phi, p, inv_p, tolerance, contrast, prev_contrast, ratio):
+    """:func:`_refine` aware of a reversed contrast (module docstring): returns (c_k,
+    inconsistent, reversed). ``contrast``/``prev_contrast``: B/A of this and the coarser
+    period; ``ratio`` < 0 turns the correction off."""
+    ck, bad = _refine(c, phi, p, inv_p, tolerance)
+    if (abs(c - ck) >= (0.5 - REVERSAL_PHASE_TOLERANCE) * p and contrast <= ratio * prev_contrast
+            and ratio >= 0.0):
+        ck, bad = _refine(c, phi + math.pi, p, inv_p, tolerance)
+        return ck, bad, True
+    return ck, bad, False
+
+
 @numba.njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
-def _unwrap_kernel(phases, periods, origin, upper, tolerance, coord, flags):
-    """Hierarchical unwrapping; ``periods`` descending. Flags are OR-ed into ``flags``.
+def _unwrap_kernel(phases, periods, origin, upper, tolerance, contrasts, ratio, coord, flags, rev):
+    """Hierarchical unwrapping; ``periods`` descending. Flags are OR-ed into ``flags``;
+    ``contrasts`` (P, H, W) B/A per period (ignored if ``ratio`` < 0).
 
     Serial: it is not on the hot path (:func:`decode_direction` unwraps inside
     :func:`_decode_kernel`), and a parallel kernel costs seconds of compilation."""
@@ -78,7 +124,12 @@ def _unwrap_kernel(phases, periods, origin, upper, tolerance, coord, flags):
             c = _coarse_coord(phases[0, v, u], periods[0], origin, upper)
             f = np.uint8(0)
             for k in range(1, n_p):
-                c, bad = _refine(c, phases[k, v, u], periods[k], 1.0 / periods[k], tolerance)
+                if ratio >= 0.0:
+                    c, bad, r = _refine_reversal(c, phases[k, v, u], periods[k], 1.0 / periods[k], tolerance,
+                                                 contrasts[k, v, u], contrasts[k - 1, v, u], ratio)
+                    rev[v, u] |= r
+                else:
+                    c, bad = _refine(c, phases[k, v, u], periods[k], 1.0 / periods[k], tolerance)
                 if bad:
                     f |= _UNWRAP_INCONSISTENT
             if not np.isfinite(c):
@@ -137,6 +188,7 @@ def unwrap_hierarchical(
     origin_mm: float = 0.0,
     tolerance: float = DEFAULT_UNWRAP_TOLERANCE,
     margin_mm: float | None = None,
+    contrasts=None,
 ) -> UnwrapResult:
     """Temporal multi-period (hierarchical) phase unwrapping into a screen coordinate in mm.
 
@@ -148,6 +200,8 @@ def unwrap_hierarchical(
         c_k = p_k·(φ_k/2π + round((c_{k−1} − p_k·φ_k/2π) / p_k))
 
     and the pixel is flagged UNWRAP_INCONSISTENT if |c_{k−1} − c_k| > ``tolerance``·p_k.
+    With ``contrasts`` a period whose contrast the lens reversed is corrected by π first (module
+    docstring).
     Fringe phases follow docs/conventions.md: φ = 2π·c/p wrapped to [0, 2π).
 
     Parameters
@@ -169,12 +223,16 @@ def unwrap_hierarchical(
         How far above the extent a coarse coordinate may lie before it is treated as a wrap,
         in [0, p_0 − extent_mm]. Default (p_0 − extent_mm)/2, i.e. the unused part of the
         coarsest period is split evenly between both ends of the screen.
+    contrasts : array_like, shape (P, H, W), optional
+        Contrast B/A of each period's fringe (as ``phases``). Given: a period half a period off
+        with at most :data:`REVERSAL_CONTRAST_RATIO` of the coarser period's contrast is taken
+        as reversed and corrected by π (``reversed``). Default None: no correction.
 
     Returns
     -------
     UnwrapResult
-        ``coord_mm`` (H, W) float64 in mm and ``flags`` (H, W) uint8 (UNWRAP_INCONSISTENT,
-        NONFINITE). Unpacks as ``coord_mm, flags``.
+        ``coord_mm`` (H, W) float64 in mm, ``flags`` (H, W) uint8 (UNWRAP_INCONSISTENT,
+        NONFINITE) and ``reversed`` (H, W) bool. Unpacks as ``coord_mm, flags``.
 
     Raises
     ------
@@ -195,11 +253,20 @@ def unwrap_hierarchical(
     if not (0 < tol <= 0.5):
         raise PhaseDecodingError(f"tolerance must be in (0, 0.5] (fraction of the finer period), got {tolerance!r}")
     margin = _resolve_margin(margin_mm, periods[0], ext)
+    if contrasts is not None:
+        con = np.asarray(contrasts, dtype=np.float64)
+        if con.shape != ph.shape:
+            raise PhaseDecodingError(f"contrasts: expected the shape of phases {ph.shape}, got {con.shape}")
+        con = np.ascontiguousarray(con[order])
+    else:
+        con = np.zeros((1, 1, 1))
     if not np.array_equal(order, np.arange(order.size)):
         ph = ph[order]
     ph = np.ascontiguousarray(ph, dtype=np.float64)
     _, h, w = ph.shape
     coord = np.empty((h, w), np.float64)
     flags = np.zeros((h, w), np.uint8)
-    _unwrap_kernel(ph, periods, org, org + ext + margin, tol, coord, flags)
-    return UnwrapResult(coord_mm=coord, flags=flags)
+    rev = np.zeros((h, w), np.bool_)
+    ratio = REVERSAL_CONTRAST_RATIO if contrasts is not None else -1.0
+    _unwrap_kernel(ph, periods, org, org + ext + margin, tol, con, ratio, coord, flags, rev)
+    return UnwrapResult(coord_mm=coord, flags=flags, reversed=rev)

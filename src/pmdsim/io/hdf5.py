@@ -217,6 +217,8 @@ _EVALUATION = {
     "std_xy_mm": ("mm", "predicted standard deviation of screen_xy_mm", "screen"),
     "decoded": ("1", "pixel decoded (bool)", None),
     "phase_flags": ("1", "decoding flags (PhaseFlag bits, file attribute phase_flags)", None),
+    "reversed_contrast": ("1", "fringe contrast reversed by the lens and corrected by π, per direction (x, y) (bool)",
+                          None),
     "registration_status": ("1", "registration status code (file attribute registration_status)", None),
     "normals": ("1", "unit surface normals", "sample"),
     "points_mm": ("mm", "reconstructed surface points", "sample"),
@@ -234,7 +236,8 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any], 
 
     Datasets per camera: ``screen_xy_mm`` ((H, W, 2), screen frame, NaN where not decoded),
     ``std_xy_mm`` (predicted σ), ``decoded`` (bool), ``phase_flags`` (uint8,
-    :class:`pmdsim.evaluation.phase.PhaseFlag`), ``registration_status`` (uint8,
+    :class:`pmdsim.evaluation.phase.PhaseFlag`), ``reversed_contrast`` ((H, W, 2) bool: a period's
+    contrast reversed by the lens and corrected by π, per direction), ``registration_status`` (uint8,
     :class:`pmdsim.evaluation.registration.RegistrationStatus`), ``normals`` ((H, W, 3), unit,
     sample frame), ``points_mm`` ((H, W, 3), sample frame), ``height_mm`` ((H, W), sample frame,
     NaN where not reconstructed) and ``reconstructed`` (bool); ``extras[camera]`` adds further
@@ -252,9 +255,12 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any], 
         for cam, (decoded, reg, rec) in results.items():
             g = f.create_group(cam)
             data = {"screen_xy_mm": decoded.screen_xy_mm, "std_xy_mm": decoded.std_xy_mm, "decoded": decoded.valid,
-                    "phase_flags": decoded.flags, "registration_status": reg.status, "normals": rec.n_sample,
+                    "phase_flags": decoded.flags, "reversed_contrast": getattr(decoded, "reversed", None),
+                    "registration_status": reg.status, "normals": rec.n_sample,
                     "points_mm": rec.p_sample_mm, "height_mm": rec.height_mm, "reconstructed": rec.reconstructed}
             data.update((extras or {}).get(cam) or {})
+            if data["reversed_contrast"] is None:  # a decoded-like object without it
+                del data["reversed_contrast"]
             for name, arr in data.items():
                 units, long_name, frame = _EVALUATION.get(name, (_units_of(name), name.replace("_", " "), "sample"))
                 _put(g, name, arr, units=units, long_name=long_name, frame=frame)

@@ -83,9 +83,10 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("pixel_area", {"pixel_area": True}, "camera pixel-area integration",
            "longer periods (transfer sinc(footprint/p))"),
     Effect("defocus_f8", _DEFOCUS, "f/8, one focal plane on the sample: the screen is out of focus "
-           "(uniform-disc pupil; contrast reversed, and flagged, where σ > 0.305·p)",
+           "(uniform-disc pupil; contrast reversed where σ > 0.305·p: the decoder corrects the π flip, "
+           "pixels near a zero of the transfer are flagged)",
            "a smaller aperture (higher f-number), longer periods (transfer 2·J₁(x)/x, x = 4πσ/p: reversed "
-           "contrast, flagged, where σ > 0.305·p)"),
+           "and weak where σ > 0.305·p, zero at σ = 0.305·p and 0.558·p)"),
     Effect("display_levels", _LEVELS, "8-bit display: the commanded fringe rounded to 256 levels",
            "more phase shifts (the rounding's harmonics n ≡ ±1 mod N fold into the phase), or a "
            "display with more levels"),
@@ -93,6 +94,11 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "every effect, display not corrected", "linearise; then the remaining budget"),
     Effect("all_corrected", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS, "linearise": True},
            "every effect, display linearised", "—"),
+    # Every effect but the sensor's noise (a noiseless 12-bit camera): the row that must not change
+    # with --downsample K (issue 20).
+    Effect("all_systematic", {"bit_depth": 12, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS, **_LEVELS},
+           "every effect but sensor noise (noiseless 12-bit camera), display not corrected",
+           "N ≥ 6 shifts (rejects the 3rd and 4th harmonics of the gamma), longer periods or a smaller aperture"),
     # The remedy for the defocus that dominates at the Table 1 periods: a finest period of 8 mm,
     # whose transfer 2·J₁(x)/x (x = 4πσ/p) at the f/8 blur spot (σ ≈ 0.5–0.9 mm) is 0.77–0.93
     # instead of a reversed or vanishing contrast at 2 mm (docs/experiments.md).
