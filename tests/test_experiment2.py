@@ -101,6 +101,10 @@ def test_cli_calibrate_then_evaluate(tmp_path, small_setup_file):
         assert np.linalg.norm(c.T_world_cam.translation - t.T_world_cam.translation) < 0.1
     text = calib.read_text()
     assert "[calibration_report]" in text and "fx_px" in text
+    # The calibration's covariance travels with the calibrated setup (mirror 0 as the table).
+    cov = cal.calibration_covariance
+    assert cov is not None and "table.d_mm" in cov.parameters and "left.fx_px" in cov.parameters
+    assert np.all(cov.std > 0)
     # The calibrated setup is accepted by evaluate; the sample (= the base pose) is flat in it.
     sim = tmp_path / "sample"
     assert runner.invoke(main, ["simulate", "--setup", str(small_setup_file), "--out", str(sim), "--quiet"]).exit_code == 0

@@ -5,6 +5,9 @@ the n × n free-form screen model over a setup's screen; :func:`calibrated_setup
 :class:`~pmdsim.calibration.CalibrationResult` back into a setup (the gauge: the screen at its
 nominal pose defines world; the calibrated table plane is the sample frame);
 :func:`calibration_deviation` and :func:`calibration_summary` report it.
+:func:`setup_covariance` is the part of the calibration's covariance that the calibrated setup
+carries (``Setup.calibration_covariance``); :func:`perturbed_setup` (from
+:mod:`pmdsim.setup.covariance`) applies a step of those parameters to a setup.
 """
 
 from __future__ import annotations
@@ -15,9 +18,10 @@ import numpy as np
 
 from ..geometry.transform import RigidTransform, rotation_angle_rad
 from ..setup import CameraSetup, Pose, Setup
+from ..setup.covariance import CalibrationCovariance, is_setup_parameter, perturbed_setup
 
 __all__ = ["nominal_setup", "free_screen_model", "table_frame_from_plane", "calibrated_setup",
-           "calibration_deviation", "calibration_summary"]
+           "calibration_deviation", "calibration_summary", "setup_covariance", "perturbed_setup"]
 
 
 def nominal_setup(truth: Setup) -> Setup:
@@ -25,7 +29,7 @@ def nominal_setup(truth: Setup) -> Setup:
     mirror poses) with a planar screen over the same extent and a planar calibration mirror.
     (Start values are perturbed from it by :func:`calibrate_and_reconstruct`.)"""
     scr = replace(truth.screen, heights_mm=None, bulge_mm=None)
-    return replace(truth, screen=scr).with_mirror_sag(0.0)
+    return replace(truth, screen=scr, calibration_covariance=None).with_mirror_sag(0.0)
 
 
 def free_screen_model(nominal: Setup, screen_grid: int):
@@ -61,10 +65,36 @@ def table_frame_from_plane(nominal: Setup, plane_screen) -> RigidTransform:
     return RigidTransform(np.column_stack([x, y, z]), o)
 
 
+def setup_covariance(result) -> CalibrationCovariance | None:
+    """The covariance of the calibrated parameters a setup carries: every camera's 14, the base
+    mirror plane's 3 as the table plane (``mirror0.*`` → ``table.*``), the free screen heights
+    (and any other setup parameter, :func:`~pmdsim.setup.covariance.is_setup_parameter`); the
+    other mirror poses are marginalised out (their rows and columns dropped). None if the result
+    has no covariance."""
+    cov = getattr(result, "covariance", None)
+    if cov is None:
+        return None
+    keep, names = [], []
+    for j, n in enumerate(result.parameter_names):
+        head, _, kind = n.partition(".")
+        if head.startswith("mirror") and head[6:].isdigit():
+            if head != "mirror0":
+                continue
+            n = f"table.{kind}"
+        if is_setup_parameter(n):
+            keep.append(j)
+            names.append(n)
+    return CalibrationCovariance(tuple(names), np.asarray(cov, dtype=float)[np.ix_(keep, keep)])
+
+
 def calibrated_setup(nominal: Setup, result) -> Setup:
     """The setup as the calibration knows it: estimated cameras (poses in the world frame of the
     screen held at its nominal pose — the gauge), planar screen, and the calibrated table plane
-    (mirror pose 0) as the sample frame."""
+    (mirror pose 0) as the sample frame; it carries :func:`setup_covariance`."""
+    return _calibrated_setup(nominal, result).with_calibration_covariance(setup_covariance(result))
+
+
+def _calibrated_setup(nominal: Setup, result) -> Setup:
     from ..setup import Pose
 
     T_ws = nominal.screen.T_world_screen

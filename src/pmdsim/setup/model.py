@@ -20,6 +20,7 @@ import numpy as np
 from ..geometry.camera import DISTORTION_NAMES, Camera
 from ..geometry.cover_glass import DEFAULT_GLASS_INDEX, CoverGlass
 from ..errors import SetupError
+from .covariance import CalibrationCovariance
 from .fringes import FringeSequence
 from ..geometry.surface import SplineSurface
 from ..geometry.transform import RigidTransform
@@ -456,11 +457,20 @@ class Setup:
     patterns: PatternSetup
     calibration: CalibrationSetup = field(default_factory=CalibrationSetup)
     imaging: ImagingSetup | None = None
+    # The calibrated parameters' covariance (setup/covariance.py; None: not calibrated).
+    calibration_covariance: CalibrationCovariance | None = None
 
     def __post_init__(self) -> None:
         # cameras: an immutable mapping (issue 23) so that the setup is deeply immutable and hashable
         if not isinstance(self.cameras, FrozenMap):
             object.__setattr__(self, "cameras", FrozenMap(self.cameras))
+        if self.calibration_covariance is not None:
+            self.calibration_covariance.check_setup(self)
+
+    def with_calibration_covariance(self, covariance: CalibrationCovariance | None) -> "Setup":
+        """The same setup carrying ``covariance`` (:class:`~pmdsim.setup.covariance.CalibrationCovariance`;
+        None: none)."""
+        return replace(self, calibration_covariance=covariance)
 
     def with_camera(self, name: str, **changes: Any) -> "Setup":
         """The same setup with one camera's intrinsics or pose changed.
@@ -546,7 +556,8 @@ class Setup:
         # Fewer pixels of the same camera: image formation keeps the real pixel (issue 20).
         im = None if self.imaging is None else self.imaging.with_(
             sampling_step_px=self.imaging.sampling_step_px * int(factor))
-        return replace(self, cameras=cams, imaging=im)
+        cov = None if self.calibration_covariance is None else self.calibration_covariance.binned(int(factor))
+        return replace(self, cameras=cams, imaging=im, calibration_covariance=cov)
 
     def with_bulge(self, bulge_mm: float) -> "Setup":
         """The same setup with the screen's central control height set to ``bulge_mm`` (Δh)."""
@@ -712,6 +723,8 @@ class Setup:
                 "mirror_sag_um": cal.mirror_sag_um,
             },
             **({"imaging": self.imaging.as_dict()} if self.imaging is not None else {}),
+            **({"calibration_report": self.calibration_covariance.as_dict()}
+               if self.calibration_covariance is not None else {}),
         }
 
     def to_toml(self) -> str:

@@ -36,6 +36,7 @@ from .model import (
     Setup,
     default_setup,
 )
+from .covariance import CalibrationCovariance
 from .opencv_file import read_opencv_camera
 
 __all__ = ["parse_setup", "load_setup", "dump_toml"]
@@ -448,11 +449,15 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=N
     else:
         r.used.add("calibration")
         calibration = dc
-    r.used.add("calibration_report")  # informational table written by `pmdsim calibrate`
+    # Informational table written by `pmdsim calibrate`; its covariance is the setup's.
+    covariance = _covariance(r.table_("calibration_report")) if r.has("calibration_report") else None
+    r.used.add("calibration_report")
     imaging = _imaging(r.table_("imaging")) if r.has("imaging") else None
     r.used.add("imaging")
     r.finish()
     setup = Setup(cameras, screen, sample, patterns, calibration, imaging)
+    if covariance is not None:
+        setup = setup.with_calibration_covariance(covariance)  # checked against the cameras and the screen
     try:  # build the surfaces now so that any remaining problem shows here, with its key
         setup.screen.surface
     except ValueError as e:
@@ -462,6 +467,28 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=N
     except ValueError as e:
         raise SetupError(f"sample: {e}") from None
     return setup
+
+
+def _covariance(r: _Reader) -> CalibrationCovariance | None:
+    """``calibration_report.covariance_parameters`` (names) and ``.covariance`` (rows), or None
+    when neither is given (the rest of the table is informational)."""
+    if not (r.has("covariance_parameters") or r.has("covariance")):
+        return None
+    names = r.raw("covariance_parameters")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise SetupError(f"{r.key('covariance_parameters')} must be a list of parameter names, got {names!r:.120}")
+    rows, p = r.raw("covariance"), len(names)
+    if not isinstance(rows, list) or len(rows) != p or any(not isinstance(x, list) or len(x) != p for x in rows):
+        raise SetupError(f"{r.key('covariance')} must be {p} rows of {p} numbers (one per name of "
+                         f"{r.key('covariance_parameters')}), got {rows!r:.120}")
+    for j, row in enumerate(rows):
+        for i, x in enumerate(row):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(float(x)):
+                raise SetupError(f"{r.key('covariance')}[{j}][{i}] must be a finite number, got {x!r}")
+    try:
+        return CalibrationCovariance(tuple(names), np.array(rows, dtype=float).reshape(p, p))
+    except SetupError as e:
+        raise SetupError(f"{r.key('covariance')}: {e}") from None
 
 
 def _imaging(r: _Reader) -> ImagingSetup:

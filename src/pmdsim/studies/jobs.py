@@ -756,7 +756,7 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
     from ..setup.toml import dump_toml
 
     doc = model.to_dict()
-    doc["calibration_report"] = report
+    doc["calibration_report"] = {**report, **doc.get("calibration_report", {})}  # + the covariance
     with atomic_file(out_path, force=force, mode="w", inputs=inputs, command=command) as f:
         f.write(dump_toml(doc))
     return CalibrationRun(result, model, summary, tuple(warnings), residuals)
