@@ -164,3 +164,14 @@ def test_setups_do_not_leak_the_truths_glass_and_toml_keys():
     doc["calibration"]["fit_glass_index"] = 1
     with pytest.raises(SetupError, match="calibration.fit_glass_index must be true or false"):
         parse_setup(doc)
+
+
+def test_experiment4_glass_rows():
+    """Experiment 4's glass rows (truth with a 1.1 mm glass, 3 × 3 free screen): fitting the
+    glass thickness removes most of the error of ignoring it."""
+    from pmdsim.studies.experiment4 import run_experiment4
+
+    records, _ = run_experiment4(default_setup(), ["glass_ignored", "glass_modelled"], downsample=16)
+    by = {(r["effect"], r["camera"]): r["rms_um"] for r in records}
+    for cam in default_setup().cameras:
+        assert by[("glass_modelled", cam)] < 0.5 * by[("glass_ignored", cam)], by
