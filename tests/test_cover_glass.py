@@ -198,3 +198,22 @@ def test_apparent_points_converge_to_tolerance_or_say_so():
     one, conv1 = glass.apparent_points(screen, p, q, max_iter=1, return_converged=True)
     assert not conv1.any() and np.isnan(one).all()
     assert RegistrationStatus.GLASS_NO_CONVERGENCE == 4
+
+
+def test_fused_refracting_pass_equals_the_vectorised_glass_trace():
+    """The tracer's compiled refracting pass (simulation.glass_trace) against CoverGlass.trace of
+    the glass-free trace's reflected rays (sample point → glass-free hit): equal to 1e-12 mm,
+    same valid pixels, on a bulged screen."""
+    screen = SplineSurface.from_bulge(GX, GY, 3.0)
+    glass = CoverGlass(3.0, 1.52)
+    bare = _trace(screen, None, store_points=True)
+    fused = _trace(screen, glass, store_points=True)
+    ok = bare.status == Status.VALID
+    T_screen_sample = T_WORLD_SCREEN.inv() @ T_WORLD_SAMPLE
+    o = T_screen_sample.apply(bare.p_sample_mm[ok])
+    q0 = bare.q_screen_mm[ok]
+    q, st = glass.trace(screen, o, q0 - o, q0)
+    assert ok.sum() > 1000 and (st == 0).all()
+    np.testing.assert_array_equal(fused.status == Status.VALID, ok)
+    np.testing.assert_allclose(fused.screen_xy_mm[ok], q[:, :2], atol=1e-12, rtol=0)
+    np.testing.assert_allclose(fused.q_screen_mm[ok], q, atol=1e-12, rtol=0)
