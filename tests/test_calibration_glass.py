@@ -170,7 +170,7 @@ def test_experiment4_glass_rows():
     """Experiment 4's glass rows run (truth with a 1.1 mm glass, 3 × 3 free screen) and fitting
     the glass thickness lowers the error of ignoring it. (At downsample 16 both are near the
     8-bit floor, ≈ 0.01 µm RMS, whose level varies between cases by ≈ 0.005 µm: this checks the
-    rows and the direction, not the size; docs/experiments.md has the downsample-4 figures.)"""
+    rows and the direction, not the size.)"""
     from pmdsim.studies.experiment4 import EFFECTS, run_experiment4
 
     assert EFFECTS["glass_ignored"].glass_mm == EFFECTS["glass_modelled"].glass_mm == 1.1
