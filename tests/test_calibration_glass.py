@@ -178,3 +178,18 @@ def test_experiment4_glass_rows():
     by = {(r["effect"], r["camera"]): r["rms_um"] for r in records}
     for cam in default_setup().cameras:
         assert by[("glass_modelled", cam)] < by[("glass_ignored", cam)], by
+
+
+def test_api_calibrate_fits_the_glass_the_setup_declares(traced_glass):
+    """pmdsim.calibrate with a nominal setup declaring a 1 mm glass and [calibration]
+    fit_glass_thickness = true: the result's glass is the fitted 1.1 mm (exact data)."""
+    from dataclasses import replace
+
+    import pmdsim
+
+    truth, obs = traced_glass
+    nominal = truth.with_cover_glass(1.0, 1.52)
+    nominal = replace(nominal, calibration=replace(nominal.calibration, fit_glass_thickness=True))
+    r = pmdsim.calibrate(obs, nominal)
+    assert r.converged and r.glass_free == (True, False)
+    assert abs(r.glass.thickness_mm - 1.1) < 1e-4, r.glass
