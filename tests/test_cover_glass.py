@@ -174,3 +174,46 @@ def test_simulate_and_evaluate_with_glass_round_trip():
         errs[label] = np.nanmax(np.abs(rec.height_mm))  # the true sample is the plane z = 0
     assert errs["glass"] < 1e-6, errs
     assert errs["ignored"] > 1e-3, errs
+
+
+def test_apparent_points_converge_to_tolerance_or_say_so():
+    """The registration's inverse problem stops at 1e-9 mm: the ray from P towards the apparent
+    point, traced through the glass by the forward tracer, reaches Q; with one step allowed the
+    points are reported as not converged (and NaN), which register maps to
+    RegistrationStatus.GLASS_NO_CONVERGENCE."""
+    from pmdsim.evaluation.registration import RegistrationStatus
+    from pmdsim.geometry.surface import SplineSurface
+
+    screen = SplineSurface.from_bulge(np.linspace(0.0, 708.0, 3), np.linspace(0.0, 398.0, 3), 3.0)
+    glass = CoverGlass(3.0, 1.52)
+    rng = np.random.default_rng(4)
+    q = np.column_stack([rng.uniform(50, 650, 40), rng.uniform(50, 350, 40), np.zeros(40)])
+    q[:, 2] = screen.height(q[:, 0], q[:, 1])
+    p = np.array([354.0, 199.0, -450.0]) + rng.uniform(-80, 80, (40, 3))
+    app, conv = glass.apparent_points(screen, p, q, return_converged=True)
+    assert conv.all() and np.isfinite(app).all()
+    back, st = glass.trace(screen, p, app - p)
+    assert (st == 0).all()
+    np.testing.assert_allclose(back, q, atol=1e-8, rtol=0)
+    one, conv1 = glass.apparent_points(screen, p, q, max_iter=1, return_converged=True)
+    assert not conv1.any() and np.isnan(one).all()
+    assert RegistrationStatus.GLASS_NO_CONVERGENCE == 4
+
+
+def test_fused_refracting_pass_equals_the_vectorised_glass_trace():
+    """The tracer's compiled refracting pass (simulation.glass_trace) against CoverGlass.trace of
+    the glass-free trace's reflected rays (sample point → glass-free hit): equal to 1e-12 mm,
+    same valid pixels, on a bulged screen."""
+    screen = SplineSurface.from_bulge(GX, GY, 3.0)
+    glass = CoverGlass(3.0, 1.52)
+    bare = _trace(screen, None, store_points=True)
+    fused = _trace(screen, glass, store_points=True)
+    ok = bare.status == Status.VALID
+    T_screen_sample = T_WORLD_SCREEN.inv() @ T_WORLD_SAMPLE
+    o = T_screen_sample.apply(bare.p_sample_mm[ok])
+    q0 = bare.q_screen_mm[ok]
+    q, st = glass.trace(screen, o, q0 - o, q0)
+    assert ok.sum() > 1000 and (st == 0).all()
+    np.testing.assert_array_equal(fused.status == Status.VALID, ok)
+    np.testing.assert_allclose(fused.screen_xy_mm[ok], q[:, :2], atol=1e-12, rtol=0)
+    np.testing.assert_allclose(fused.q_screen_mm[ok], q, atol=1e-12, rtol=0)

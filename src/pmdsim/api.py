@@ -367,7 +367,11 @@ def calibrate(observations: list[Observations], nominal: Setup | CalibrationStat
         :func:`pmdsim.studies.simulate_calibration_observations` or
         :func:`pmdsim.calibration.observations_from_mapping` of decoded images).
     nominal : Setup or CalibrationState
-        Start values: a setup (its cameras and its calibration mirror poses) or a state.
+        Start values: a setup (its cameras and its calibration mirror poses) or a state. A
+        setup's screen cover glass (``[screen] cover_glass_thickness_mm`` > 0) is part of the
+        model, held or, with ``[calibration] fit_glass_thickness`` / ``fit_glass_index``, fitted
+        (:func:`pmdsim.calibration.glass.calibrate_with_glass`; the result's ``glass`` and
+        ``glass_std()``); a state's ``glass`` and ``glass_free`` are used as given.
     screen_grid : int, optional
         n ≥ 3: calibrate the screen as an n × n free-form spline grid (border held, interior
         heights free); None: planar screen.
@@ -388,6 +392,12 @@ def calibrate(observations: list[Observations], nominal: Setup | CalibrationStat
         poses = [T for _, T in nominal.calibration.mirror_poses(nominal.sample)]
         screen_model = None if screen_grid is None else free_screen_model(nominal, screen_grid)
         start = nominal_state(nominal, poses)
+        glass, cal = nominal.screen.cover_glass, nominal.calibration
+        if glass.present or cal.fit_glass_thickness or cal.fit_glass_index:
+            from .calibration.glass import calibrate_with_glass
+
+            return calibrate_with_glass(observations, start, glass, screen_model=screen_model,
+                                        fit_thickness=cal.fit_glass_thickness, fit_index=cal.fit_glass_index, **options)
     else:
         if screen_grid is not None:
             raise InputError("screen_grid needs the nominal Setup (for the screen's extent), not a state")

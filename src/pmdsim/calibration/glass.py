@@ -1,152 +1,68 @@
 """The screen's cover glass in the holistic calibration (issue 21).
 
 The decoded correspondences give points Q on the *emitting* surface; the light reached the camera
-from the glass's exit point A, via the mirror. The planar-mirror model of :mod:`.model` takes a
-screen point whose straight line to the *virtual camera centre* c′ (the camera centre mirrored
-across the mirror plane) is the ray. With a glass that point is the **apparent point**
-(:meth:`~pmdsim.geometry.cover_glass.CoverGlass.apparent_points` with P = c′): where the straight
-line c′ → A meets the emitting surface. It depends on the camera centre and the mirror plane
-(through c′) and on the glass (t, n).
+from the glass's exit point, via the mirror. With a glass in the :class:`CalibrationState`
+(``glass``, a :class:`~pmdsim.geometry.cover_glass.CoverGlass`) the forward model projects the
+**apparent point** instead of Q: where the straight line from the virtual camera centre through
+the exit point meets the emitting surface's tangent plane (local-plate model,
+:mod:`pmdsim.calibration.glass_kernel`). Its thickness t and index n can be **free parameters**
+of the Levenberg–Marquardt solver (``glass_free``; names ``screen.glass_thickness_mm``,
+``screen.glass_index``), with the analytic Jacobian through the implicit apparent point and their
+standard deviations from the calibration's covariance, like the free screen heights.
 
-Method (documented approximation of the joint problem):
-
-* **Glass held** (:func:`calibrate_with_glass`): an outer fixed point around :func:`calibrate`:
-  compute the apparent points at the current state, calibrate (warm started), repeat until the
-  apparent points move by less than ``tol_mm``. Inside one calibration the apparent points are
-  held, i.e. their (weak, ≈ t/|c′Q| relative) dependence on the camera and mirror parameters is
-  not in the Jacobian; at the fixed point the model is exact, and with noise-free data the
-  truth is a zero-residual fixed point. The covariance of the other parameters is that of
-  :func:`calibrate` with the glass known.
-* **Thickness fitted** (:func:`fit_glass_thickness`): the profile of the cost over t,
-  SSR(t) = min over all other parameters (each a :func:`calibrate_with_glass`), minimised by
-  Newton steps on central differences; σ_t from the profile's curvature,
-  σ_t² = 2·σ̂²/SSR″(t̂) with σ̂² = SSR(t̂)/(2M − p − 1) — for least squares the profile's
-  curvature is 2/[(JᵀJ)⁻¹]_tt, so this is the linearised standard deviation of t (residual
-  noise model, i.i.d. pixel residuals). The index n is held (it is known for a given glass
-  type; fitting it jointly with t is nearly degenerate: both scale the shift alike).
+:func:`calibrate_with_glass` is the staged fit: first with the glass held at its start values
+(which brings the cameras and mirrors near their solution), then with the chosen glass
+parameters free. t alone is well determined by a 16-pose calibration (its effect grows with the
+viewing angle, tan θ − tan θ_g, unlike any camera or mirror parameter); t and n together are
+strongly correlated (both scale the shift, differently only at large angles), so fit n only with
+a good pose set and expect a large σ_n.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
-import numpy as np
+from dataclasses import replace
 
 from ..geometry.cover_glass import CoverGlass
-from .model import CalibrationState, Observations
+from .model import CalibrationState
 from .solver import calibrate
 
-__all__ = ["glass_observations", "calibrate_with_glass", "GlassFit", "fit_glass_thickness"]
+__all__ = ["calibrate_with_glass"]
 
 
-def glass_observations(observations, state: CalibrationState, glass: CoverGlass, surface) -> list[Observations]:
-    """The correspondences with their screen points replaced by the apparent points of ``glass``
-    for the camera centres and mirror planes of ``state`` (``surface``: the emitting surface
-    of the screen model, screen frame). Correspondences whose apparent point fails are dropped."""
-    out = []
-    for o in observations:
-        c = state.cameras[o.camera].position_mm
-        cp = state.mirrors[o.pose_index].reflect(c)
-        q = np.array(o.q_screen_mm, dtype=float)
-        q[:, 2] = surface.height(q[:, 0], q[:, 1])
-        qa = glass.apparent_points(surface, cp, q)
-        ok = np.isfinite(qa).all(axis=-1)
-        std = None if o.q_std_mm is None else np.asarray(o.q_std_mm)[ok]
-        out.append(Observations(o.camera, o.pose_index, o.uv_px[ok], qa[ok], std))
-    return out
-
-
-def _surface(state: CalibrationState, planar_surface):
-    return planar_surface if state.screen is None else state.screen.surface
-
-
-def calibrate_with_glass(observations, start: CalibrationState, glass: CoverGlass, planar_surface, *,
-                         screen_model=None, max_outer: int = 6, tol_mm: float = 1e-6):
-    """Holistic calibration with a known cover glass (module docstring: outer fixed point).
+def calibrate_with_glass(observations, start: CalibrationState, glass: CoverGlass, *, screen_model=None,
+                         fit_thickness: bool = True, fit_index: bool = False, **options):
+    """Holistic calibration with the screen's cover glass (module docstring: the staged fit).
 
     Parameters
     ----------
     observations : list of Observations
-        The decoded correspondences (emitting-surface points).
+        The decoded correspondences (points on the emitting surface).
     start : CalibrationState
-        Start values.
+        Start values of the cameras and mirrors (its glass and screen model are replaced).
     glass : CoverGlass
-        The glass (held).
-    planar_surface : SplineSurface or PlaneSurface
-        The planar screen over the screen's grid (the emitting surface without a screen model).
+        The glass's start (or known) thickness and index; a thickness of 0 with nothing to fit is
+        the glass-free calibration.
     screen_model : ScreenModel, optional
-        Free-form screen model estimated jointly (as in :func:`calibrate`).
+        Free-form screen model estimated jointly (as in :func:`calibrate`); None keeps
+        ``start.screen``.
+    fit_thickness, fit_index : bool
+        Estimate t, n (second stage); both False: the glass is held (one stage).
+    **options
+        Passed to :func:`calibrate` (``max_iter``, ``ftol``, …).
 
     Returns
     -------
-    (CalibrationResult, int)
-        The last calibration and the number of outer iterations.
+    CalibrationResult
+        The final stage's result: its ``glass`` is the fitted glass, ``glass_std()`` the σ of
+        the free parameters.
     """
-    obs = list(observations)
-    if not glass.present:
-        return calibrate(obs, start, screen_model=screen_model), 0
-    state = start if screen_model is None else CalibrationState(start.cameras, start.mirrors, screen_model)
-    prev = None
-    result = None
-    for it in range(1, max_outer + 1):
-        eff = glass_observations(obs, state, glass, _surface(state, planar_surface))
-        q = np.concatenate([o.q_screen_mm[:, :2] for o in eff])
-        result = calibrate(eff, state, screen_model=state.screen)
-        state = result.state
-        if prev is not None and prev.shape == q.shape and float(np.abs(q - prev).max()) < tol_mm:
-            return result, it
-        prev = q
-    return result, max_outer
-
-
-@dataclass(frozen=True, eq=False)
-class GlassFit:
-    """Result of :func:`fit_glass_thickness`: the calibration at the fitted thickness."""
-
-    result: object  # CalibrationResult
-    glass: CoverGlass
-    thickness_std_mm: float
-    profile: tuple[tuple[float, float], ...]  # (t, SSR) evaluated
-
-
-def fit_glass_thickness(observations, start: CalibrationState, glass0: CoverGlass, planar_surface, *,
-                        screen_model=None, step_mm: float = 0.1, tol_mm: float = 1e-3, max_iter: int = 8) -> GlassFit:
-    """Estimate the glass thickness t jointly with the calibration (module docstring: profile).
-
-    ``glass0`` gives the start thickness and the (held) index. Returns the calibration at t̂ and
-    σ_t.
-    """
-    obs = list(observations)
-    state = start
-    profile = []
-
-    def ssr(t):
-        nonlocal state
-        r, _ = calibrate_with_glass(obs, state, glass0.with_(thickness_mm=max(t, 0.0)), planar_surface,
-                                    screen_model=screen_model if state.screen is None else state.screen)
-        state = r.state
-        f = float(r.rms_px) ** 2 * r.n_residuals
-        profile.append((float(t), f))
-        return f, r
-
-    t = glass0.thickness_mm
-    h = step_mm
-    f0 = fm = fp = curv = None
-    for _ in range(max_iter):
-        fm, _ = ssr(t - h)
-        fp, _ = ssr(t + h)
-        f0, r0 = ssr(t)
-        curv = (fp - 2.0 * f0 + fm) / (h * h)
-        if not curv > 0:
-            raise ValueError(f"the cost is not convex in the glass thickness around t = {t:g} mm; "
-                             f"the data do not determine it")
-        dt = -(fp - fm) / (2.0 * h) / curv  # SSR is nearly quadratic in t: 1–2 steps
-        t = max(t + dt, h)
-        if abs(dt) < tol_mm:
-            break
-    f_hat, r_hat = ssr(t)
-    dof = max(r_hat.n_residuals - len(r_hat.parameter_names) - 1, 1)
-    sigma2 = f_hat / dof
-    std = math.sqrt(2.0 * sigma2 / curv)
-    return GlassFit(r_hat, glass0.with_(thickness_mm=t), std, tuple(profile))
+    if not isinstance(glass, CoverGlass):
+        raise TypeError(f"glass must be a CoverGlass, got {type(glass).__name__}")
+    screen = start.screen if screen_model is None else screen_model
+    free = (bool(fit_thickness), bool(fit_index))
+    use = glass if (glass.present or any(free)) else None
+    held = CalibrationState(start.cameras, start.mirrors, screen, use, (False, False))
+    first = calibrate(observations, held, **options)
+    if not any(free):
+        return first
+    return calibrate(observations, replace(first.state, glass_free=free), **options)

@@ -125,6 +125,43 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     return ru, rv, True
 
 
+@numba.njit(cache=True, inline="always")
+def _glass_correct(jac, gk, mir_k, e1, e2, cen_c, ext):
+    """Add the cover glass's terms to one correspondence's Jacobian, computed by
+    :func:`_model_row` at the apparent point q (:mod:`pmdsim.calibration.glass_kernel`; ``gk``
+    its 30 stored derivatives): the camera-centre and mirror columns through the virtual centre
+    c′ (dq/dc′, with dc′/dc = I − 2nnᵀ, dc′/dd = 2n, dc′/da = −2(s_c·e1 + (e1·c)·n), likewise b),
+    ∂r/∂(q_x, q_y, q_z) ← ∂r/∂q·(I − M)⁻¹ (w.r.t. the emitting point Q), and ``ext[i]`` =
+    (∂r/∂h_x, ∂r/∂h_y through the plate normal, ∂r/∂t, ∂r/∂n)."""
+    nx, ny, nz, dd = mir_k[0], mir_k[1], mir_k[2], mir_k[3]
+    s_c = nx * cen_c[0] + ny * cen_c[1] + nz * cen_c[2] - dd
+    e1c = e1[0] * cen_c[0] + e1[1] * cen_c[1] + e1[2] * cen_c[2]
+    e2c = e2[0] * cen_c[0] + e2[1] * cen_c[1] + e2[2] * cen_c[2]
+    for i in range(2):
+        g0 = jac[i, _NB + 1]
+        g1 = jac[i, _NB + 2]
+        g2 = jac[i, _NB]
+        gn0 = g0 * gk[9] + g1 * gk[12] + g2 * gk[15]
+        gn1 = g0 * gk[10] + g1 * gk[13] + g2 * gk[16]
+        gn2 = g0 * gk[11] + g1 * gk[14] + g2 * gk[17]
+        gnn = gn0 * nx + gn1 * ny + gn2 * nz
+        jac[i, 11] += gn0 - 2.0 * nx * gnn
+        jac[i, 12] += gn1 - 2.0 * ny * gnn
+        jac[i, 13] += gn2 - 2.0 * nz * gnn
+        gne1 = gn0 * e1[0] + gn1 * e1[1] + gn2 * e1[2]
+        gne2 = gn0 * e2[0] + gn1 * e2[1] + gn2 * e2[2]
+        jac[i, 14] += -2.0 * (s_c * gne1 + e1c * gnn)
+        jac[i, 15] += -2.0 * (s_c * gne2 + e2c * gnn)
+        jac[i, 16] += 2.0 * gnn
+        jac[i, _NB + 1] = g0 * gk[0] + g1 * gk[3] + g2 * gk[6]
+        jac[i, _NB + 2] = g0 * gk[1] + g1 * gk[4] + g2 * gk[7]
+        jac[i, _NB] = g0 * gk[2] + g1 * gk[5] + g2 * gk[8]
+        ext[i, 0] = g0 * gk[24] + g1 * gk[25] + g2 * gk[26]
+        ext[i, 1] = g0 * gk[27] + g1 * gk[28] + g2 * gk[29]
+        ext[i, 2] = g0 * gk[18] + g1 * gk[19] + g2 * gk[20]
+        ext[i, 3] = g0 * gk[21] + g1 * gk[22] + g2 * gk[23]
+
+
 #: Correspondences whose Jacobian rows are gathered before they are added to JᵀJ (2 rows each).
 _BATCH = 64
 
@@ -163,7 +200,7 @@ def _gram_add(bt, rows, acc):
 
 @numba.njit(cache=True)
 def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj, h_unit,
-               want_normal, jtj, jtr, sandwich, slope, qstd):
+               want_normal, jtj, jtr, sandwich, slope, qstd, glass_on, gl, dwx, dwy, gsel, g_units):
     """Serial work item: correspondences start…end of one block. Accumulates the block's
     (scaled) JᵀJ (full square, the 17 block parameters then the F free screen heights) and Jᵀr
     if ``want_normal``. Returns (SSR, whitened SSR, number behind camera).
@@ -180,10 +217,18 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
     B_k = ∂r/∂(x_q, y_q)·diag(qstd[k]) (2 × 2; with the screen's height slope ``slope[k]``
     (∂h/∂x, ∂h/∂y), since q_z = h(x_q, y_q)): Cov(r_k) ∝ B_k B_kᵀ. Then ``jtj`` receives
     Σ_k J_kᵀ B_k B_kᵀ J_k (the middle of the sandwich covariance) instead of JᵀJ, and the
-    whitened SSR Σ_k r_kᵀ (B_k B_kᵀ)⁻¹ r_k is returned."""
+    whitened SSR Σ_k r_kᵀ (B_k B_kᵀ)⁻¹ r_k is returned.
+
+    ``glass_on``: ``q`` holds the apparent points and ``gl`` (N, 30) their derivatives
+    (:mod:`pmdsim.calibration.glass_kernel`, :func:`_glass_correct`); the screen-height columns
+    gain the plate normal's terms (``dwx``, ``dwy``: the basis weights' derivatives), and the
+    G = ``gsel.shape[0]`` free glass parameters (``gsel``: 0 thickness, 1 index; internal units
+    ``g_units``) follow the screen heights."""
     nf = fi.shape[0]
-    npar = _NB + nf
+    ng = gsel.shape[0]
+    npar = _NB + nf + ng
     jac = np.zeros((2, _NJ))
+    ext = np.zeros((2, 4))
     if want_normal:
         ncol = npar + 1 + ((npar + 1) & 1)  # parameters, residual, padding to an even count
         bt = np.zeros((ncol, 2 * _BATCH))
@@ -209,6 +254,8 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
             continue
         ssr += ru * ru + rv * rv
         if want_normal:
+            if glass_on:
+                _glass_correct(jac, gl[k], mir_k, e1_k, e2_k, cen_c, ext)
             for j in range(_NB):
                 jac[0, j] *= units[j]
                 jac[1, j] *= units[j]
@@ -228,6 +275,12 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
                     j1 = jac[1, j]
                     jac[0, j] = b00 * j0 + b10 * j1
                     jac[1, j] = b01 * j0 + b11 * j1
+                if glass_on:
+                    for j in range(4):
+                        j0 = ext[0, j]
+                        j1 = ext[1, j]
+                        ext[0, j] = b00 * j0 + b10 * j1
+                        ext[1, j] = b01 * j0 + b11 * j1
             c0 = 2 * slot
             c1 = c0 + 1
             for j in range(_NB):
@@ -240,6 +293,14 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
                     sf = wy[k, fj[f]] * wx[k, fi[f]]
                     bt[_NB + f, c0] = dz0 * sf
                     bt[_NB + f, c1] = dz1 * sf
+                    if glass_on:
+                        sx = dwx[k, fi[f]] * wy[k, fj[f]] * h_unit
+                        sy = wx[k, fi[f]] * dwy[k, fj[f]] * h_unit
+                        bt[_NB + f, c0] += ext[0, 0] * sx + ext[0, 1] * sy
+                        bt[_NB + f, c1] += ext[1, 0] * sx + ext[1, 1] * sy
+            for g in range(ng):
+                bt[_NB + nf + g, c0] = ext[0, 2 + gsel[g]] * g_units[g]
+                bt[_NB + nf + g, c1] = ext[1, 2 + gsel[g]] * g_units[g]
             bt[npar, c0] = ru
             bt[npar, c1] = rv
             slot += 1
@@ -259,26 +320,35 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
 
 @numba.njit(cache=True, parallel=True)
 def _chunks_kernel(c_start, c_end, c_cam, c_pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj,
-                   h_unit, want_normal, jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w):
+                   h_unit, want_normal, jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w, glass_on, gl, dwx, dwy,
+                   gsel, g_units):
     for c in numba.prange(0, c_start.shape[0]):
         s, sw, b = _chunk_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, intr, rot, cen, mir,
                               e1, e2, units, wx, wy, fi, fj, h_unit, want_normal, jtj[c], jtr[c],
-                              sandwich, slope, qstd)
+                              sandwich, slope, qstd, glass_on, gl, dwx, dwy, gsel, g_units)
         ssr[c] = s
         ssr_w[c] = sw
         nbad[c] = b
 
 
 @numba.njit(cache=True)
-def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac, ok):
-    """Residuals (N, 2), Jacobian blocks (N, 2, 18) in natural units (17 block columns, then
-    ∂r/∂q_z) and validity, per row."""
+def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac, ok, glass_on, gl, ext_out):
+    """Residuals (N, 2), Jacobian blocks (N, 2, 20) in natural units (17 block columns, then
+    ∂r/∂q_z, ∂r/∂q_x, ∂r/∂q_y) and validity, per row; with ``glass_on`` (``q``: the apparent
+    points, ``gl`` their derivatives) corrected by :func:`_glass_correct`, whose extra columns
+    go to ``ext_out`` (N, 2, 4)."""
     tmp = np.zeros((2, _NJ))
+    ext = np.zeros((2, 4))
     for k in range(uv.shape[0]):
         c = cam_idx[k]
         p = pose_idx[k]
         ru, rv, good = _model_row(uv[k, 0], uv[k, 1], q[k, 0], q[k, 1], q[k, 2], intr[c], rot[c],
                                   cen[c], mir[p], e1[p], e2[p], np.bool_(True), tmp)
+        if glass_on:
+            _glass_correct(tmp, gl[k], mir[p], e1[p], e2[p], cen[c], ext)
+            for i in range(2):
+                for j in range(4):
+                    ext_out[k, i, j] = ext[i, j]
         res[k, 0] = ru
         res[k, 1] = rv
         ok[k] = good
@@ -289,14 +359,17 @@ def _rows_kernel(cam_idx, pose_idx, uv, q, intr, rot, cen, mir, e1, e2, res, jac
 
 @numba.njit(cache=True)
 def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, intr_t, rot_t, cen_t, mir_t, e1_t,
-             e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit, h, out):
+             e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit, h, out, glass_on, gl, dwx, dwy, gsel, g_units,
+             d_g):
     """Serial work item of :func:`_avv_kernel`: adds J_kᵀ·r_vv,k (internal units) of the
     correspondences start…end of one block to ``out`` (17 + F,). Returns the number of
     correspondences skipped because a virtual point lies behind the camera at x or at x + hδ."""
     nf = fi.shape[0]
+    ng = gsel.shape[0]
     jac = np.zeros((2, _NJ))
+    ext = np.zeros((2, 4))
     dummy = np.zeros((2, _NJ))
-    acc = np.zeros(_NB + nf)
+    acc = np.zeros(_NB + nf + ng)
     nbad = 0
     dc = d_cam[cam]
     dm = d_mir[pose]
@@ -314,6 +387,8 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
         if not (ok and ok_t):
             nbad += 1
             continue
+        if glass_on:
+            _glass_correct(jac, gl[k], mir_k, e1_k, e2_k, cen_c, ext)
         # J·δ (natural units).
         jd0 = 0.0
         jd1 = 0.0
@@ -328,6 +403,17 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
             dz_h += wy[k, fj[f]] * wx[k, fi[f]] * d_h[f]
         jd0 += jac[0, _NB] * dz_h
         jd1 += jac[1, _NB] * dz_h
+        if glass_on:
+            dsx = 0.0
+            dsy = 0.0
+            for f in range(nf):
+                dsx += dwx[k, fi[f]] * wy[k, fj[f]] * d_h[f]
+                dsy += wx[k, fi[f]] * dwy[k, fj[f]] * d_h[f]
+            jd0 += ext[0, 0] * dsx + ext[0, 1] * dsy
+            jd1 += ext[1, 0] * dsx + ext[1, 1] * dsy
+            for g in range(ng):
+                jd0 += ext[0, 2 + gsel[g]] * d_g[g]
+                jd1 += ext[1, 2 + gsel[g]] * d_g[g]
         # Second directional derivative by a finite difference along δ.
         a0 = 2.0 * inv_h * ((rut - ru) * inv_h - jd0)
         a1 = 2.0 * inv_h * ((rvt - rv) * inv_h - jd1)
@@ -337,16 +423,23 @@ def _avv_run(start, end, cam, pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, int
             gz = (jac[0, _NB] * a0 + jac[1, _NB] * a1) * h_unit
             for f in range(nf):
                 acc[_NB + f] += gz * wy[k, fj[f]] * wx[k, fi[f]]
+                if glass_on:
+                    gx_ = (ext[0, 0] * a0 + ext[1, 0] * a1) * h_unit
+                    gy_ = (ext[0, 1] * a0 + ext[1, 1] * a1) * h_unit
+                    acc[_NB + f] += gx_ * dwx[k, fi[f]] * wy[k, fj[f]] + gy_ * wx[k, fi[f]] * dwy[k, fj[f]]
+        for g in range(ng):
+            acc[_NB + nf + g] += (ext[0, 2 + gsel[g]] * a0 + ext[1, 2 + gsel[g]] * a1) * g_units[g]
     for j in range(_NB):
         out[j] = acc[j] * units[j]
-    for f in range(nf):
+    for f in range(nf + ng):
         out[_NB + f] = acc[_NB + f]
     return nbad
 
 
 @numba.njit(cache=True, parallel=True)
 def _avv_kernel(c_start, c_end, c_cam, c_pose, uv, q, q_t, intr, rot, cen, mir, e1, e2, intr_t, rot_t, cen_t, mir_t,
-                e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit, h, out, nbad):
+                e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit, h, out, nbad, glass_on, gl, dwx, dwy, gsel,
+                g_units, d_g):
     """Jᵀ·r_vv per chunk for the geodesic acceleration of Levenberg–Marquardt (Transtrum &
     Sethna 2012): r_vv ≈ (2/h)·((r(x + hδ) − r(x))/h − J·δ), the second directional derivative
     of the residuals along the step δ, by a finite difference.
@@ -354,11 +447,13 @@ def _avv_kernel(c_start, c_end, c_cam, c_pose, uv, q, q_t, intr, rot, cen, mir, 
     The state x is given by (intr … e2), the state x + hδ by (intr_t … e2_t) with ``q_t`` its
     screen points; δ in natural units per block: ``d_cam`` (C, 14), ``d_mir`` (K, 3), ``d_h``
     (F,). ``out`` (chunks, 17 + F) receives Jᵀ·r_vv in internal units (block parameters, then
-    the free screen heights), ``nbad`` (chunks,) the skipped correspondences."""
+    the free screen heights, then the free glass parameters), ``nbad`` (chunks,) the skipped
+    correspondences. With ``glass_on``, ``q`` and ``q_t`` are the apparent points at x and
+    x + hδ, ``gl`` the derivatives at x and ``d_g`` the glass part of δ."""
     for c in numba.prange(0, c_start.shape[0]):
         nbad[c] = _avv_run(c_start[c], c_end[c], c_cam[c], c_pose[c], uv, q, q_t, intr, rot, cen, mir, e1, e2,
                            intr_t, rot_t, cen_t, mir_t, e1_t, e2_t, d_cam, d_mir, d_h, units, wx, wy, fi, fj, h_unit,
-                           h, out[c])
+                           h, out[c], glass_on, gl, dwx, dwy, gsel, g_units, d_g)
 
 
 @numba.njit(cache=True, parallel=True)

@@ -56,6 +56,7 @@ import numpy as np
 
 from ..errors import SetupError
 from ..geometry.camera import Camera
+from ..geometry.cover_glass import CoverGlass
 from ..geometry.transform import RigidTransform, rotvec_to_matrix
 from .errors import CalibrationDataError
 from .screen import ScreenModel
@@ -87,6 +88,10 @@ _MIR_UNITS = np.array([PARAMETER_UNITS[p] for p in MIRROR_PARAMETERS])
 
 #: Internal unit of the free screen heights ``screen.h[j,i]_mm`` (mm).
 SCREEN_HEIGHT_UNIT_MM = 0.1
+#: Names of the cover glass's parameters (thickness t, index n), when free.
+GLASS_PARAMETERS = ("screen.glass_thickness_mm", "screen.glass_index")
+#: Internal units of the glass parameters (0.1 mm, 0.01).
+GLASS_UNITS = (0.1, 0.01)
 #: A correspondence "sees" a free screen control height (j, i) if its basis weight
 #: |w_i(x_q)·w_j(y_q)| is at least this (the weight is 1 at the control point; the not-a-knot
 #: basis decays by about 4× per grid interval); :func:`calibrate` needs ``min_correspondences``
@@ -318,11 +323,15 @@ class MirrorPlane:
 class CalibrationState:
     """All calibration parameters: cameras by name (in parameter order), mirror planes by
     pose index (in the screen frame) and, optionally, the screen model whose free control
-    heights are estimated (None: the correspondences' q are used as given, e.g. the plane z = 0)."""
+    heights are estimated (None: the correspondences' q are used as given, e.g. the plane z = 0)
+    and the screen's cover glass (None: none) with the flags ``glass_free`` = (thickness free,
+    index free) (:mod:`pmdsim.calibration.glass`)."""
 
     cameras: dict[str, CameraParams]
     mirrors: tuple[MirrorPlane, ...]
     screen: ScreenModel | None = None
+    glass: CoverGlass | None = None
+    glass_free: tuple[bool, bool] = (False, False)
 
     def __post_init__(self) -> None:
         cams = dict(self.cameras)
@@ -339,6 +348,13 @@ class CalibrationState:
                 raise TypeError(f"CalibrationState.mirrors[{k}] must be a MirrorPlane, got {type(mp).__name__}")
         if self.screen is not None and not isinstance(self.screen, ScreenModel):
             raise TypeError(f"CalibrationState.screen must be a ScreenModel or None, got {type(self.screen).__name__}")
+        if self.glass is not None and not isinstance(self.glass, CoverGlass):
+            raise TypeError(f"CalibrationState.glass must be a CoverGlass or None, got {type(self.glass).__name__}")
+        free = tuple(bool(f) for f in self.glass_free)
+        if len(free) != 2 or (any(free) and self.glass is None):
+            raise ValueError(f"CalibrationState.glass_free must be two flags (thickness, index) and needs a glass, "
+                             f"got {self.glass_free!r} with glass {self.glass!r}")
+        object.__setattr__(self, "glass_free", free)
         object.__setattr__(self, "cameras", cams)
         object.__setattr__(self, "mirrors", mirrors)
 
@@ -353,7 +369,23 @@ class CalibrationState:
         names += [f"mirror{k}.{p}" for k in range(len(self.mirrors)) for p in MIRROR_PARAMETERS]
         if self.screen is not None:
             names += self.screen.free_names()
+        names += [GLASS_PARAMETERS[g] for g in self.glass_index]
         return names
+
+    @property
+    def glass_active(self) -> bool:
+        """True when the model includes the cover glass (a thickness > 0 or a free parameter)."""
+        return self.glass is not None and (self.glass.present or any(self.glass_free))
+
+    @property
+    def glass_index(self) -> tuple[int, ...]:
+        """Which glass parameters are free: 0 thickness, 1 index (in parameter order)."""
+        return tuple(g for g in (0, 1) if self.glass_free[g])
+
+    @property
+    def n_glass(self) -> int:
+        """Number of free glass parameters (0–2)."""
+        return len(self.glass_index)
 
     @property
     def n_screen(self) -> int:
@@ -362,7 +394,7 @@ class CalibrationState:
 
     @property
     def n_parameters(self) -> int:
-        return _NC * len(self.cameras) + _NM * len(self.mirrors) + self.n_screen
+        return _NC * len(self.cameras) + _NM * len(self.mirrors) + self.n_screen + self.n_glass
 
     def updated(self, delta) -> "CalibrationState":
         """The state moved by the increment ``delta`` (natural units, in :meth:`parameter_names`
@@ -384,10 +416,14 @@ class CalibrationState:
             e1, e2 = m.tangent_basis()
             mirrors.append(MirrorPlane(m.normal + dm[0] * e1 + dm[1] * e2, m.d_mm + dm[2]))
         screen = self.screen
+        off += _NM * len(self.mirrors)
         if screen is not None and screen.n_free:
-            off += _NM * len(self.mirrors)
-            screen = screen.with_free_heights(screen.free_heights_mm + delta[off:])
-        return CalibrationState(cams, tuple(mirrors), screen)
+            screen = screen.with_free_heights(screen.free_heights_mm + delta[off:off + self.n_screen])
+        glass = self.glass
+        if self.n_glass:
+            dg = dict(zip(self.glass_index, delta[off + self.n_screen:]))
+            glass = glass.with_(thickness_mm=glass.thickness_mm + dg.get(0, 0.0), index=glass.index + dg.get(1, 0.0))
+        return CalibrationState(cams, tuple(mirrors), screen, glass, self.glass_free)
 
     def increment_to(self, other: "CalibrationState") -> np.ndarray:
         """The increment δ (n,) with ``self.updated(δ)`` equal to ``other`` (to rounding): the
@@ -417,6 +453,8 @@ class CalibrationState:
                     and np.array_equal(self.screen.grid_y_mm, other.screen.grid_y_mm)
                     and np.array_equal(self.screen.free, other.screen.free))):
             raise ValueError("the states differ in their screen models (grid or free heights)")
+        if self.glass_free != other.glass_free:
+            raise ValueError("the states differ in their free glass parameters")
         out = []
         for cp, co in zip(self.cameras.values(), other.cameras.values()):
             out += [getattr(co.camera, f) - getattr(cp.camera, f) for f in _INTRINSICS]
@@ -431,6 +469,9 @@ class CalibrationState:
             out += [float(n_o @ e1) / c, float(n_o @ e2) / c, d_o - m.d_mm]
         if self.screen is not None:
             out += list(other.screen.free_heights_mm - self.screen.free_heights_mm)
+        for g in self.glass_index:
+            a, b = (self.glass.thickness_mm, other.glass.thickness_mm) if g == 0 else (self.glass.index, other.glass.index)
+            out.append(b - a)
         return np.array(out, dtype=float)
 
     # kernel arrays ---------------------------------------------------------------------
@@ -570,7 +611,7 @@ PARAMETER_BLOCKS = ("intrinsics", "camera_poses", "mirrors", "screen")
 
 def parameter_block(name: str) -> str:
     """The block of a parameter: ``"intrinsics"`` (fx … p2 of any camera), ``"camera_poses"``
-    (rotvec, position), ``"mirrors"`` (tilts, d) or ``"screen"`` (free heights)."""
+    (rotvec, position), ``"mirrors"`` (tilts, d) or ``"screen"`` (free heights, cover glass)."""
     head, _, kind = name.partition(".")
     if head == "screen":
         return "screen"
@@ -584,6 +625,8 @@ def parameter_group(name: str) -> str:
     (``"left.fx_px"`` → ``"fx_px"``), ``"mirror.<kind>"`` for mirror parameters
     (``"mirror3.d_mm"`` → ``"mirror.d_mm"``), ``"screen.h_mm"`` for free screen heights."""
     head, _, kind = name.partition(".")
+    if name in GLASS_PARAMETERS:
+        return name
     if head == "screen":
         return "screen.h_mm"
     if head.startswith("mirror") and head[6:].isdigit():

@@ -33,7 +33,8 @@ from typing import Mapping
 import numpy as np
 
 from .screen import ScreenModel
-from .model import CalibrationState, CameraParams, DEFAULT_CONDITION_LIMIT, _matrix_to_rotvec
+from ..geometry.cover_glass import CoverGlass
+from .model import GLASS_PARAMETERS, CalibrationState, CameraParams, DEFAULT_CONDITION_LIMIT, _matrix_to_rotvec
 
 
 # ============================================================================ result
@@ -119,6 +120,12 @@ class CalibrationResult:
         residuals imply — in mm when the observations carry no ``q_std_mm`` (an estimate of the
         decoding noise, comparable with the decoder's predicted σ), otherwise the factor by
         which their ``q_std_mm`` are too small (> 1) or too large (< 1).
+    glass : CoverGlass or None
+        The screen's cover glass of the model (fitted where ``glass_free``; None: none); the
+        standard deviations of free ones are the ``screen.glass_thickness_mm`` and
+        ``screen.glass_index`` entries of :attr:`parameter_std` (:meth:`glass_std`).
+    glass_free : tuple[bool, bool]
+        Whether the thickness and the index were estimated.
     """
 
     cameras: dict
@@ -138,6 +145,12 @@ class CalibrationResult:
     std_inflation: np.ndarray | None = None
     weak_directions: tuple = ()
     screen_noise_std: float = math.nan
+    glass: CoverGlass | None = None
+    glass_free: tuple = (False, False)
+
+    def glass_std(self) -> tuple[float | None, float | None]:
+        """(σ_t in mm, σ_n) of the fitted glass thickness and index (None where not fitted)."""
+        return tuple(self.std(GLASS_PARAMETERS[g]) if self.glass_free[g] else None for g in (0, 1))
 
     def poorly_determined(self, prior_std: Mapping[str, float], fraction: float = 0.5) -> dict[str, tuple[float, float]]:
         """The parameters that the data determine hardly better than was known before.
@@ -206,7 +219,7 @@ class CalibrationResult:
     def state(self) -> CalibrationState:
         """The estimate as a :class:`CalibrationState` (e.g. to restart from it)."""
         return CalibrationState({k: CameraParams(c, t) for k, (c, t) in self.cameras.items()},
-                                tuple(self.mirrors), self.screen_model)
+                                tuple(self.mirrors), self.screen_model, self.glass, self.glass_free)
 
     @property
     def screen_std_mm(self) -> np.ndarray | None:
@@ -249,9 +262,16 @@ class CalibrationResult:
             screen = {"grid_x_mm": sm.grid_x_mm.tolist(), "grid_y_mm": sm.grid_y_mm.tolist(),
                       "heights_mm": sm.heights_mm.tolist(), "free": sm.free.tolist(),
                       "heights_std_mm": self.screen_std_mm.tolist()}
+        glass = None
+        if self.glass is not None:
+            st, sn = self.glass_std()
+            glass = {"thickness_mm": self.glass.thickness_mm, "index": self.glass.index,
+                     "fit_thickness": bool(self.glass_free[0]), "fit_index": bool(self.glass_free[1]),
+                     "thickness_std_mm": st, "index_std": sn}
         return {
             "frame": "screen (held fixed)",
             "screen": screen,
+            "glass": glass,
             "cameras": cams,
             "mirrors": [{"normal": m.normal.tolist(), "d_mm": m.d_mm} for m in self.mirrors],
             "converged": bool(self.converged),

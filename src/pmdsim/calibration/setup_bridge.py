@@ -24,11 +24,16 @@ __all__ = ["nominal_setup", "free_screen_model", "table_frame_from_plane", "cali
            "calibration_deviation", "calibration_summary", "setup_covariance", "perturbed_setup"]
 
 
-def nominal_setup(truth: Setup) -> Setup:
+def nominal_setup(truth: Setup, glass=None) -> Setup:
     """What the calibration starts from and assumes: the truth's design (camera models, poses,
     mirror poses) with a planar screen over the same extent and a planar calibration mirror.
-    (Start values are perturbed from it by :func:`calibrate_and_reconstruct`.)"""
-    scr = replace(truth.screen, heights_mm=None, bulge_mm=None)
+    (Start values are perturbed from it by :func:`calibrate_and_reconstruct`.)
+
+    The truth's cover glass is *not* carried over (a calibration must not know it): the nominal
+    screen has the glass ``glass`` (a :class:`~pmdsim.geometry.cover_glass.CoverGlass`: what the
+    nominal design declares) or none."""
+    t, n = (0.0, None) if glass is None else (glass.thickness_mm, glass.index)
+    scr = replace(truth.screen, heights_mm=None, bulge_mm=None, cover_glass_thickness_mm=t, cover_glass_index=n)
     return replace(truth, screen=scr, calibration_covariance=None).with_mirror_sag(0.0)
 
 
@@ -90,13 +95,17 @@ def setup_covariance(result) -> CalibrationCovariance | None:
 def calibrated_setup(nominal: Setup, result) -> Setup:
     """The setup as the calibration knows it: estimated cameras (poses in the world frame of the
     screen held at its nominal pose — the gauge), planar screen, and the calibrated table plane
-    (mirror pose 0) as the sample frame; it carries :func:`setup_covariance`."""
+    (mirror pose 0) as the sample frame; the screen's cover glass is the calibration's (fitted
+    or held; none if the calibration had none); it carries :func:`setup_covariance`."""
     return _calibrated_setup(nominal, result).with_calibration_covariance(setup_covariance(result))
 
 
 def _calibrated_setup(nominal: Setup, result) -> Setup:
     from ..setup import Pose
 
+    glass = getattr(result, "glass", None)
+    nominal = (nominal.with_cover_glass(0.0) if glass is None
+               else nominal.with_cover_glass(glass.thickness_mm, glass.index))
     T_ws = nominal.screen.T_world_screen
     cams = {name: CameraSetup(cam, Pose.from_transform(T_ws @ T_sc)) for name, (cam, T_sc) in result.cameras.items()}
     table = table_frame_from_plane(nominal, result.mirrors[0])

@@ -32,10 +32,12 @@ import scipy.linalg
 
 from .errors import CalibrationDataError, CalibrationDegenerateError, CalibrationError
 from .screen import ScreenModel, _basis_weights
-from .model import (CalibrationState, DEFAULT_CONDITION_LIMIT, MIN_CORRESPONDENCES, MIN_POSES, Observations,
-                    SCREEN_HEIGHT_UNIT_MM, SCREEN_WEIGHT_MIN, WEAK_DIRECTIONS, _CAM_UNITS, _CHUNK, _MIR_UNITS, _NB,
+from .model import (CalibrationState, DEFAULT_CONDITION_LIMIT, GLASS_UNITS, MIN_CORRESPONDENCES, MIN_POSES,
+                    Observations, SCREEN_HEIGHT_UNIT_MM, SCREEN_WEIGHT_MIN, WEAK_DIRECTIONS, _CAM_UNITS, _CHUNK, _MIR_UNITS, _NB,
                     _NC, _NJ, _NM, _PLANE_HINT_TOL)
-from .kernel import _avv_kernel, _chunks_kernel, _rows_kernel, _screen_points_kernel
+from .kernel import _avv_kernel, _chunks_kernel, _screen_points_kernel
+from .glass_kernel import glass_inputs
+from .jacobian import residuals_and_jacobian  # noqa: F401  (public here since the beginning)
 from .result import CalibrationResult, WeakDirection
 
 
@@ -208,7 +210,7 @@ def _pack(observations: Iterable[Observations], state: CalibrationState, min_cor
 
 def _units(state: CalibrationState) -> np.ndarray:
     return np.concatenate([np.tile(_CAM_UNITS, len(state.cameras)), np.tile(_MIR_UNITS, len(state.mirrors)),
-                           np.full(state.n_screen, SCREEN_HEIGHT_UNIT_MM)])
+                           np.full(state.n_screen, SCREEN_HEIGHT_UNIT_MM), [GLASS_UNITS[g] for g in state.glass_index]])
 
 
 def _block_index(state: CalibrationState, ci: int, k: int) -> np.ndarray:
@@ -229,7 +231,9 @@ def _evaluate(data: _Data, state: CalibrationState, want_normal: bool, sandwich:
     nf = state.n_screen
     if nf != data.fi.shape[0]:
         raise ValueError("the state's screen model does not match the packed data")
-    q = _screen_q(data.q, data.wx, data.wy, state.screen)
+    glass_on, q, gl, dwx, dwy, gsel, g_units, gbad = glass_inputs(data, state,
+                                                                  _screen_q(data.q, data.wx, data.wy, state.screen))
+    nf += state.n_glass  # the glass columns follow the screen heights'
     if want_normal:
         jtj = np.empty((nch, _NB + nf, _NB + nf))
         jtr = np.empty((nch, _NB + nf))
@@ -247,10 +251,12 @@ def _evaluate(data: _Data, state: CalibrationState, want_normal: bool, sandwich:
         slope = qstd = np.zeros((1, 2))
     _chunks_kernel(data.c_start, data.c_end, data.c_cam, data.c_pose, data.uv, q, intr, rot, cen,
                    mir, e1, e2, units, data.wx, data.wy, data.fi, data.fj, SCREEN_HEIGHT_UNIT_MM, want_normal,
-                   jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w)
+                   jtj, jtr, ssr, nbad, sandwich, slope, qstd, ssr_w, glass_on, gl, dwx, dwy, gsel, g_units)
     nblk = len(data.block_keys)
     block_ssr = np.bincount(data.c_block, weights=ssr, minlength=nblk)
     block_bad = np.bincount(data.c_block, weights=nbad, minlength=nblk).astype(int)
+    if gbad is not None:  # no apparent point (the ray does not meet the glass from the sample side)
+        block_bad += np.add.reduceat(gbad.astype(int), np.r_[0, np.cumsum([e - b for b, e in data.block_rows])[:-1]])
     if not want_normal:
         return float(block_ssr.sum()), block_ssr, block_bad, None, None
     n = state.n_parameters
@@ -272,7 +278,7 @@ def _block_scatter(data: _Data, state: CalibrationState):
     17 + F columns)."""
     n = state.n_parameters
     names = state.camera_names
-    screen_idx = np.arange(n - state.n_screen, n)
+    screen_idx = np.arange(n - state.n_screen - state.n_glass, n)  # screen heights, then glass
     for b, (cam, k) in enumerate(data.block_keys):
         yield data.c_block == b, np.r_[_block_index(state, names.index(cam), k), screen_idx]
 
@@ -289,79 +295,27 @@ def _acceleration_gradient(data: _Data, state: CalibrationState, delta: np.ndarr
         return None
     nf = state.n_screen
     nc = len(state.cameras)
-    q = _screen_q(data.q, data.wx, data.wy, state.screen)
-    q_t = np.ascontiguousarray(_screen_q(data.q, data.wx, data.wy, probe.screen))
+    ng = state.n_glass
+    glass_on, q, gl, dwx, dwy, gsel, g_units, _ = glass_inputs(data, state, _screen_q(data.q, data.wx, data.wy,
+                                                                                     state.screen))
+    q_t = np.ascontiguousarray(glass_inputs(data, probe, _screen_q(data.q, data.wx, data.wy, probe.screen))[1])
     d_cam = np.ascontiguousarray(delta[:_NC * nc].reshape(nc, _NC))
     d_mir = np.ascontiguousarray(delta[_NC * nc:_NC * nc + _NM * len(state.mirrors)].reshape(-1, _NM))
-    d_h = np.ascontiguousarray(delta[delta.size - nf:]) if nf else np.zeros(0)
+    d_h = np.ascontiguousarray(delta[delta.size - nf - ng:delta.size - ng])
+    d_g = np.ascontiguousarray(delta[delta.size - ng:])
     nch = data.c_start.shape[0]
-    out = np.empty((nch, _NB + nf))
+    out = np.empty((nch, _NB + nf + ng))
     nbad = np.empty(nch, dtype=np.int64)
     units = np.concatenate([_CAM_UNITS, _MIR_UNITS])
     _avv_kernel(data.c_start, data.c_end, data.c_cam, data.c_pose, data.uv, q, q_t, *state._arrays(),
                 *probe._arrays(), d_cam, d_mir, d_h, units, data.wx, data.wy, data.fi, data.fj,
-                SCREEN_HEIGHT_UNIT_MM, float(h), out, nbad)
+                SCREEN_HEIGHT_UNIT_MM, float(h), out, nbad, glass_on, gl, dwx, dwy, gsel, g_units, d_g)
     if nbad.any():
         return None
     g2 = np.zeros(state.n_parameters)
     for sel, idx in _block_scatter(data, state):
         g2[idx] += out[sel].sum(axis=0)
     return g2
-
-
-def residuals_and_jacobian(observations: Iterable[Observations], state: CalibrationState):
-    """Residuals and the dense analytic Jacobian (for small observation sets and tests).
-
-    Returns
-    -------
-    r : ndarray (2M,)
-        Residuals (predicted − observed, px), ordered (u₀, v₀, u₁, v₁, …) over the
-        observations in the given order.
-    J : ndarray (2M, n)
-        dr/dΔ for the increments of :meth:`CalibrationState.updated` (natural units).
-    names : list[str]
-        Parameter names (columns of J).
-
-    Rows whose virtual point lies behind the camera are NaN.
-    """
-    obs = list(observations)
-    names = state.camera_names
-    cam_idx, pose_idx, uv, q = [], [], [], []
-    for o in obs:
-        if o.camera not in state.cameras:
-            raise CalibrationDataError(f"camera {o.camera!r} is not in the state (cameras: {names})")
-        if o.pose_index >= len(state.mirrors):
-            raise CalibrationDataError(f"mirror pose {o.pose_index} is not in the state ({len(state.mirrors)} mirrors)")
-        cam_idx.append(np.full(o.n, names.index(o.camera), dtype=np.int64))
-        pose_idx.append(np.full(o.n, o.pose_index, dtype=np.int64))
-        uv.append(o.uv_px)
-        q.append(o.q_screen_mm)
-    cam_idx = np.concatenate(cam_idx) if obs else np.zeros(0, dtype=np.int64)
-    pose_idx = np.concatenate(pose_idx) if obs else np.zeros(0, dtype=np.int64)
-    uv = np.ascontiguousarray(np.concatenate(uv)) if obs else np.zeros((0, 2))
-    q = np.ascontiguousarray(np.concatenate(q)) if obs else np.zeros((0, 3))
-    m = uv.shape[0]
-    wx, wy, fi, fj = _screen_arrays(state.screen, q)
-    q = np.ascontiguousarray(_screen_q(q, wx, wy, state.screen))
-    res = np.empty((m, 2))
-    jb = np.empty((m, 2, _NJ))
-    ok = np.empty(m, dtype=np.bool_)
-    _rows_kernel(cam_idx, pose_idx, uv, q, *state._arrays(), res, jb, ok)
-    n = state.n_parameters
-    jac = np.zeros((m, 2, n))
-    nc = _NC * len(state.cameras)
-    rows = np.arange(m)
-    for j in range(_NC):
-        jac[rows, :, _NC * cam_idx + j] = jb[:, :, j]
-    for j in range(_NM):
-        jac[rows, :, nc + _NM * pose_idx + j] = jb[:, :, _NC + j]
-    # Free screen heights: ∂r/∂Z_ji = (∂r/∂q_z)·w_j(y_q)·w_i(x_q).
-    off = n - state.n_screen
-    for f, (i, j) in enumerate(zip(fi, fj)):
-        jac[:, :, off + f] = jb[:, :, _NB] * (wy[:, j] * wx[:, i])[:, None]
-    res[~ok] = np.nan
-    jac[~ok] = np.nan
-    return res.reshape(-1), jac.reshape(2 * m, n), state.parameter_names()
 
 
 # ============================================================================ solver
@@ -507,7 +461,7 @@ def _rel_step(delta: np.ndarray, state: CalibrationState) -> float:
         refs += [f, f, f, f, 1, 1, 1, 1, 1, 1, 1, scale_mm, scale_mm, scale_mm]
     for _ in state.mirrors:
         refs += [1, 1, scale_mm]
-    refs += [1] * state.n_screen  # screen heights: 1 mm
+    refs += [1] * (state.n_screen + state.n_glass)  # screen heights, glass thickness: 1 mm; glass index: 1
     return float(np.max(np.abs(delta) / np.array(refs, dtype=float)))
 
 
@@ -747,6 +701,8 @@ def calibrate(
         condition_number=cond,
         rms_history_px=tuple(history),
         screen_model=state.screen,
+        glass=state.glass,
+        glass_free=state.glass_free,
         std_inflation=np.sqrt(np.clip(np.diag(a_s_inv), 0.0, None)),
         weak_directions=weak,
         screen_noise_std=math.sqrt(sigma0_2),

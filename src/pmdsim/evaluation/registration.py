@@ -14,7 +14,8 @@ Cover glass (issue 21, docs/conventions.md "Cover glass"): the decoded point Q i
 *emitting* surface, but the light left the glass at a point A of its outer surface and was
 refracted there, so the straight line from the sample point P to Q is not the reflected ray.
 With a ``glass``, :func:`register` solves for A given P (:meth:`CoverGlass.apparent_points`: a
-fixed-point iteration on A through the forward trace) and returns, instead of Q, the
+fixed-point iteration on A through the forward trace, to 1e-9 mm; pixels where it does not
+converge are :attr:`RegistrationStatus.GLASS_NO_CONVERGENCE`) and returns, instead of Q, the
 *apparent point* where the straight line P → A meets the emitting surface, which the
 reconstruction then uses like a screen point. P is unknown before the reconstruction: it is taken on the plane z = ``sample_height_mm``
 of the reconstruction frame (the view ray's point there), or given as ``sample_points_ref_mm``
@@ -44,6 +45,7 @@ class RegistrationStatus(enum.IntEnum):
     NOT_DECODED = 1  # the decoder marked the pixel invalid (see pmdsim.evaluation.phase.PhaseFlag)
     UNDISTORT_FAILED = 2  # the view ray could not be computed
     OUTSIDE_SCREEN_MODEL = 3  # decoded pattern coordinates outside the screen model's bounds
+    GLASS_NO_CONVERGENCE = 4  # cover glass: the apparent point's fixed point did not converge (1e-9 mm)
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,9 +154,11 @@ def register(
             given = np.asarray(sample_points_ref_mm, dtype=float)
             p_ref = np.where(np.isfinite(given).all(axis=-1)[..., None], given, p_ref)
         p_screen = T_ref_screen.inv().apply(p_ref)
-        q_app = glass.apparent_points(screen_model, np.where(valid[..., None], p_screen, np.nan), q_screen)
+        q_app, converged = glass.apparent_points(screen_model, np.where(valid[..., None], p_screen, np.nan), q_screen,
+                                                 return_converged=True)
         lost = valid & ~np.isfinite(q_app).all(axis=-1)
-        status[lost] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
+        status[lost & converged] = RegistrationStatus.OUTSIDE_SCREEN_MODEL
+        status[lost & ~converged] = RegistrationStatus.GLASS_NO_CONVERGENCE
         q_screen = q_app
     return Registration(
         o_ref_mm=o_ref,

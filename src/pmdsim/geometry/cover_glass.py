@@ -45,8 +45,10 @@ _FOOT_MAX_ITER = 30
 _FOOT_TOL_MM = 1e-9
 #: Newton steps of the emitting-surface hit before the safeguarded solver.
 _NEWTON_STEPS = 4
-#: Fixed-point iterations of the inverse problem (error shrinks ≈ t/(n·distance) per step).
-_INVERSE_ITER = 8
+#: Fixed-point iteration of the inverse problem (the error shrinks ≈ t/(n·distance) per step):
+#: converged when the correction moves the exit point by less than this (mm), at most so many steps.
+INVERSE_TOL_MM = 1e-9
+INVERSE_MAX_ITER = 30
 
 
 def plate_shift_mm(thickness_mm, index, theta_rad):
@@ -247,26 +249,31 @@ class CoverGlass:
                     of, df, qf, tol_mm, FIXED_POINT_MAX_ITER, out, st)
         return out.reshape(shape + (3,)), st.reshape(shape)
 
-    def apparent_points(self, surface, p_mm, q_mm, *, iterations: int = _INVERSE_ITER):
+    def apparent_points(self, surface, p_mm, q_mm, *, tol_mm: float = INVERSE_TOL_MM,
+                        max_iter: int = INVERSE_MAX_ITER, return_converged: bool = False):
         """The inverse problem of registration: the line from a sample point to an emitting point.
 
         For a sample point P and the emitting-surface point Q that it sees through the glass
         (both (..., 3), screen frame), find the exit point A on the outer surface such that the
         ray P → A, refracted, reaches Q. Method: A ← A + (Q − Q′), where Q′ is the forward trace
         (:meth:`trace`) of the ray P → A, starting from A = Q + t·m(Q); the error shrinks by
-        ≈ t/(n·|PQ|) per step (< 1 % for t ≤ 3 mm at ≥ 300 mm), so ``iterations`` = 8 reach
-        ≪ 1e-9 mm.
+        ≈ t/(n·|PQ|) per step (< 1 % for t ≤ 3 mm at ≥ 300 mm). A point has converged when the
+        correction |Q − Q′| (largest component) is below ``tol_mm`` (1e-9 mm; 4–6 steps); the
+        iteration stops when all have, or after ``max_iter`` steps.
 
         Returns
         -------
         ndarray (..., 3)
             The *apparent* point: where the straight line P → A meets the emitting surface (the
             point a glass-free screen would have to show for that line). NaN where P or Q is
-            not finite or a trace fails.
+            not finite, a trace fails or the iteration did not converge.
+        ndarray of bool (...), with ``return_converged``
+            False where P and Q are finite and every trace succeeded but the iteration did not
+            converge within ``max_iter`` steps.
         """
         p, q = np.broadcast_arrays(np.asarray(p_mm, dtype=float), np.asarray(q_mm, dtype=float))
         if not self.present:
-            return q.copy()
+            return (q.copy(), np.ones(q.shape[:-1], dtype=bool)) if return_converged else q.copy()
         t = self.thickness_mm
         ok = np.isfinite(p).all(axis=-1) & np.isfinite(q).all(axis=-1)
         qs = np.where(ok[..., None], q, 0.0)
@@ -276,10 +283,17 @@ class CoverGlass:
         m /= np.linalg.norm(m, axis=-1, keepdims=True)
         a = qs + t * m
         st = np.where(ok, 0, 1).astype(np.uint8)
-        for _ in range(iterations):
-            q1, st1 = self.trace(surface, ps, a - ps, qs, status=st)
-            good = st1 == 0
-            a = np.where(good[..., None], a + (qs - q1), a)
+        todo = ok.copy()  # not yet converged (and tracing)
+        failed = np.zeros(ok.shape, dtype=bool)
+        for _ in range(int(max_iter)):
+            q1, st1 = self.trace(surface, ps, a - ps, qs, status=np.where(todo, st, 1).astype(np.uint8))
+            good = todo & (st1 == 0)
+            failed |= todo & (st1 != 0)
+            step = np.where(good[..., None], qs - q1, 0.0)
+            a = a + step
+            todo = good & (np.abs(step).max(axis=-1) >= tol_mm)
+            if not todo.any():
+                break
         _t, out, st1 = surface.intersect(ps, a - ps)
-        out[~(ok & (st1 == 0))] = np.nan
-        return out
+        out[~(ok & ~failed & ~todo & (st1 == 0))] = np.nan
+        return (out, ~todo) if return_converged else out

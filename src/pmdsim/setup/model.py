@@ -384,6 +384,9 @@ class CalibrationSetup:
         from the mirror's centre and ρ half its smaller side. Positive: the centre stands s
         closer to the cameras than the edge midpoints (convex as seen from the cameras; the
         mirror frame's +z points away from them, like the sample's). 0: a perfect plane.
+    fit_glass_thickness, fit_glass_index : estimate the screen's cover-glass thickness / index
+        in ``pmdsim calibrate`` (start: ``[screen] cover_glass_thickness_mm`` / ``cover_glass_index``;
+        docs/conventions.md "Cover glass"). Without them a declared glass is held.
     """
 
     mirror_lifts_mm: tuple[float, ...] = (10.0, 20.0, 30.0)
@@ -391,6 +394,8 @@ class CalibrationSetup:
     mirror_size_mm: tuple[float, float] = (400.0, 400.0)
     observation_stride_px: int = 8
     mirror_sag_um: float = 0.0
+    fit_glass_thickness: bool = False
+    fit_glass_index: bool = False
 
     def __post_init__(self) -> None:
         sag = self.mirror_sag_um
@@ -721,6 +726,8 @@ class Setup:
                 "mirror_size_mm": list(cal.mirror_size_mm),
                 "observation_stride_px": cal.observation_stride_px,
                 "mirror_sag_um": cal.mirror_sag_um,
+                **({"fit_glass_thickness": True} if cal.fit_glass_thickness else {}),
+                **({"fit_glass_index": True} if cal.fit_glass_index else {}),
             },
             **({"imaging": self.imaging.as_dict()} if self.imaging is not None else {}),
             **({"calibration_report": self.calibration_covariance.as_dict()}

@@ -58,7 +58,8 @@ _KNOWN_KEYS = {
                "height_map_y_dataset", "height_map_x_mm", "height_map_y_mm", "height_map_max_error_um", "height_map_source"),
     "patterns": ("n_shifts", "periods_x_mm", "periods_y_mm", "mean_level", "amplitude", "bit_depth", "noise_std",
                  "seed"),
-    "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um"),
+    "calibration": ("mirror_lifts_mm", "mirror_tilts_deg", "mirror_size_mm", "observation_stride_px", "mirror_sag_um",
+                    "fit_glass_thickness", "fit_glass_index"),
     "imaging": ("bit_depth", "full_well_e", "exposure", "read_noise_e", "dark_offset_dn", "gain_dn_per_e",
                 "display_gamma", "display_black_level", "linearise", "grey_levels", "emission_exponent",
                 "screen_pixel_pitch_mm", "screen_fill_factor", "f_number", "focal_length_mm", "pixel_area",
@@ -444,8 +445,14 @@ def parse_setup(doc: dict[str, Any], *, source: str = "setup", read_height_map=N
             raise SetupError(f"calibration.mirror_size_mm must be > 0, got {list(size)}")
         stride = c.integer("observation_stride_px", dc.observation_stride_px, minimum=1)
         sag = c.number("mirror_sag_um", dc.mirror_sag_um)  # its size bound: CalibrationSetup
+        fits = []
+        for k in ("fit_glass_thickness", "fit_glass_index"):
+            v = c.raw(k, False)
+            if not isinstance(v, bool):
+                raise SetupError(f"{c.key(k)} must be true or false, got {v!r}")
+            fits.append(v)
         c.finish()
-        calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride, sag)
+        calibration = CalibrationSetup(lifts, tilts, (size[0], size[1]), stride, sag, *fits)
     else:
         r.used.add("calibration")
         calibration = dc
@@ -558,7 +565,8 @@ _COMMENTS = {
     "calibration": "Calibration mirror poses (paper §4): base = the sample's pose; lifts towards the cameras;\n"
     "each tilt applied +/− about the mirror's x and y axes through its centre; 1 + lifts + 4·tilts poses.\n"
     "mirror_sag_um: the mirror's flatness error, a paraboloid −s·(1 − r²/ρ²) (ρ = half the smaller side;\n"
-    "+ = centre towards the cameras); 0 = a perfect plane, as the paper assumes.",
+    "+ = centre towards the cameras); 0 = a perfect plane, as the paper assumes.\n"
+    "fit_glass_thickness, fit_glass_index (true/false): pmdsim calibrate estimates the screen's cover glass.",
     "imaging": "Image-formation effects (docs/conventions.md, \"Image formation\"); absent keys are off:\n"
     "sensor (bit_depth 8/10/12/16, full_well_e, exposure, read_noise_e, dark_offset_dn, gain_dn_per_e),\n"
     "display (display_gamma, display_black_level, linearise, grey_levels, emission_exponent,\n"

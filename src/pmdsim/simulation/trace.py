@@ -380,7 +380,9 @@ def trace_rays(
     finally:
         numba.set_parallel_chunksize(old_chunksize)
     if with_glass:
-        _refract_through_glass(glass, screen, T_screen_sample, p_s, q_p, screen_xy, status, tol_mm)
+        from .glass_trace import refract_traced
+
+        refract_traced(glass, screen, T_screen_sample, p_s, q_p, screen_xy, status, _SCREEN_CODES, tol_mm)
     return Mapping(
         screen_xy.reshape(shape + (2,)),
         status.reshape(shape),

@@ -112,7 +112,7 @@ def _with_other_regions(reg, rec, method: str):
 
 def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, method: str = "stepwise",
                               start_seed=0, progress: Progress | None = None, image_sink=None,
-                              screen_grid: int | None = None, observations=None) -> Experiment2Bulge:
+                              screen_grid: int | None = None, observations=None, glass=None) -> Experiment2Bulge:
     """The Experiment 2 chain for any true setup (deformed screen, sagged mirror, …).
 
     Simulate the calibration poses of ``truth`` (or take ``observations`` of it) → calibrate
@@ -121,11 +121,15 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
     model and planar mirrors → simulate the planar sample of ``truth`` → reconstruct both
     cameras with the calibrated setup, heights relative to the calibrated table plane (its true
     height is 0, so the reconstructed height is the error). ``bulge_mm`` labels the results
-    (default: the truth's central screen control height).
+    (default: the truth's central screen control height). ``glass``: the cover glass the
+    calibration models (a :class:`~pmdsim.geometry.cover_glass.CoverGlass`, its thickness fitted
+    from this start, :func:`pmdsim.calibration.glass.calibrate_with_glass`); None: the truth's
+    glass, if any, is ignored.
     """
     from ..calibration import calibrate, nominal_state, perturbed_state
+    from ..calibration.glass import calibrate_with_glass
 
-    nominal = nominal_setup(truth)
+    nominal = nominal_setup(truth, glass)
     if bulge_mm is None:
         z = truth.screen.control_heights()
         bulge_mm = float(z[z.shape[0] // 2, z.shape[1] // 2])
@@ -138,7 +142,10 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
     if progress is not None:
         progress(f"Δh = {bulge_mm:g} mm: calibrating")
     screen_model = None if screen_grid is None else free_screen_model(nominal, screen_grid)
-    result = calibrate(obs, start, screen_model=screen_model)
+    if glass is None:
+        result = calibrate(obs, start, screen_model=screen_model)
+    else:
+        result = calibrate_with_glass(obs, start, glass, screen_model=screen_model, fit_thickness=True)
     model = calibrated_setup(nominal, result)
     deviation = calibration_deviation(truth, model)
     cases = []

@@ -25,6 +25,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..errors import PmdsimError
+from ..geometry.cover_glass import CoverGlass
 from ..io import atomic_output_dir, provenance, write_json
 from ..setup import ImagingSetup, Setup
 from .experiment2 import calibrate_and_reconstruct
@@ -49,6 +50,10 @@ _PIXELS = dict(screen_pixel_pitch_mm=0.27, screen_fill_factor=0.8, pixel_area=Tr
 _DEFOCUS = dict(f_number=8.0, focal_length_mm=25.0)
 #: An 8-bit display: the commanded pattern rounded to 256 levels.
 _LEVELS = dict(display_levels=256)
+#: A typical LCD cover glass (issue 21): 1.1 mm, n = 1.52; the modelled case fits t from 1 mm.
+GLASS_MM = 1.1
+GLASS_INDEX = 1.52
+GLASS_START_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -62,6 +67,10 @@ class Effect:
     #: The finest fringe period (mm, both directions) when the case changes it (a remedy), else
     #: None: the setup's periods.
     finest_period_mm: float | None = None
+    #: The true screen's cover-glass thickness (mm, n = :data:`GLASS_INDEX`), else None: none.
+    glass_mm: float | None = None
+    #: Whether the calibration models the glass (thickness fitted from :data:`GLASS_START_MM`).
+    model_glass: bool = False
 
     def as_imaging(self) -> ImagingSetup | None:
         return ImagingSetup(**self.imaging) if self.imaging else None
@@ -90,6 +99,11 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("display_levels", _LEVELS, "8-bit display: the commanded fringe rounded to 256 levels",
            "more phase shifts (the rounding's harmonics n ≡ ±1 mod N fold into the phase), or a "
            "display with more levels"),
+    Effect("glass_ignored", {}, f"{GLASS_MM:g} mm cover glass (n = {GLASS_INDEX:g}) over the screen, not modelled",
+           "model the glass: declare [screen] cover_glass_thickness_mm and fit it ([calibration] "
+           "fit_glass_thickness = true)", glass_mm=GLASS_MM),
+    Effect("glass_modelled", {}, f"{GLASS_MM:g} mm cover glass, thickness fitted by the calibration "
+           f"(start {GLASS_START_MM:g} mm)", "—", glass_mm=GLASS_MM, model_glass=True),
     Effect("all_uncorrected", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS},
            "every effect, display not corrected", "linearise; then the remaining budget"),
     Effect("all_corrected", {**_SENSOR, **_DISPLAY, **_EMISSION, **_PIXELS, **_DEFOCUS, "linearise": True},
@@ -179,9 +193,12 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
         truth = truth0.with_imaging(eff.as_imaging().with_(sampling_step_px=downsample)) if eff.imaging else truth0
         if eff.finest_period_mm is not None:
             truth = _with_finest_period(truth, eff.finest_period_mm)
+        if eff.glass_mm is not None:
+            truth = truth.with_cover_glass(eff.glass_mm, GLASS_INDEX)
+        glass = CoverGlass(GLASS_START_MM, GLASS_INDEX) if eff.model_glass else None
         try:
             e2 = calibrate_and_reconstruct(truth, bulge_mm=BULGE_MM, method=method, start_seed=[seed, 3000],
-                                           progress=progress, screen_grid=3)
+                                           progress=progress, screen_grid=3, glass=glass)
         except (PmdsimError, ValueError, np.linalg.LinAlgError) as exc:
             for cam in truth.cameras:
                 records.append({"bulge_mm": BULGE_MM, "camera": cam, "effect": name, "max_height_diff_um": None,

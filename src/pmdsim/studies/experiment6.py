@@ -11,8 +11,9 @@ planar sample evaluated five ways (``glass_model``):
 ``nominal``
     glass at its true thickness, held (:func:`pmdsim.calibration.glass.calibrate_with_glass`);
 ``calibrated``
-    thickness fitted, planar screen (:func:`pmdsim.calibration.glass.fit_glass_thickness`,
-    start 1 mm);
+    thickness fitted as a solver parameter, planar screen
+    (:func:`pmdsim.calibration.glass.calibrate_with_glass`, start 1 mm, n held at 1.52; σ_t from
+    the calibration's covariance);
 ``calibrated_free3x3``
     thickness and the free 3 × 3 screen fitted jointly.
 
@@ -48,18 +49,18 @@ GLASS_START_MM = 1.0
 def _calibrate(model_name: str, obs, start, nominal, truth_glass: CoverGlass):
     """(CalibrationResult, model glass, fitted thickness, its σ) for one glass model."""
     from ..calibration import calibrate
-    from ..calibration.glass import calibrate_with_glass, fit_glass_thickness
+    from ..calibration.glass import calibrate_with_glass
     from ..calibration.setup_bridge import free_screen_model
 
-    planar = nominal.screen.surface
     free = free_screen_model(nominal, 3) if model_name.endswith("free3x3") else None
     if model_name.startswith("ignored"):
         return calibrate(obs, start, screen_model=free), CoverGlass(0.0, truth_glass.index), None, None
     if model_name == "nominal":
-        r, _ = calibrate_with_glass(obs, start, truth_glass, planar, screen_model=free)
+        r = calibrate_with_glass(obs, start, truth_glass, screen_model=free, fit_thickness=False)
         return r, truth_glass, None, None
-    fit = fit_glass_thickness(obs, start, truth_glass.with_(thickness_mm=GLASS_START_MM), planar, screen_model=free)
-    return fit.result, fit.glass, fit.glass.thickness_mm, fit.thickness_std_mm
+    r = calibrate_with_glass(obs, start, truth_glass.with_(thickness_mm=GLASS_START_MM), screen_model=free,
+                             fit_thickness=True)
+    return r, r.glass, r.glass.thickness_mm, r.glass_std()[0]
 
 
 def run_experiment6_case(truth: Setup, bulge_mm: float, *, models: Sequence[str] = GLASS_MODELS,

@@ -729,7 +729,14 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
                                                  screen_std_xy_mm=dec.std_xy_mm))
         _tick(progress, f"decoded pose {k}")
     start = nominal_state(nominal, [T for _, T in poses])
-    result = calibrate(obs, start, max_iter=max_iter)
+    glass, cal = nominal.screen.cover_glass, nominal.calibration
+    if glass.present or cal.fit_glass_thickness or cal.fit_glass_index:  # docs/conventions.md "Cover glass"
+        from ..calibration.glass import calibrate_with_glass
+
+        result = calibrate_with_glass(obs, start, glass, fit_thickness=cal.fit_glass_thickness,
+                                      fit_index=cal.fit_glass_index, max_iter=max_iter)
+    else:
+        result = calibrate(obs, start, max_iter=max_iter)
     residuals = residual_report(obs, result)
     if not result.converged:
         worst = sorted((b for b in residuals.blocks if b.ratio == b.ratio), key=lambda b: -b.ratio)[:2]
@@ -753,6 +760,9 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
               "warnings": warnings,
               "determination": result.determination_report(),
               "std": {name: c["std"] for name, c in summary["cameras"].items()}}
+    if result.glass is not None:
+        g = result.to_dict()["glass"]
+        report["glass"] = {k: v for k, v in g.items() if v is not None}  # TOML has no null
     from ..setup.toml import dump_toml
 
     doc = model.to_dict()
