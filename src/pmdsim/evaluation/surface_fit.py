@@ -26,7 +26,8 @@ import numpy as np
 
 from ..errors import ComputationError
 
-__all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary"]
+__all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary",
+           "with_uncertainty"]
 
 
 def sample_slopes(n_sample) -> np.ndarray:
@@ -120,15 +121,82 @@ class ParaboloidFit:
     slope_residual_rms_mrad: float
     residual_slopes: np.ndarray
     n_points: int
+    coefficients_std: tuple | None = None
+    focal_length_x_std_mm: float | None = None
+    focal_length_y_std_mm: float | None = None
 
     def as_json(self) -> dict:
         """Exactly the keys of ``surface_fit.json`` (issue 12); a focal length that is infinite
-        (no curvature: a plane) is null."""
+        (no curvature: a plane) is null. With standard uncertainties (:func:`with_uncertainty`,
+        issue 22) also ``focal_length_x_std_mm``, ``focal_length_y_std_mm``, ``coefficients`` and
+        ``coefficients_std`` (a … e of the module docstring, mm⁻¹ or 1)."""
         def num(v):
-            return float(v) if np.isfinite(v) else None
+            return float(v) if v is not None and np.isfinite(v) else None
 
-        return {"focal_length_x_mm": num(self.focal_length_x_mm), "focal_length_y_mm": num(self.focal_length_y_mm),
-                "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
+        out = {"focal_length_x_mm": num(self.focal_length_x_mm), "focal_length_y_mm": num(self.focal_length_y_mm),
+               "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
+        if self.coefficients_std is not None:
+            out.update(focal_length_x_std_mm=num(self.focal_length_x_std_mm),
+                       focal_length_y_std_mm=num(self.focal_length_y_std_mm),
+                       coefficients=dict(zip("abcde", map(num, self.coefficients))),
+                       coefficients_std=dict(zip("abcde", map(num, self.coefficients_std))),
+                       uncertainty_note=_STD_NOTE)
+        return out
+
+
+_STD_NOTE = ("standard uncertainties (k = 1) from the fit's (robustly weighted) normal equations, sandwich "
+             "covariance with the per-pixel slope standard uncertainty of the images' noise (independent between "
+             "pixels); the calibration's contribution, correlated over the field, is not included")
+
+
+def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> ParaboloidFit:
+    """``fit`` with the standard uncertainties of its coefficients and focal lengths.
+
+    The coefficients c = (AᵀWA)⁻¹AᵀW g are linear in the slopes g; with independent slope errors
+    of standard uncertainty σ (per point and component) their covariance is the sandwich
+    (AᵀWA)⁻¹ Aᵀ W Σ W A (AᵀWA)⁻¹, W the final bisquare weights (recomputed from the residuals with
+    the IRLS's scale MAD/0.6745; 1 where that scale is 0). σ of f = 1/(4a') is |f|·σ_a/|a|.
+
+    Parameters
+    ----------
+    xy : ndarray (M, 2)
+        The points the fit used, in its order (``fit.residual_slopes`` is (M, 2)).
+    slope_std : ndarray (M, 2)
+        σ of (g_x, g_y) at those points (rad).
+    """
+    xy = np.asarray(xy, dtype=float)
+    sig = np.asarray(slope_std, dtype=float)
+    res = np.asarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
+    ok = np.isfinite(res).all(axis=1) & np.isfinite(sig).all(axis=1) & np.isfinite(xy).all(axis=1)
+    xc, yc = xy[ok, 0].mean(), xy[ok, 1].mean()
+    x, y, r, s = xy[ok, 0] - xc, xy[ok, 1] - yc, res[ok], sig[ok]
+    med = np.median(r)
+    scale = _TUKEY_C * np.median(np.abs(r - med)) / _MAD_TO_SIGMA
+    if scale > 0:
+        u = r / scale
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+    else:
+        w = np.ones_like(r)
+    z, one = np.zeros_like(x), np.ones_like(x)
+    Ax = np.stack([2 * x, y, z, one, z], axis=1)  # g_x rows (centred: a, b, c, d, e)
+    Ay = np.stack([z, x, 2 * y, z, one], axis=1)
+    N = (Ax * w[:, :1]).T @ Ax + (Ay * w[:, 1:]).T @ Ay
+    B = (Ax * (w[:, :1] * s[:, :1]) ** 2).T @ Ax + (Ay * (w[:, 1:] * s[:, 1:]) ** 2).T @ Ay
+    Ni = np.linalg.inv(N)
+    cov = Ni @ B @ Ni
+    # back to the uncentred linear terms: d0 = d − 2a xc − b yc, e0 = e − b xc − 2c yc
+    T = np.eye(5)
+    T[3, :3] = (-2 * xc, -yc, 0.0)
+    T[4, :3] = (0.0, -xc, -2 * yc)
+    cov = T @ cov @ T.T
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    a, c = fit.coefficients[0], fit.coefficients[2]
+    fx_std = abs(fit.focal_length_x_mm) * std[0] / abs(a) if a != 0 else float("inf")
+    fy_std = abs(fit.focal_length_y_mm) * std[2] / abs(c) if c != 0 else float("inf")
+    from dataclasses import replace
+
+    return replace(fit, coefficients_std=tuple(float(v) for v in std), focal_length_x_std_mm=float(fx_std),
+                   focal_length_y_std_mm=float(fy_std))
 
 
 #: Tukey bisquare tuning constant (95 % efficiency at the normal distribution) and MAD → σ.
@@ -470,24 +538,31 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n)
 
 
-def surface_fit_summary(recs, camera_z_mm) -> tuple[ParaboloidFit, dict]:
+def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFit, dict]:
     """Joint paraboloid fit over several reconstructions of one sample (same sample frame).
 
     ``recs`` : list of :class:`~pmdsim.evaluation.integration.Reconstruction`; ``camera_z_mm``
-    the (first) camera's z in the sample frame. Returns the fit and per-camera extras
+    the (first) camera's z in the sample frame; ``slope_std`` (optional): per reconstruction the
+    slopes' standard uncertainty (H, W, 2) in rad, or None for all — the fit then carries the σ
+    of its coefficients (:func:`with_uncertainty`). Returns the fit and per-camera extras
     ``{"slopes": (H, W, 2), "height_detrended_mm": (H, W), "residual_slopes": (H, W, 2)}``.
     """
     pts, gs, oks, extras = [], [], [], []
-    for rec in recs:
+    sig = [] if slope_std is not None and all(s is not None for s in slope_std) else None
+    for i, rec in enumerate(recs):
         g = sample_slopes(rec.n_sample)
         ok = rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1])
         pts.append(rec.p_sample_mm[..., :2][ok])  # x, y: all the fit uses
         gs.append(g[ok])
         oks.append(ok)
+        if sig is not None:
+            sig.append(np.asarray(slope_std[i], dtype=float)[ok])
         extras.append({"slopes": g})
     xy, gxy = np.concatenate(pts), np.concatenate(gs)
     del pts, gs  # the per-camera copies are not needed during the fit
     fit = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=camera_z_mm)
+    if sig is not None:
+        fit = with_uncertainty(fit, xy, np.concatenate(sig), camera_z_mm)
     del xy, gxy
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):

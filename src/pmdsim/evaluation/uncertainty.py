@@ -444,7 +444,7 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
         g_cal = np.where(S[..., None], np.asarray(cal.slope_std_urad, dtype=float), np.nan)
     else:
         h_cal = np.where(S, 0.0, np.nan)
-        g_cal = np.where(S[..., None], 0.0, np.nan)
+        g_cal = np.where(S[..., None], np.zeros(S.shape + (2,)), np.nan)
         notes.append(NO_COVARIANCE_NOTE)
     h_noise_um = h_noise * 1e3
     g_noise_urad = g_noise * 1e6
