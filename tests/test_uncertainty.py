@@ -56,7 +56,7 @@ def test_linearised_integration_and_estimator(tiny, method):
     S = rec.reconstructed
     lin = U._LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
     R = (s.sample.T_world_sample.inv() @ s.screen.T_world_screen).rotation
-    dq = U._screen_tangents(R, None, dec.screen_xy_mm)
+    dq = np.broadcast_to(U._screen_tangents(R, None, dec.screen_xy_mm), S.shape + (3, 2))  # a plane: R[:, :2]
     J = U.slope_jacobian(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq)
     # (1) the linear map against the nonlinear reconstruction (directional central differences)
     rng = np.random.default_rng(0)
