@@ -124,6 +124,7 @@ class ParaboloidFit:
     coefficients_std: tuple | None = None
     focal_length_x_std_mm: float | None = None
     focal_length_y_std_mm: float | None = None
+    scale: float = 0.0  # the robust fit's last bisquare scale 4.685·MAD/0.6745 of the slope residuals (0: plain)
 
     def as_json(self) -> dict:
         """Exactly the keys of ``surface_fit.json`` (issue 12); a focal length that is infinite
@@ -149,13 +150,59 @@ _STD_NOTE = ("standard uncertainties (k = 1) from the fit's (robustly weighted) 
              "pixels); the calibration's contribution, correlated over the field, is not included")
 
 
+@numba.njit(cache=True)
+def _centre(xy, res, sig):
+    sx = sy = 0.0
+    n = 0
+    for i in range(xy.shape[0]):
+        if np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
+            sx += xy[i, 0]
+            sy += xy[i, 1]
+            n += 1
+    return sx / n, sy / n
+
+
+@numba.njit(cache=True)
+def _sandwich_sums(xy, res, sig, xc, yc, scale):
+    """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
+    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0)."""
+    N = np.zeros((5, 5))
+    B = np.zeros((5, 5))
+    row = np.zeros(5)
+    for i in range(xy.shape[0]):
+        if not np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
+            continue
+        x = xy[i, 0] - xc
+        y = xy[i, 1] - yc
+        for comp in range(2):
+            w = 1.0
+            if scale > 0:
+                u = res[i, comp] / scale
+                w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            if w == 0.0:
+                continue
+            if comp == 0:
+                row[0] = 2 * x; row[1] = y; row[2] = 0.0; row[3] = 1.0; row[4] = 0.0  # noqa: E702
+            else:
+                row[0] = 0.0; row[1] = x; row[2] = 2 * y; row[3] = 0.0; row[4] = 1.0  # noqa: E702
+            wb = (w * sig[i, comp]) ** 2
+            for a in range(5):
+                ra = row[a]
+                if ra == 0.0:
+                    continue
+                for b in range(5):
+                    N[a, b] += w * ra * row[b]
+                    B[a, b] += wb * ra * row[b]
+    return N, B
+
+
 def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> ParaboloidFit:
     """``fit`` with the standard uncertainties of its coefficients and focal lengths.
 
     The coefficients c = (AᵀWA)⁻¹AᵀW g are linear in the slopes g; with independent slope errors
     of standard uncertainty σ (per point and component) their covariance is the sandwich
     (AᵀWA)⁻¹ Aᵀ W Σ W A (AᵀWA)⁻¹, W the final bisquare weights (recomputed from the residuals with
-    the IRLS's scale MAD/0.6745; 1 where that scale is 0). σ of f = 1/(4a') is |f|·σ_a/|a|.
+    the IRLS's last scale, ``fit.scale``; 1 where that is 0). σ of f = 1/(4a') is |f|·σ_a/|a|.
 
     Parameters
     ----------
@@ -164,24 +211,11 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> P
     slope_std : ndarray (M, 2)
         σ of (g_x, g_y) at those points (rad).
     """
-    xy = np.asarray(xy, dtype=float)
-    sig = np.asarray(slope_std, dtype=float)
-    res = np.asarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
-    ok = np.isfinite(res).all(axis=1) & np.isfinite(sig).all(axis=1) & np.isfinite(xy).all(axis=1)
-    xc, yc = xy[ok, 0].mean(), xy[ok, 1].mean()
-    x, y, r, s = xy[ok, 0] - xc, xy[ok, 1] - yc, res[ok], sig[ok]
-    med = np.median(r)
-    scale = _TUKEY_C * np.median(np.abs(r - med)) / _MAD_TO_SIGMA
-    if scale > 0:
-        u = r / scale
-        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-    else:
-        w = np.ones_like(r)
-    z, one = np.zeros_like(x), np.ones_like(x)
-    Ax = np.stack([2 * x, y, z, one, z], axis=1)  # g_x rows (centred: a, b, c, d, e)
-    Ay = np.stack([z, x, 2 * y, z, one], axis=1)
-    N = (Ax * w[:, :1]).T @ Ax + (Ay * w[:, 1:]).T @ Ay
-    B = (Ax * (w[:, :1] * s[:, :1]) ** 2).T @ Ax + (Ay * (w[:, 1:] * s[:, 1:]) ** 2).T @ Ay
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    sig = np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2)
+    res = np.ascontiguousarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
+    xc, yc = _centre(xy, res, sig)
+    N, B = _sandwich_sums(xy, res, sig, xc, yc, float(fit.scale))
     Ni = np.linalg.inv(N)
     cov = Ni @ B @ Ni
     # back to the uncentred linear terms: d0 = d − 2a xc − b yc, e0 = e − b xc − 2c yc
@@ -501,12 +535,14 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         ax, ay = float(np.max(np.abs(x))), float(np.max(np.abs(y)))
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
+        scale = 0.0
         for _ in range(max_iter):
             med = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
                           None if delta is None else (med - delta, med + delta))
             mad = _median(x, y, gx, gy, coef, 1, med, buf, hist,
                           None if delta is None else (max(mad - 2.0 * delta, 0.0), mad + 2.0 * delta))
             s = mad / _MAD_TO_SIGMA
+            scale = _TUKEY_C * s if s > 0 else 0.0
             if not s > 0:
                 break
             new = _solve_normal(_weighted_sums(x, y, gx, gy, coef, _TUKEY_C * s, True))
@@ -535,7 +571,8 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     with np.errstate(divide="ignore"):
         fx = float(1.0 / (4.0 * towards * a)) if a != 0 else float("inf")
         fy = float(1.0 / (4.0 * towards * c)) if c != 0 else float("inf")
-    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n)
+    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n,
+                         scale=float(scale) if robust else 0.0)
 
 
 def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFit, dict]:

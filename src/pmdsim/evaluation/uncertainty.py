@@ -333,9 +333,9 @@ def _stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
     return bad[0] == 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _geometry(o, d, q, S, z, geo):
-    for v in range(S.shape[0]):
+    for v in numba.prange(S.shape[0]):
         _row_geometry(o, d, q, S, z, v, geo[v])
 
 
