@@ -196,3 +196,21 @@ def test_uncertainty_failure_keeps_heights(tmp_path, small_setup_file, monkeypat
     assert any("no uncertainty" in w and "did not converge" in w for w in summary.warnings)
     with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
         assert "height_mm" in f["left"] and "height_std_um" not in f["left"]
+
+
+def test_api_and_anchor_key(tiny):
+    """pmdsim.evaluate carries σ by default (read-only), skips it on request; the seed height's
+    σ enters at the seed; the manifest anchor key distance_std_mm is read."""
+    import pmdsim
+    from pmdsim.evaluation.anchor import anchor_from_dict
+    from pmdsim.studies.uncertainty_job import anchor_std_mm
+
+    s, _, dec = tiny
+    ev = pmdsim.evaluate(dec, s, "left", seed_height_std_mm=0.002)
+    sv, su = ev.reconstruction.seed_pixel
+    assert ev.height_std_um[sv, su] == pytest.approx(2.0, rel=1e-6)  # ∂z/∂z₀ = 1 at the seed
+    assert ev.slope_std_urad.shape == ev.height_mm.shape + (2,) and not ev.height_std_um.flags.writeable
+    assert pmdsim.evaluate(dec, s, "left", uncertainty=False).uncertainty is None
+    a = anchor_from_dict({"kind": "distance", "pixel_vu": [7, 12], "distance_mm": 600.0,
+                          "point_world_mm": [0, 0, 0], "distance_std_mm": 0.05})
+    assert a.distance_std_mm == 0.05 and anchor_std_mm(a, None) == 0.05 and anchor_std_mm(a, 0.1) == 0.1
