@@ -157,7 +157,9 @@ def test_cli_end_to_end_focal_lengths_and_outputs(imported):
     heights are anchored (not relative)."""
     d, r = imported
     fit = json.loads((d / "ev" / "surface_fit.json").read_text())
-    assert set(fit) == {"focal_length_x_mm", "focal_length_y_mm", "slope_residual_rms_mrad"}
+    assert set(fit) == {"focal_length_x_mm", "focal_length_y_mm", "slope_residual_rms_mrad",  # issue 12
+                        "focal_length_x_std_mm", "focal_length_y_std_mm", "coefficients", "coefficients_std",
+                        "uncertainty_note"}  # issue 22
     c = EXP["surf_coefs_facet"]
     fx, fy = 1e3 / (4 * c[2]), 1e3 / (4 * c[5])
     assert abs(fit["focal_length_x_mm"] / fx - 1) < 0.02 and abs(fit["focal_length_y_mm"] / fy - 1) < 0.02, (fit, fx, fy)

@@ -38,6 +38,7 @@ from .evaluation.pipeline import consistency_checked, decode_images, evaluate_de
 from .geometry.compact import compact_repr
 from .evaluation.reconstruction import Reconstruction, reconstruct
 from .evaluation.registration import Registration
+from .evaluation.uncertainty import SurfaceUncertainty
 from .setup import Setup
 from .simulation.imaging import decoder_response
 from .simulation.render import render_images, trace_setup_camera
@@ -257,6 +258,11 @@ class Evaluation:
     warnings : tuple of str
         The plausibility and consistency warnings (also issued as
         :class:`~pmdsim.errors.ConsistencyWarning`).
+    uncertainty : SurfaceUncertainty or None
+        Per-pixel standard uncertainties (k = 1) of heights and slopes with their noise and
+        calibration contributions (:mod:`pmdsim.evaluation.uncertainty`; arrays read-only);
+        None with ``evaluate(..., uncertainty=False)`` or when σ could not be computed (a
+        warning says why).
     """
 
     __repr__ = compact_repr  # one line: arrays by shape and dtype
@@ -266,6 +272,17 @@ class Evaluation:
     reconstruction: Reconstruction
     decoded: ScreenCoordinates | None = None
     warnings: tuple = ()
+    uncertainty: SurfaceUncertainty | None = None
+
+    @property
+    def height_std_um(self) -> np.ndarray | None:
+        """(H, W) combined height standard uncertainty, µm (None without :attr:`uncertainty`)."""
+        return None if self.uncertainty is None else self.uncertainty.height_std_um
+
+    @property
+    def slope_std_urad(self) -> np.ndarray | None:
+        """(H, W, 2) combined slope standard uncertainty, µrad (None without :attr:`uncertainty`)."""
+        return None if self.uncertainty is None else self.uncertainty.slope_std_urad
 
     @property
     def flags(self) -> np.ndarray:
@@ -285,7 +302,8 @@ class Evaluation:
 
 
 def evaluate(decoded: ScreenCoordinates, setup: Setup, camera: str, *, screen: str = "planar",
-             method: str = "stepwise", seed_pixel=None, seed_height_mm: float = 0.0) -> Evaluation:
+             method: str = "stepwise", seed_pixel=None, seed_height_mm: float = 0.0, uncertainty: bool = True,
+             seed_height_std_mm: float = 0.0) -> Evaluation:
     """Register ``decoded`` with ``setup``'s ``camera`` and screen, then reconstruct (§2.5).
 
     Parameters
@@ -304,6 +322,11 @@ def evaluate(decoded: ScreenCoordinates, setup: Setup, camera: str, *, screen: s
         registered pixels (:func:`pmdsim.evaluation.anchor.default_seed_pixel`), height 0.
     seed_height_mm : float
         Its height in the sample frame (mm).
+    uncertainty : bool
+        Compute the per-pixel standard uncertainties (:attr:`Evaluation.uncertainty`); False
+        skips them when speed matters (they add about a third to the evaluation).
+    seed_height_std_mm : float
+        Standard uncertainty of ``seed_height_mm`` (mm), added to the height σ.
 
     Warns
     -----
@@ -325,6 +348,8 @@ def evaluate(decoded: ScreenCoordinates, setup: Setup, camera: str, *, screen: s
         raise InputError(f"method must be 'stepwise' or 'least_squares', got {method!r}")
     if not np.isfinite(seed_height_mm):
         raise InputError(f"seed_height_mm must be finite, got {seed_height_mm!r}")
+    if not (np.isfinite(seed_height_std_mm) and seed_height_std_mm >= 0):
+        raise InputError(f"seed_height_std_mm must be finite and ≥ 0, got {seed_height_std_mm!r}")
     if isinstance(decoded, (Measurement, _AbcMapping)):  # images: decode them with the checks
         decoded = decode(decoded, setup, camera=camera)
     if not isinstance(decoded, ScreenCoordinates):
@@ -351,9 +376,20 @@ def evaluate(decoded: ScreenCoordinates, setup: Setup, camera: str, *, screen: s
     bounds = (model.bounds_mm if model is not None else
               (scr.grid_x_mm[0], scr.grid_x_mm[-1], scr.grid_y_mm[0], scr.grid_y_mm[-1]))
     found += check_screen_coverage(decoded.valid, reg.status, decoded.screen_xy_mm, bounds, camera)
+    unc = None
+    if uncertainty:
+        from .evaluation.anchor import HeightAnchor
+        from .evaluation.uncertainty import UncertaintyError, surface_uncertainty
+
+        try:
+            unc = _frozen(surface_uncertainty(setup, camera, decoded, reg, rec, method=method, screen_model=model,
+                                              anchor=HeightAnchor(tuple(map(float, rec.seed_pixel)), seed_height_mm),
+                                              anchor_std_mm=float(seed_height_std_mm)))
+        except UncertaintyError as exc:
+            found.append(f"{camera}: no uncertainty (heights stand): {exc}")
     for w in found:
         warnings.warn(w, ConsistencyWarning, stacklevel=2)
-    return Evaluation(camera, _frozen(reg), _frozen(rec), decoded, tuple(found))
+    return Evaluation(camera, _frozen(reg), _frozen(rec), decoded, tuple(found), unc)
 
 
 def calibrate(observations: list[Observations], nominal: Setup | CalibrationState, *, screen_grid: int | None = None,

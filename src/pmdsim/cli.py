@@ -251,6 +251,11 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--anchor-point-mm", type=(float, float, float), default=None,
               help="Anchor point (world, mm) of --anchor-distance-mm.")
 @click.option("--noise-std", type=float, default=None, help="Intensity noise σ_I in grey levels for the σ model (default: quantisation).")
+@click.option("--anchor-distance-std-mm", type=click.FloatRange(0.0), default=None,
+              help="Standard uncertainty of the anchor's distance (or seed height), mm, added to height_std_um "
+                   "(default: the manifest anchor's distance_std_mm, else 0).")
+@click.option("--no-uncertainty", is_flag=True,
+              help="Skip the per-pixel standard uncertainties (height_std_um, slope_std_urad; docs/conventions.md).")
 @click.option("--stereo", is_flag=True,
               help="Stereo: absolute heights from all cameras without a seed (docs/stereo.md); no --seed-pixel.")
 @click.option("--search-range-mm", type=(float, float), default=None,
@@ -261,14 +266,16 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
 @click.option("--force", is_flag=True, help="Replace an existing output directory.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixel, seed_height_mm, anchor_distance_mm,
-                 anchor_pixel, anchor_point_mm, noise_std, stereo, search_range_mm, min_valid_fraction, force,
-                 quiet) -> None:
+                 anchor_pixel, anchor_point_mm, noise_std, anchor_distance_std_mm, no_uncertainty, stereo,
+                 search_range_mm, min_valid_fraction, force, quiet) -> None:
     """Evaluate a fringe image set: decode, register, reconstruct (paper §2.5).
 
     IMAGE_DIR holds manifest.json and the images (as written by `pmdsim simulate`, or a real
     camera's images described by such a manifest). Writes OUT/evaluation.h5,
     OUT/height_{camera}.png, OUT/surface_fit.json and OUT/slope_error.png. The height is fixed by
     an anchor (--anchor-*, --seed-*, or the manifest's); without one the heights are relative.
+    Per-pixel standard uncertainties (k = 1) of heights and slopes go to evaluation.h5 and
+    OUT/height_std_{camera}.png unless --no-uncertainty (not with --stereo).
     """
     from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
@@ -292,6 +299,8 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     if stereo:
         if seed_pixel is not None or seed_height_mm is not None or anchor is not None:
             raise JobInputError("--stereo needs no seed or anchor: drop --seed-pixel/--seed-height-mm/--anchor-*")
+        if anchor_distance_std_mm is not None:
+            raise JobInputError("--anchor-distance-std-mm needs an anchor; --stereo has none: drop it")
         if method is not None:
             raise JobInputError(f"--method {method} does not apply to --stereo (stereo fits each camera's heights "
                                 "to the anchors it finds, docs/stereo.md): drop --method")
@@ -319,7 +328,8 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
                                      noise_std=noise_std, force=force, command=_command(),
                                      progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup),
-                                     min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path))
+                                     min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path),
+                                     uncertainty=not no_uncertainty, anchor_std_mm=anchor_distance_std_mm)
     for line in summary.lines():
         click.echo(line)
     for w in (*summary.warnings, *summary.data_warnings()):

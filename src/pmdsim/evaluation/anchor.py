@@ -67,9 +67,11 @@ class HeightAnchor:
 
     pixel_vu: tuple[float, float]
     height_mm: float
+    height_std_mm: float = 0.0  # its standard uncertainty (issue 22)
 
     def describe(self) -> dict:
-        return {"kind": "height", "pixel_vu": list(self.pixel_vu), "height_mm": self.height_mm}
+        out = {"kind": "height", "pixel_vu": list(self.pixel_vu), "height_mm": self.height_mm}
+        return {**out, "height_std_mm": self.height_std_mm} if self.height_std_mm else out
 
 
 @dataclass(frozen=True)
@@ -79,10 +81,12 @@ class DistanceAnchor:
     pixel_vu: tuple[float, float]
     distance_mm: float
     point_world_mm: tuple[float, float, float]
+    distance_std_mm: float = 0.0  # its standard uncertainty (issue 22)
 
     def describe(self) -> dict:
-        return {"kind": "distance", "pixel_vu": list(self.pixel_vu), "distance_mm": self.distance_mm,
-                "point_world_mm": list(self.point_world_mm)}
+        out = {"kind": "distance", "pixel_vu": list(self.pixel_vu), "distance_mm": self.distance_mm,
+               "point_world_mm": list(self.point_world_mm)}
+        return {**out, "distance_std_mm": self.distance_std_mm} if self.distance_std_mm else out
 
 
 def anchor_from_dict(doc: dict, source: str = "anchor"):
@@ -91,8 +95,8 @@ def anchor_from_dict(doc: dict, source: str = "anchor"):
     if not isinstance(doc, dict):
         raise AnchorError(f"{source} must be an object, got {doc!r:.80}")
     kind = doc.get("kind")
-    keys = {"height": {"kind", "pixel_vu", "height_mm"},
-            "distance": {"kind", "pixel_vu", "distance_mm", "point_world_mm", "description"}}
+    keys = {"height": {"kind", "pixel_vu", "height_mm", "height_std_mm"},
+            "distance": {"kind", "pixel_vu", "distance_mm", "point_world_mm", "description", "distance_std_mm"}}
     if kind not in keys:
         raise AnchorError(f"{source}: key 'kind' must be 'height' or 'distance', got {kind!r}")
     unknown = sorted(set(doc) - keys[kind] - {"description"})
@@ -106,17 +110,23 @@ def anchor_from_dict(doc: dict, source: str = "anchor"):
             h = float(doc["height_mm"])
             if not math.isfinite(h):
                 raise ValueError
-            return HeightAnchor(pix, h)
+            hs = float(doc.get("height_std_mm", 0.0))
+            if not (hs >= 0 and math.isfinite(hs)):
+                raise ValueError
+            return HeightAnchor(pix, h, hs)
         dist = float(doc["distance_mm"])
         s = tuple(float(x) for x in doc["point_world_mm"])
-        if not (dist > 0 and math.isfinite(dist)) or len(s) != 3 or not all(map(math.isfinite, s)):
+        ds = float(doc.get("distance_std_mm", 0.0))
+        if (not (dist > 0 and math.isfinite(dist)) or len(s) != 3 or not all(map(math.isfinite, s))
+                or not (ds >= 0 and math.isfinite(ds))):
             raise ValueError
-        return DistanceAnchor(pix, dist, s)
+        return DistanceAnchor(pix, dist, s, ds)
     except KeyError as e:
         raise AnchorError(f"{source}: missing key {e.args[0]!r} for a {kind} anchor") from None
     except (TypeError, ValueError):
         raise AnchorError(f"{source}: a {kind} anchor needs finite numbers: height_mm, or distance_mm > 0 and "
-                          f"point_world_mm [x, y, z]; got {doc!r:.200}") from None
+                          f"point_world_mm [x, y, z] (standard uncertainties height_std_mm / distance_std_mm ≥ 0); "
+                          f"got {doc!r:.200}") from None
 
 
 @dataclass(frozen=True)

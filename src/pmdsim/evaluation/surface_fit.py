@@ -26,7 +26,8 @@ import numpy as np
 
 from ..errors import ComputationError
 
-__all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary"]
+__all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary",
+           "with_uncertainty"]
 
 
 def sample_slopes(n_sample) -> np.ndarray:
@@ -120,15 +121,116 @@ class ParaboloidFit:
     slope_residual_rms_mrad: float
     residual_slopes: np.ndarray
     n_points: int
+    coefficients_std: tuple | None = None
+    focal_length_x_std_mm: float | None = None
+    focal_length_y_std_mm: float | None = None
+    scale: float = 0.0  # the robust fit's last bisquare scale 4.685·MAD/0.6745 of the slope residuals (0: plain)
 
     def as_json(self) -> dict:
         """Exactly the keys of ``surface_fit.json`` (issue 12); a focal length that is infinite
-        (no curvature: a plane) is null."""
+        (no curvature: a plane) is null. With standard uncertainties (:func:`with_uncertainty`,
+        issue 22) also ``focal_length_x_std_mm``, ``focal_length_y_std_mm``, ``coefficients`` and
+        ``coefficients_std`` (a … e of the module docstring, mm⁻¹ or 1)."""
         def num(v):
-            return float(v) if np.isfinite(v) else None
+            return float(v) if v is not None and np.isfinite(v) else None
 
-        return {"focal_length_x_mm": num(self.focal_length_x_mm), "focal_length_y_mm": num(self.focal_length_y_mm),
-                "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
+        out = {"focal_length_x_mm": num(self.focal_length_x_mm), "focal_length_y_mm": num(self.focal_length_y_mm),
+               "slope_residual_rms_mrad": num(self.slope_residual_rms_mrad)}
+        if self.coefficients_std is not None:
+            out.update(focal_length_x_std_mm=num(self.focal_length_x_std_mm),
+                       focal_length_y_std_mm=num(self.focal_length_y_std_mm),
+                       coefficients=dict(zip("abcde", map(num, self.coefficients))),
+                       coefficients_std=dict(zip("abcde", map(num, self.coefficients_std))),
+                       uncertainty_note=_STD_NOTE)
+        return out
+
+
+_STD_NOTE = ("standard uncertainties (k = 1) from the fit's (robustly weighted) normal equations, sandwich "
+             "covariance with the per-pixel slope standard uncertainty of the images' noise (independent between "
+             "pixels); the calibration's contribution, correlated over the field, is not included")
+
+
+@numba.njit(cache=True)
+def _centre(xy, res, sig):
+    sx = sy = 0.0
+    n = 0
+    for i in range(xy.shape[0]):
+        if np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
+            sx += xy[i, 0]
+            sy += xy[i, 1]
+            n += 1
+    return sx / n, sy / n
+
+
+@numba.njit(cache=True)
+def _sandwich_sums(xy, res, sig, xc, yc, scale):
+    """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
+    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0)."""
+    N = np.zeros((5, 5))
+    B = np.zeros((5, 5))
+    row = np.zeros(5)
+    for i in range(xy.shape[0]):
+        if not np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
+            continue
+        x = xy[i, 0] - xc
+        y = xy[i, 1] - yc
+        for comp in range(2):
+            w = 1.0
+            if scale > 0:
+                u = res[i, comp] / scale
+                w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            if w == 0.0:
+                continue
+            if comp == 0:
+                row[0] = 2 * x; row[1] = y; row[2] = 0.0; row[3] = 1.0; row[4] = 0.0  # noqa: E702
+            else:
+                row[0] = 0.0; row[1] = x; row[2] = 2 * y; row[3] = 0.0; row[4] = 1.0  # noqa: E702
+            wb = (w * sig[i, comp]) ** 2
+            for a in range(5):
+                ra = row[a]
+                if ra == 0.0:
+                    continue
+                for b in range(5):
+                    N[a, b] += w * ra * row[b]
+                    B[a, b] += wb * ra * row[b]
+    return N, B
+
+
+def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> ParaboloidFit:
+    """``fit`` with the standard uncertainties of its coefficients and focal lengths.
+
+    The coefficients c = (AᵀWA)⁻¹AᵀW g are linear in the slopes g; with independent slope errors
+    of standard uncertainty σ (per point and component) their covariance is the sandwich
+    (AᵀWA)⁻¹ Aᵀ W Σ W A (AᵀWA)⁻¹, W the final bisquare weights (recomputed from the residuals with
+    the IRLS's last scale, ``fit.scale``; 1 where that is 0). σ of f = 1/(4a') is |f|·σ_a/|a|.
+
+    Parameters
+    ----------
+    xy : ndarray (M, 2)
+        The points the fit used, in its order (``fit.residual_slopes`` is (M, 2)).
+    slope_std : ndarray (M, 2)
+        σ of (g_x, g_y) at those points (rad).
+    """
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    sig = np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2)
+    res = np.ascontiguousarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
+    xc, yc = _centre(xy, res, sig)
+    N, B = _sandwich_sums(xy, res, sig, xc, yc, float(fit.scale))
+    Ni = np.linalg.inv(N)
+    cov = Ni @ B @ Ni
+    # back to the uncentred linear terms: d0 = d − 2a xc − b yc, e0 = e − b xc − 2c yc
+    T = np.eye(5)
+    T[3, :3] = (-2 * xc, -yc, 0.0)
+    T[4, :3] = (0.0, -xc, -2 * yc)
+    cov = T @ cov @ T.T
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    a, c = fit.coefficients[0], fit.coefficients[2]
+    fx_std = abs(fit.focal_length_x_mm) * std[0] / abs(a) if a != 0 else float("inf")
+    fy_std = abs(fit.focal_length_y_mm) * std[2] / abs(c) if c != 0 else float("inf")
+    from dataclasses import replace
+
+    return replace(fit, coefficients_std=tuple(float(v) for v in std), focal_length_x_std_mm=float(fx_std),
+                   focal_length_y_std_mm=float(fy_std))
 
 
 #: Tukey bisquare tuning constant (95 % efficiency at the normal distribution) and MAD → σ.
@@ -433,12 +535,14 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         ax, ay = float(np.max(np.abs(x))), float(np.max(np.abs(y)))
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
+        scale = 0.0
         for _ in range(max_iter):
             med = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
                           None if delta is None else (med - delta, med + delta))
             mad = _median(x, y, gx, gy, coef, 1, med, buf, hist,
                           None if delta is None else (max(mad - 2.0 * delta, 0.0), mad + 2.0 * delta))
             s = mad / _MAD_TO_SIGMA
+            scale = _TUKEY_C * s if s > 0 else 0.0
             if not s > 0:
                 break
             new = _solve_normal(_weighted_sums(x, y, gx, gy, coef, _TUKEY_C * s, True))
@@ -467,27 +571,35 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     with np.errstate(divide="ignore"):
         fx = float(1.0 / (4.0 * towards * a)) if a != 0 else float("inf")
         fy = float(1.0 / (4.0 * towards * c)) if c != 0 else float("inf")
-    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n)
+    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n,
+                         scale=float(scale) if robust else 0.0)
 
 
-def surface_fit_summary(recs, camera_z_mm) -> tuple[ParaboloidFit, dict]:
+def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFit, dict]:
     """Joint paraboloid fit over several reconstructions of one sample (same sample frame).
 
     ``recs`` : list of :class:`~pmdsim.evaluation.integration.Reconstruction`; ``camera_z_mm``
-    the (first) camera's z in the sample frame. Returns the fit and per-camera extras
+    the (first) camera's z in the sample frame; ``slope_std`` (optional): per reconstruction the
+    slopes' standard uncertainty (H, W, 2) in rad, or None for all — the fit then carries the σ
+    of its coefficients (:func:`with_uncertainty`). Returns the fit and per-camera extras
     ``{"slopes": (H, W, 2), "height_detrended_mm": (H, W), "residual_slopes": (H, W, 2)}``.
     """
     pts, gs, oks, extras = [], [], [], []
-    for rec in recs:
+    sig = [] if slope_std is not None and all(s is not None for s in slope_std) else None
+    for i, rec in enumerate(recs):
         g = sample_slopes(rec.n_sample)
         ok = rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1])
         pts.append(rec.p_sample_mm[..., :2][ok])  # x, y: all the fit uses
         gs.append(g[ok])
         oks.append(ok)
+        if sig is not None:
+            sig.append(np.asarray(slope_std[i], dtype=float)[ok])
         extras.append({"slopes": g})
     xy, gxy = np.concatenate(pts), np.concatenate(gs)
     del pts, gs  # the per-camera copies are not needed during the fit
     fit = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=camera_z_mm)
+    if sig is not None:
+        fit = with_uncertainty(fit, xy, np.concatenate(sig), camera_z_mm)
     del xy, gxy
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):

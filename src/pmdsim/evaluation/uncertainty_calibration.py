@@ -312,7 +312,7 @@ def _accumulate(stack, ov, ou, s, H, W):
     weights (clamped to the cell) are renormalised."""
     K, h, w, _ = stack.shape
     out = np.zeros((H, W, 3))
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         fv = (v - ov) / s
         i0 = min(max(int(math.floor(fv)), 0), max(h - 2, 0))
         ay = fv - i0 if h > 1 else 0.0

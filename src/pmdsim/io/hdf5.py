@@ -227,6 +227,14 @@ _EVALUATION = {
     "slopes": ("1", "surface slopes (dz/dx, dz/dy)", "sample"),
     "residual_slopes": ("1", "slopes minus the fitted paraboloid's slopes", "sample"),
     "height_detrended_mm": ("mm", "height minus the fitted paraboloid", "sample"),
+    "slope_std_urad": ("urad", "combined standard uncertainty (k = 1) of slopes (dz/dx, dz/dy)", "sample"),
+    "height_std_um": ("um", "combined standard uncertainty (k = 1) of height_mm, relative to the anchor", "sample"),
+    "height_std_noise_um": ("um", "height standard uncertainty from the images' noise (k = 1)", "sample"),
+    "height_std_calibration_um": ("um", "height standard uncertainty from the calibration covariance (k = 1)",
+                                  "sample"),
+    "slope_std_noise_urad": ("urad", "slope standard uncertainty from the images' noise (k = 1)", "sample"),
+    "slope_std_calibration_urad": ("urad", "slope standard uncertainty from the calibration covariance (k = 1)",
+                                   "sample"),
 }
 
 

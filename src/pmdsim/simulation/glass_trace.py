@@ -26,7 +26,7 @@ _CHUNK = 4096
 def _refract_kernel(rot, trans, kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, p_s, q_p, screen_xy, status,
                     codes, tol, max_iter):
     n = status.shape[0]
-    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+    for c in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
         for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
             if status[i] != 0:
                 continue

@@ -54,6 +54,7 @@ from ..simulation.imaging import needs_points
 from ..setup.sensor import SensorModel
 from ..simulation.render import image_specs, render_images, trace_setup_camera
 from .figures import height_map_figure
+from .uncertainty_job import uncertainty_line
 from .report import json_ready
 
 __all__ = [
@@ -209,6 +210,8 @@ class EvaluationSummary:
                 else:
                     out.append(f"{cam}: anchored: height {a['height_mm']:g} mm at pixel "
                                f"({a['pixel_vu'][0]:.2f}, {a['pixel_vu'][1]:.2f})")
+            if "height_std_rms_um" in c:
+                out.append(uncertainty_line(cam, c))
             if "stereo" in c:  # evaluate_image_set_stereo
                 st = c["stereo"]
                 out.append(f"{cam}: stereo: {st['anchors']} anchors of {st['searched']} searched pixels, overlap "
@@ -383,7 +386,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                        anchor=None, noise_std=None, force: bool = False, command: str | None = None,
                        progress: Progress | None = None, inputs: Sequence[str | Path | None] = (),
                        min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION, consistency: bool = True,
-                       setup_source: str = "the setup") -> EvaluationSummary:
+                       setup_source: str = "the setup", uncertainty: bool = True,
+                       anchor_std_mm: float | None = None) -> EvaluationSummary:
     """Decode, register and reconstruct every camera of an image set (paper §2.5).
 
     ``screen_model`` "planar" (the screen frame's x–y plane, the paper's assumption) or
@@ -398,6 +402,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``surface_fit.json`` (``focal_length_x_mm``, ``focal_length_y_mm``,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
     ``out_dir`` must not be ``image_dir`` nor another of ``inputs`` (e.g. the setup file).
+    ``uncertainty``: per-pixel standard uncertainties (:mod:`.uncertainty_job`; ``anchor_std_mm``
+    the anchor's own σ, default the manifest anchor's ``distance_std_mm``).
 
     The decoded images are checked for consistency (:mod:`pmdsim.evaluation.consistency`:
     per-image fit residuals, agreement of the periods, geometry) unless ``consistency`` is False
@@ -419,6 +425,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import slope_error_figure
+    from . import uncertainty_job as uj
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
     if screen_model is None:
@@ -442,6 +449,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     t0 = time.perf_counter()
     results = {}
     anchors = {}
+    uncs: dict = {}
     checks = {}
     inst = manifest.instrument
     run_checks = consistency
@@ -475,6 +483,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             rec = ar.reconstruction
             results[cam] = (decoded, reg, rec)
             anchors[cam] = ar.anchor
+            if uncertainty:
+                uncs[cam], w = uj.camera_uncertainty(setup, cam, decoded, reg, rec, method=method,
+                                                     screen_model=model_surface, anchor=cam_anchor,
+                                                     anchor_std=uj.anchor_std_mm(cam_anchor, anchor_std_mm))
+                warnings += w
+                if uncs[cam] is not None:
+                    uj.height_std_figure(rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
             p = rec.p_sample_mm
             height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
                               title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
@@ -484,7 +499,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
         cam0 = manifest.cameras[0]
         try:
             fit, extras = surface_fit_summary([results[c][2] for c in manifest.cameras],
-                                              float(results[cam0][1].o_ref_mm[2]))
+                                              float(results[cam0][1].o_ref_mm[2]), uj.fit_slope_std(uncs, manifest.cameras))
         except ComputationError as exc:  # too few points for a paraboloid: the rest stands
             warnings.append(f"no surface fit: {exc}")
             fit, extras = None, [{} for _ in manifest.cameras]
@@ -499,8 +514,10 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                              "instrument": json.dumps(json_ready(manifest.instrument.describe())),
                              "anchors": json.dumps(json_ready(anchors)),
                              "heights_relative": any(a["kind"] == "none" for a in anchors.values()),
-                             "warnings": json.dumps(warnings)},
-                            extras=dict(zip(manifest.cameras, extras)))
+                             "warnings": json.dumps(warnings),
+                             "uncertainty": uj.uncertainty_attribute(uncs, None if uncertainty else "not requested")},
+                            extras={c: {**ex, **uj.uncertainty_datasets(uncs.get(c))}
+                                    for c, ex in zip(manifest.cameras, extras)})
         if checks:
             write_consistency_h5(tmp / "evaluation.h5", checks,
                                  {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
@@ -518,7 +535,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                      "converged": bool(rec.converged), "anchor": anchors[cam], "usable": usable,
                      "valid_fraction": n_rec / usable if usable else 0.0,
                      "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
+                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else [],
+                     **uj.uncertainty_stats(uncs.get(cam))}
     return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
                              manifest.instrument.response_info, float(min_valid_fraction), tuple(notes))
 
@@ -634,8 +652,9 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                      "valid_fraction": n_rec / usable if usable else 0.0,
                      "consistency_counts": c.counts() if c is not None else {},
                      "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
+    from .uncertainty_job import STEREO_NOTE
     return EvaluationSummary(cams, time.perf_counter() - t0, response=manifest.instrument.response_info,
-                             min_valid_fraction=float(min_valid_fraction))
+                             min_valid_fraction=float(min_valid_fraction), notes=(STEREO_NOTE,))
 
 
 # ============================================================================ calibrate

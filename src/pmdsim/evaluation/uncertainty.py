@@ -1,0 +1,618 @@
+"""Per-pixel standard uncertainties of the reconstructed slopes and heights (issue 22).
+
+Vocabulary (GUM, JCGM 100:2008): every σ here is a *standard uncertainty* (coverage factor
+k = 1; multiply by k = 2 for an expanded uncertainty of about 95 % for Gaussian errors).
+docs/conventions.md "Uncertainty" states what σ covers and what it does not.
+
+**Noise contribution.** The decoder gives each pixel's standard uncertainty of the decoded
+screen coordinates, ``std_xy_mm`` (x and y from independent pattern directions, so
+uncorrelated). The slopes g = (−m_x/m_z, −m_y/m_z) of the bisector m = â + b̂ (â towards the
+camera, b̂ towards the screen point q; :mod:`pmdsim.evaluation.integration`) depend on q through
+b̂ only:
+
+    ∂g/∂q = G_m (I − b̂ b̂ᵀ)/|q − p|,   G_m = [[−1/m_z, 0, m_x/m_z²], [0, −1/m_z, m_y/m_z²]],
+
+and q on the screen coordinates (x_s, y_s) through the screen model, ∂q/∂(x_s, y_s) =
+R_ref_screen [e_x + h_x e_z, e_y + h_y e_z] (h the screen model's height). The slope σ is the
+linear propagation of ``std_xy_mm`` through J = ∂g/∂(x_s, y_s) (exact for small noise).
+
+The integrated heights are correlated: a height is a sum of slopes along paths from the seed.
+They are linear in the slope perturbations (linearised at the reconstruction): the stepwise
+integration's recursion (each pixel from its neighbours of the previous wavefront) and the
+least-squares integration's normal equations (the Gauss–Newton matrix at convergence, solved by
+the same multigrid-preconditioned CG). The covariance C = M Σ Mᵀ of the heights is estimated by
+K sampled right-hand sides: δg = J (σ ∘ ξ) with ξ independent Rademacher (±1) per pixel and axis,
+so that E[δg δgᵀ] = J Σ Jᵀ exactly, propagated through the linear map M; σ_z² = mean_k δz_k²
+(the mean of δz is 0 by construction). The relative standard error of the estimated σ is at most
+about 1/√(2K) (8.8 % at K = 64; Gaussian ξ give exactly that, Rademacher ξ less); measured in
+tests/test_uncertainty.py and docs/benchmarks.md. Sampling is seeded (reproducible).
+
+**Relative to what fixes the height.** The seed pixel's height is given, so its noise σ is 0
+and σ grows with the distance from it. An anchor with a standard uncertainty of its own (the
+distance of a :class:`~pmdsim.evaluation.anchor.DistanceAnchor`, the height of a
+:class:`~pmdsim.evaluation.anchor.HeightAnchor`) adds ∂z/∂a · σ_a per pixel, ∂z/∂a from one more
+anchored reconstruction with the anchor perturbed (a finite difference).
+
+Not covered by this module: the calibration's covariance (added by
+:mod:`pmdsim.evaluation.uncertainty_calibration` when the setup carries one), the cover glass's
+refraction in the slope Jacobian (the apparent points are treated as screen points), and model
+errors (e.g. a planar screen model of a bulged screen): they are systematic and not in σ.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from ..errors import PmdsimError
+from ..geometry.compact import compact_repr
+from .least_squares import _assemble_gauss_newton, _row_geometry
+from .multigrid import _CGWork, _Multigrid, _pcg
+
+__all__ = ["UncertaintyError", "SurfaceUncertainty", "slope_jacobian", "slope_std", "height_std_sampled",
+           "anchor_height_derivative", "surface_uncertainty", "combine", "DEFAULT_SAMPLES", "NO_COVARIANCE_NOTE"]
+
+#: Default number of sampled right-hand sides K of the height σ estimator.
+DEFAULT_SAMPLES = 64
+
+#: Default seed of the estimator's random right-hand sides.
+DEFAULT_RNG_SEED = 20261127
+
+NO_COVARIANCE_NOTE = "setup carries no calibration covariance: noise part only"
+
+
+class UncertaintyError(PmdsimError, ArithmeticError):
+    """The uncertainty of a reconstruction cannot be computed (e.g. the linearised system is
+    singular or its solve does not converge); the heights themselves stand."""
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceUncertainty:
+    """Per-pixel standard uncertainties (k = 1) of one camera's reconstruction.
+
+    Attributes
+    ----------
+    slope_std_urad : ndarray (H, W, 2)
+        Combined standard uncertainty of the slopes (∂z/∂x, ∂z/∂y), µrad (1e-6 of the slope).
+    height_std_um : ndarray (H, W)
+        Combined standard uncertainty of the height, µm, relative to what fixes the heights.
+    slope_std_noise_urad, height_std_noise_um
+        The images' noise contribution (decoder σ through registration and integration; the
+        anchor's own σ included in the heights).
+    slope_std_calibration_urad, height_std_calibration_um
+        The calibration covariance's contribution (0 when the setup carries none).
+    samples : int
+        K of the height σ estimator.
+    notes : tuple of str
+        What the numbers cover (e.g. :data:`NO_COVARIANCE_NOTE`).
+
+    NaN where not reconstructed. Combined = root-sum-square of the contributions.
+    """
+
+    __repr__ = compact_repr
+
+    slope_std_urad: np.ndarray
+    height_std_um: np.ndarray
+    slope_std_noise_urad: np.ndarray
+    height_std_noise_um: np.ndarray
+    slope_std_calibration_urad: np.ndarray
+    height_std_calibration_um: np.ndarray
+    samples: int = DEFAULT_SAMPLES
+    notes: tuple = field(default=())
+
+    def dominant(self) -> str:
+        """"noise" or "calibration": the contribution with the larger RMS height σ."""
+        rn = _rms(self.height_std_noise_um)
+        rc = _rms(self.height_std_calibration_um)
+        return "calibration" if rc > rn else "noise"
+
+    def describe(self) -> dict:
+        """The ``uncertainty`` attribute of evaluation.h5 (JSON-ready)."""
+        return {"quantity": "standard uncertainty (GUM, JCGM 100:2008)", "coverage_factor_k": 1,
+                "method": "linear propagation of the decoder's std_xy_mm through the reflection law; heights: "
+                          "Hutchinson-type estimator, K Rademacher right-hand sides through the linearised "
+                          "integration (docs/conventions.md, Uncertainty)",
+                "samples_K": int(self.samples),
+                "estimator_relative_error": round(1.0 / math.sqrt(2 * self.samples), 4),
+                "combined": "root-sum-square of noise and calibration contributions",
+                "heights_relative_to": "the seed pixel / anchor (anchor σ included where given)",
+                "notes": list(self.notes)}
+
+
+def _rms(a) -> float:
+    a = np.asarray(a)
+    f = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(f * f))) if f.size else 0.0
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _jacobian_kernel(o, p, q, T, S, sig, A, gstd):
+    """Per pixel of S: A = J·diag(σ) (2, 2) with J = ∂g/∂(x_s, y_s) (module docstring) and the
+    slopes' σ = sqrt(Σ_j A_ij²); T (H, W, 3, 2) or (1, 1, 3, 2) the screen tangents. NaN off S."""
+    H, W = S.shape
+    per_pixel = 0 if T.shape[0] == 1 else 1
+    for v in numba.prange(H):
+        for u in range(W):
+            if not S[v, u]:
+                for i in range(2):
+                    gstd[v, u, i] = np.nan
+                    for j in range(2):
+                        A[v, u, i, j] = np.nan
+                continue
+            ax = o[0] - p[v, u, 0]
+            ay = o[1] - p[v, u, 1]
+            az = o[2] - p[v, u, 2]
+            la = np.sqrt(ax * ax + ay * ay + az * az)
+            bx = q[v, u, 0] - p[v, u, 0]
+            by = q[v, u, 1] - p[v, u, 1]
+            bz = q[v, u, 2] - p[v, u, 2]
+            lb = np.sqrt(bx * bx + by * by + bz * bz)
+            bx /= lb
+            by /= lb
+            bz /= lb
+            mx = ax / la + bx
+            my = ay / la + by
+            mz = az / la + bz
+            imz = 1.0 / mz
+            tv = v * per_pixel
+            tu = u * per_pixel
+            for j in range(2):
+                tx = T[tv, tu, 0, j]
+                ty = T[tv, tu, 1, j]
+                tz = T[tv, tu, 2, j]
+                bt = bx * tx + by * ty + bz * tz
+                # dm = (I − b̂b̂ᵀ) t / |b|; dg_x = (−dm_x + g_x·(−dm_z))/m_z … = −(dm_x − m_x/m_z dm_z)/m_z
+                dmx = (tx - bt * bx) / lb
+                dmy = (ty - bt * by) / lb
+                dmz = (tz - bt * bz) / lb
+                A[v, u, 0, j] = (-dmx + mx * imz * dmz) * imz * sig[v, u, j]
+                A[v, u, 1, j] = (-dmy + my * imz * dmz) * imz * sig[v, u, j]
+            for i in range(2):
+                gstd[v, u, i] = np.sqrt(A[v, u, i, 0] ** 2 + A[v, u, i, 1] ** 2)
+
+
+def _jacobian_scaled(o, p, q, dq_dxy, S, sig):
+    T = np.asarray(dq_dxy, dtype=float)
+    if T.ndim == 2:
+        T = T[None, None]
+    H, W = S.shape
+    A = np.empty((H, W, 2, 2))
+    gstd = np.empty((H, W, 2))
+    _jacobian_kernel(np.asarray(o, dtype=float), np.ascontiguousarray(p, dtype=float),
+                     np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(T), np.ascontiguousarray(S),
+                     np.ascontiguousarray(sig, dtype=float), A, gstd)
+    return A, gstd
+
+
+def slope_jacobian(o, p, q, dq_dxy) -> np.ndarray:
+    """∂g/∂(x_s, y_s): the slopes' Jacobian w.r.t. the decoded screen coordinates,
+    ∂g/∂q = G_m (I − b̂ b̂ᵀ)/|q − p| times ∂q/∂(x_s, y_s) (module docstring).
+
+    Parameters
+    ----------
+    o : ndarray (3,)
+        Camera centre, mm (reconstruction frame).
+    p, q : ndarray (H, W, 3)
+        Surface points and screen points, mm.
+    dq_dxy : ndarray (H, W, 3, 2) or (3, 2)
+        ∂q/∂(x_s, y_s) (the screen model's tangent vectors in the reconstruction frame).
+
+    Returns
+    -------
+    ndarray (H, W, 2, 2)
+        J[..., i, j] = ∂g_i/∂xy_j (slopes dimensionless per mm); NaN where p or q is not finite.
+    """
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    S = np.isfinite(p).all(axis=-1) & np.isfinite(q).all(axis=-1)
+    return _jacobian_scaled(o, p, q, dq_dxy, S, np.ones(S.shape + (2,)))[0]
+
+
+def slope_std(J, std_xy_mm) -> np.ndarray:
+    """Standard uncertainty (H, W, 2) of the slopes (dimensionless) from J (H, W, 2, 2) and
+    uncorrelated screen-coordinate σ (H, W, 2), mm: sqrt(diag(J Σ Jᵀ))."""
+    s2 = np.asarray(std_xy_mm, dtype=float) ** 2
+    return np.sqrt(J[..., 0] ** 2 * s2[..., None, 0] + J[..., 1] ** 2 * s2[..., None, 1])
+
+
+def _screen_tangents(reg_T_ref_screen_R, screen_model, xy) -> np.ndarray:
+    """∂q_ref/∂(x_s, y_s): R (e_x + h_x e_z, e_y + h_y e_z), (H, W, 3, 2); (3, 2) for a plane."""
+    R = np.asarray(reg_T_ref_screen_R, dtype=float)
+    if screen_model is None:
+        return np.ascontiguousarray(R[:, :2])
+    H, W = xy.shape[:2]
+    t = np.zeros((H, W, 3, 2))
+    t[..., 0, 0] = 1.0
+    t[..., 1, 1] = 1.0
+    x0, x1, y0, y1 = screen_model.bounds_mm
+    ok = np.isfinite(xy).all(axis=-1)
+    gx = np.where(ok, np.clip(xy[..., 0], x0, x1), x0)
+    gy = np.where(ok, np.clip(xy[..., 1], y0, y1), y0)
+    g = np.asarray(screen_model.gradient(gx, gy), dtype=float)
+    t[..., 2, 0] = g[..., 0]
+    t[..., 2, 1] = g[..., 1]
+    return np.einsum("ij,hwjk->hwik", R, t)
+
+
+@numba.njit(cache=True, inline="always")
+def _splitmix64(x):
+    z = x + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@numba.njit(cache=True, inline="always")
+def _word(seed, pix, chunk, n_chunks):
+    """64 random bits of pixel ``pix`` for samples 32·chunk … 32·chunk + 31 (bit 2k: ξ_x, 2k+1: ξ_y)."""
+    return _splitmix64(_splitmix64(np.uint64(seed)) ^ np.uint64(pix * n_chunks + chunk))
+
+
+@numba.njit(cache=True, inline="always")
+def _xi(w, k, axis):
+    return 1.0 - 2.0 * float((w >> np.uint64(2 * k + axis)) & np.uint64(1))
+
+
+@numba.njit(cache=True, parallel=True)
+def _sample_dg(A, S, seed, k, n_chunks, dg):
+    """dg = A ξ_k (H, W, 2) of sample k (0 off S), ξ the counter-based Rademacher draws."""
+    H, W = S.shape
+    c = k // 32
+    kk = k % 32
+    for v in numba.prange(H):
+        for u in range(W):
+            if not S[v, u]:
+                dg[v, u, 0] = 0.0
+                dg[v, u, 1] = 0.0
+                continue
+            w = _word(seed, v * W + u, c, n_chunks)
+            x = _xi(w, kk, 0)
+            y = _xi(w, kk, 1)
+            dg[v, u, 0] = A[v, u, 0, 0] * x + A[v, u, 0, 1] * y
+            dg[v, u, 1] = A[v, u, 1, 0] * x + A[v, u, 1, 1] * y
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
+    """Σ_k δz_k² per pixel for K samples through the linearised stepwise recursion, wavefront by
+    wavefront (each wavefront depends on the previous one only: two buffers of one wavefront ×
+    32 samples), the samples' slopes A ξ_k drawn on the fly. Returns False if a pixel's
+    coefficient Σ J_b vanishes."""
+    H, W = layer.shape
+    n_layers = starts.size - 1
+    width = 0
+    for L in range(n_layers):
+        width = max(width, starts[L + 1] - starts[L])
+    n_chunks = (K + 31) // 32
+    prev = np.zeros((width, 32))
+    cur = np.zeros((width, 32))
+    bad = np.zeros(1)
+    for c in range(n_chunks):
+        kn = min(32, K - 32 * c)
+        prev[0, :] = 0.0  # the seed: δz = 0
+        for L in range(1, n_layers):
+            s0 = starts[L]
+            for i in range(starts[L + 1] - s0):  # serial: a parallel wavefront measured 5–10× slower
+                kb = order[s0 + i]
+                vb = kb // W
+                ub = kb - vb * W
+                wb = _word(seed, kb, c, n_chunks)
+                ux = 0.0
+                uy = 0.0
+                den = 0.0
+                for k in range(kn):
+                    cur[i, k] = 0.0
+                for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                    va = vb + dv
+                    ua = ub + du
+                    if not (0 <= va < H and 0 <= ua < W) or layer[va, ua] != L - 1:
+                        continue
+                    Ja, Jb, dx, dy = _edge_jac(geo, va, ua, vb, ub)
+                    den += Jb
+                    ux += 0.5 * (A[vb, ub, 0, 0] * dx + A[vb, ub, 1, 0] * dy)
+                    uy += 0.5 * (A[vb, ub, 0, 1] * dx + A[vb, ub, 1, 1] * dy)
+                    vx = 0.5 * (A[va, ua, 0, 0] * dx + A[va, ua, 1, 0] * dy)
+                    vy = 0.5 * (A[va, ua, 0, 1] * dx + A[va, ua, 1, 1] * dy)
+                    wa = _word(seed, va * W + ua, c, n_chunks)
+                    pa = pos[va, ua]
+                    for k in range(kn):
+                        cur[i, k] += vx * _xi(wa, k, 0) + vy * _xi(wa, k, 1) - Ja * prev[pa, k]
+                if den == 0.0:
+                    bad[0] = 1.0
+                    continue
+                s = 0.0
+                for k in range(kn):
+                    z = (cur[i, k] + ux * _xi(wb, k, 0) + uy * _xi(wb, k, 1)) / den
+                    cur[i, k] = z
+                    s += z * z
+                acc[vb, ub] += s
+            prev, cur = cur, prev
+    return bad[0] == 0.0
+
+
+@numba.njit(cache=True, parallel=True)
+def _geometry(o, d, q, S, z, geo):
+    for v in numba.prange(S.shape[0]):
+        _row_geometry(o, d, q, S, z, v, geo[v])
+
+
+@numba.njit(cache=True)
+def _edge_jac(geo, va, ua, vb, ub):
+    """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)."""
+    Gx = 0.5 * (geo[va, ua, 2] + geo[vb, ub, 2])
+    Gy = 0.5 * (geo[va, ua, 3] + geo[vb, ub, 3])
+    dx = geo[vb, ub, 0] - geo[va, ua, 0]
+    dy = geo[vb, ub, 1] - geo[va, ua, 1]
+    Ja = -1.0 + (Gx * geo[va, ua, 6] + Gy * geo[va, ua, 7]) - 0.5 * (geo[va, ua, 4] * dx + geo[va, ua, 5] * dy)
+    Jb = 1.0 - (Gx * geo[vb, ub, 6] + Gy * geo[vb, ub, 7]) - 0.5 * (geo[vb, ub, 4] * dx + geo[vb, ub, 5] * dy)
+    return Ja, Jb, dx, dy
+
+
+@numba.njit(cache=True)
+def _bfs(S, sv, su, layer, order):
+    """Wavefront index (4-connected distance from the seed within S; −1 unreached) and the
+    pixels in wavefront order (flat indices). Returns the number of pixels reached."""
+    H, W = S.shape
+    layer[:, :] = -1
+    layer[sv, su] = 0
+    order[0] = sv * W + su
+    n = 1
+    i = 0
+    while i < n:
+        k = order[i]
+        i += 1
+        v = k // W
+        u = k - v * W
+        for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            vv = v + dv
+            uu = u + du
+            if 0 <= vv < H and 0 <= uu < W and S[vv, uu] and layer[vv, uu] < 0:
+                layer[vv, uu] = layer[v, u] + 1
+                order[n] = vv * W + uu
+                n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def _stepwise_linear(geo, layer, order, n, dg, dz):
+    """The stepwise recursion linearised: for each pixel b (wavefront order) from its
+    neighbours a_i of the previous wavefront, Σ_i [J_a δz_a + J_b δz_b − ½(δg_a + δg_b)·Δxy] = 0.
+    Returns False if a pixel's coefficient Σ J_b vanishes."""
+    H, W = layer.shape
+    dz[:, :] = np.nan
+    k0 = order[0]
+    dz[k0 // W, k0 - (k0 // W) * W] = 0.0
+    for i in range(1, n):
+        k = order[i]
+        vb = k // W
+        ub = k - vb * W
+        lb = layer[vb, ub]
+        num = 0.0
+        den = 0.0
+        for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            va = vb + dv
+            ua = ub + du
+            if not (0 <= va < H and 0 <= ua < W) or layer[va, ua] != lb - 1:
+                continue
+            Ja, Jb, dx, dy = _edge_jac(geo, va, ua, vb, ub)
+            num += 0.5 * ((dg[va, ua, 0] + dg[vb, ub, 0]) * dx + (dg[va, ua, 1] + dg[vb, ub, 1]) * dy) - Ja * dz[va, ua]
+            den += Jb
+        if den == 0.0 or not np.isfinite(num / den):
+            return False
+        dz[vb, ub] = num / den
+    return True
+
+
+@numba.njit(cache=True)
+def _ls_rhs(S, sv, su, geo, dg, rhs):
+    """−Jᵀ δr of the trapezoidal equations for slope perturbations dg (padded rhs), with
+    δr_e = −½(δg_a + δg_b)·Δxy_e; the seed is not an unknown."""
+    H, W = S.shape
+    rhs[:, :] = 0.0
+    for v in range(H):
+        for u in range(W):
+            if not S[v, u]:
+                continue
+            a_free = not (v == sv and u == su)
+            for dv, du in ((0, 1), (1, 0)):
+                vb = v + dv
+                ub = u + du
+                if vb >= H or ub >= W or not S[vb, ub]:
+                    continue
+                Ja, Jb, dx, dy = _edge_jac(geo, v, u, vb, ub)
+                dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
+                if not (np.isfinite(Ja) and np.isfinite(Jb) and np.isfinite(dr)):
+                    continue
+                if a_free:
+                    rhs[v + 1, u + 1] -= Ja * dr
+                if not (vb == sv and ub == su):
+                    rhs[vb + 1, ub + 1] -= Jb * dr
+
+
+class _LinearisedIntegration:
+    """The reconstruction's height map linearised in the slope perturbations: δz = M δg."""
+
+    def __init__(self, o, d, q, rec):
+        S = np.ascontiguousarray(rec.reconstructed)
+        self.S = S
+        self.seed = tuple(int(x) for x in rec.seed_pixel)
+        self.method = rec.method
+        z = np.ascontiguousarray(np.where(S, rec.height_mm, 0.0))
+        d = np.ascontiguousarray(d, dtype=float)
+        q = np.ascontiguousarray(np.where(S[..., None], q, 0.0))
+        o = np.asarray(o, dtype=float)
+        H, W = S.shape
+        self.geo = np.zeros((H, W, 8))
+        _geometry(o, d, q, S, z, self.geo)
+        if not np.isfinite(self.geo[S]).all():
+            raise UncertaintyError("the slopes' geometry is not finite at some reconstructed pixel; no σ")
+        if self.method == "stepwise":
+            self.layer = np.empty((H, W), dtype=np.int64)
+            self.order = np.empty(H * W, dtype=np.int64)
+            self.n = _bfs(S, self.seed[0], self.seed[1], self.layer, self.order)
+            lo = self.layer.reshape(-1)[self.order[:self.n]]
+            self.starts = np.concatenate([[0], np.flatnonzero(np.diff(lo)) + 1, [self.n]]).astype(np.int64)
+            self.pos = np.zeros((H, W), dtype=np.int64)
+            self.pos.reshape(-1)[self.order[:self.n]] = np.arange(self.n) - self.starts[lo]
+        else:
+            shape = (H + 2, W + 2)
+            self.D, self.iD, self.Ex, self.Ey, self.rhs = (np.zeros(shape) for _ in range(5))
+            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, self.iD, self.Ex, self.Ey,
+                                   self.rhs)
+            if not (self.D > 0).any():
+                raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
+            self.mg = _Multigrid(self.D, self.iD, self.Ex, self.Ey)
+            self.work = _CGWork(shape)
+
+    def apply(self, dg) -> np.ndarray:
+        """δz (H, W) for slope perturbations dg (H, W, 2) (0 where not reconstructed); NaN off S."""
+        H, W = self.S.shape
+        if self.method == "stepwise":
+            dz = np.empty((H, W))
+            if not _stepwise_linear(self.geo, self.layer, self.order, self.n, dg, dz):
+                raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
+                                       "vanishes); no σ")
+            return dz
+        _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self.rhs)
+        scale = float(np.max(np.abs(self.rhs)))
+        if scale == 0.0:
+            return np.where(self.S, 0.0, np.nan)
+        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
+        if not ok or not np.isfinite(x).all():
+            raise UncertaintyError("the linearised least-squares system did not converge (singular or "
+                                   "ill-conditioned normal equations); no σ")
+        return np.where(self.S, x[1:-1, 1:-1], np.nan)
+
+
+def _sampled_std(lin, A, samples: int, rng_seed: int) -> np.ndarray:
+    """σ (H, W) of the heights, mm, from A = J·diag(σ_xy) (H, W, 2, 2) with ``samples``
+    counter-based Rademacher right-hand sides (reproducible for a seed)."""
+    S = lin.S
+    A = np.ascontiguousarray(np.where(S[..., None, None], A, 0.0))
+    seed = int(rng_seed) % (1 << 63)
+    K = int(samples)
+    acc = np.zeros(S.shape)
+    if lin.method == "stepwise":
+        if not _stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
+            raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
+                                   "vanishes); no σ")
+    else:
+        dg = np.empty(S.shape + (2,))
+        n_chunks = (K + 31) // 32
+        for k in range(K):
+            _sample_dg(A, S, seed, k, n_chunks, dg)
+            dz = lin.apply(dg)
+            acc += np.where(S, dz, 0.0) ** 2
+    return np.where(S, np.sqrt(acc / K), np.nan)
+
+
+def height_std_sampled(o, d, q, rec, J, std_xy_mm, *, samples: int = DEFAULT_SAMPLES,
+                       rng_seed: int = DEFAULT_RNG_SEED) -> np.ndarray:
+    """Standard uncertainty (H, W) of the heights, mm, from uncorrelated screen-coordinate σ
+    (H, W, 2) through the slopes' Jacobian J (H, W, 2, 2) and the reconstruction's linearised
+    integration (module docstring), with ``samples`` Rademacher right-hand sides.
+
+    Raises
+    ------
+    UncertaintyError
+        The linearised system is singular or its solve does not converge.
+    """
+    if int(samples) < 2:
+        raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
+    lin = _LinearisedIntegration(o, d, q, rec)
+    sig = np.nan_to_num(np.asarray(std_xy_mm, dtype=float))
+    return _sampled_std(lin, np.nan_to_num(J) * sig[..., None, :], samples, rng_seed)
+
+
+def anchor_height_derivative(reg, anchor, method, *, T_world_ref, step_mm: float = 1e-3) -> np.ndarray:
+    """∂z/∂a (H, W): how the anchored heights change per mm of the anchor's own quantity (the
+    distance of a DistanceAnchor, the height of a HeightAnchor), by a central difference of two
+    anchored reconstructions. Zero-size anchors ('none'): zeros."""
+    from .anchor import DistanceAnchor, HeightAnchor, reconstruct_anchored
+
+    if isinstance(anchor, DistanceAnchor):
+        pert = [DistanceAnchor(anchor.pixel_vu, anchor.distance_mm + s, anchor.point_world_mm)
+                for s in (step_mm, -step_mm)]
+    elif isinstance(anchor, HeightAnchor):
+        pert = [HeightAnchor(anchor.pixel_vu, anchor.height_mm + s) for s in (step_mm, -step_mm)]
+    else:
+        return np.zeros(reg.valid.shape)
+    z = [reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=a, T_world_ref=T_world_ref,
+                              method=method).reconstruction.height_mm for a in pert]
+    return (z[0] - z[1]) / (2 * step_mm)
+
+
+def combine(*parts) -> np.ndarray:
+    """Root-sum-square of standard uncertainties (uncorrelated contributions)."""
+    return np.sqrt(sum(np.asarray(p, dtype=float) ** 2 for p in parts))
+
+
+def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, screen_model=None, anchor=None,
+                        anchor_std_mm: float = 0.0, samples: int = DEFAULT_SAMPLES,
+                        rng_seed: int = DEFAULT_RNG_SEED) -> SurfaceUncertainty:
+    """Per-pixel standard uncertainties of one camera's reconstruction (module docstring).
+
+    Parameters
+    ----------
+    setup : Setup
+        The evaluating setup (its ``calibration_covariance``, if any, adds the calibration part).
+    camera : str
+    decoded : ScreenCoordinates
+        With ``std_xy_mm`` (H, W, 2).
+    reg : Registration
+    rec : Reconstruction
+        The (anchored) reconstruction in the sample frame.
+    method : {"stepwise", "least_squares"}
+    screen_model : surface, optional
+        The evaluation's screen model (None: the plane).
+    anchor : HeightAnchor or DistanceAnchor, optional
+        What fixed the heights; with ``anchor_std_mm`` > 0 its own σ is added.
+    anchor_std_mm : float
+        Standard uncertainty of the anchor's distance (or height), mm.
+    samples, rng_seed
+        K and the seed of the height σ estimator.
+
+    Raises
+    ------
+    UncertaintyError
+        σ cannot be computed (the caller keeps the heights).
+    """
+    notes = []
+    S = rec.reconstructed
+    T_ref_screen = setup.sample.T_world_sample.inv() @ setup.screen.T_world_screen
+    R = np.asarray(T_ref_screen.rotation, dtype=float)
+    dq = _screen_tangents(R, screen_model, decoded.screen_xy_mm)
+    std = np.nan_to_num(np.asarray(decoded.std_xy_mm, dtype=float))
+    A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
+    if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
+        notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
+    if int(samples) < 2:
+        raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
+    h_noise = _sampled_std(_LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec), A, samples, rng_seed)
+    if anchor_std_mm and anchor is not None:
+        dz_da = anchor_height_derivative(reg, anchor, method, T_world_ref=setup.sample.T_world_sample)
+        h_noise = combine(h_noise, dz_da * float(anchor_std_mm))
+        notes.append(f"anchor standard uncertainty {float(anchor_std_mm):g} mm included")
+    if not np.isfinite(h_noise[S]).all():
+        raise UncertaintyError("the height σ is not finite at some reconstructed pixel")
+    cov = getattr(setup, "calibration_covariance", None)
+    if cov is not None:
+        from .uncertainty_calibration import calibration_contribution  # noqa: PLC0415 (optional part)
+
+        cal = calibration_contribution(setup, camera, decoded, anchor=anchor, method=method,
+                                       screen_model=screen_model)
+        h_cal = np.where(S, np.asarray(cal.height_std_um, dtype=float), np.nan)
+        g_cal = np.where(S[..., None], np.asarray(cal.slope_std_urad, dtype=float), np.nan)
+    else:
+        h_cal = np.where(S, 0.0, np.nan)
+        g_cal = np.where(S[..., None], np.zeros(S.shape + (2,)), np.nan)
+        notes.append(NO_COVARIANCE_NOTE)
+    h_noise_um = h_noise * 1e3
+    g_noise_urad = g_noise * 1e6
+    return SurfaceUncertainty(slope_std_urad=combine(g_noise_urad, g_cal), height_std_um=combine(h_noise_um, h_cal),
+                              slope_std_noise_urad=g_noise_urad, height_std_noise_um=h_noise_um,
+                              slope_std_calibration_urad=g_cal, height_std_calibration_um=h_cal,
+                              samples=int(samples), notes=tuple(notes))

@@ -1,0 +1,94 @@
+"""The uncertainty part of ``pmdsim evaluate`` (issue 22): per camera, the standard
+uncertainties of :mod:`pmdsim.evaluation.uncertainty`, their datasets in ``evaluation.h5``,
+``height_std_{camera}.png`` and the summary lines. A σ that cannot be computed does not stop
+the evaluation: the heights are written, σ is omitted and a warning says why."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..evaluation.uncertainty import SurfaceUncertainty, UncertaintyError, surface_uncertainty
+from .figures import height_map_figure
+
+__all__ = ["camera_uncertainty", "uncertainty_datasets", "uncertainty_attribute", "uncertainty_stats",
+           "height_std_figure", "STEREO_NOTE"]
+
+STEREO_NOTE = ("uncertainty: not computed for --stereo evaluations (no σ datasets written); evaluate each camera "
+               "with an anchor for per-pixel σ")
+
+_NAMES = ("slope_std_urad", "height_std_um", "height_std_noise_um", "height_std_calibration_um",
+          "slope_std_noise_urad", "slope_std_calibration_urad")
+
+
+def anchor_std_mm(anchor, override: float | None) -> float:
+    """The anchor's own standard uncertainty, mm: ``override`` (the CLI option) if given, else
+    the anchor's ``distance_std_mm`` / ``height_std_mm`` (manifest), else 0."""
+    if override is not None:
+        return float(override)
+    return float(getattr(anchor, "distance_std_mm", 0.0) or getattr(anchor, "height_std_mm", 0.0) or 0.0)
+
+
+def camera_uncertainty(setup, cam: str, decoded, reg, rec, *, method: str, screen_model, anchor,
+                       anchor_std: float = 0.0) -> tuple[SurfaceUncertainty | None, list[str]]:
+    """:func:`~pmdsim.evaluation.uncertainty.surface_uncertainty` for one camera; on
+    :class:`UncertaintyError` (None, [warning]) — the caller keeps the heights."""
+    from ..evaluation.anchor import DistanceAnchor, HeightAnchor
+
+    a = anchor if isinstance(anchor, (DistanceAnchor, HeightAnchor)) else None
+    try:
+        return surface_uncertainty(setup, cam, decoded, reg, rec, method=method, screen_model=screen_model,
+                                   anchor=a, anchor_std_mm=anchor_std), []
+    except UncertaintyError as exc:
+        return None, [f"{cam}: no uncertainty (σ datasets omitted, heights written): {exc}"]
+
+
+def uncertainty_datasets(unc: SurfaceUncertainty | None) -> dict:
+    """The σ maps of evaluation.h5 by dataset name (empty without σ)."""
+    return {} if unc is None else {n: getattr(unc, n) for n in _NAMES}
+
+
+def uncertainty_attribute(uncs: dict, skipped: str | None = None) -> str:
+    """The ``uncertainty`` file attribute (JSON): per camera what σ is and covers, or why there is none."""
+    doc = {cam: (u.describe() if u is not None else {"omitted": True}) for cam, u in uncs.items()}
+    if skipped:
+        doc = {"omitted": True, "reason": skipped}
+    return json.dumps(doc)
+
+
+def uncertainty_stats(unc: SurfaceUncertainty | None) -> dict:
+    """RMS and maximum of ``height_std_um`` and the dominant contribution (for the summary)."""
+    if unc is None:
+        return {}
+    h = unc.height_std_um[np.isfinite(unc.height_std_um)]
+    if not h.size:
+        return {}
+    return {"height_std_rms_um": float(np.sqrt(np.mean(h * h))), "height_std_max_um": float(h.max()),
+            "uncertainty_dominant": unc.dominant(), "uncertainty_notes": list(unc.notes)}
+
+
+def uncertainty_line(cam: str, c: dict) -> str | None:
+    """The summary line of one camera (None without σ)."""
+    if "height_std_rms_um" not in c:
+        return None
+    return (f"{cam}: height standard uncertainty (k = 1) RMS {c['height_std_rms_um']:.4g} µm, max "
+            f"{c['height_std_max_um']:.4g} µm; dominated by {c['uncertainty_dominant']}"
+            + (f" ({'; '.join(c['uncertainty_notes'])})" if c.get("uncertainty_notes") else ""))
+
+
+def height_std_figure(rec, unc: SurfaceUncertainty, cam: str, path: str | Path) -> None:
+    """``height_std_{camera}.png``: the combined height σ over the sample frame, µm."""
+    p = rec.p_sample_mm
+    height_map_figure(p[..., 0], p[..., 1], unc.height_std_um,
+                      title=f"{cam}: height standard uncertainty (k = 1, relative to the anchor)",
+                      label="height σ (µm)", path=path, signed=False)
+
+
+def fit_slope_std(uncs: dict, cameras) -> list | None:
+    """Per camera the slopes' noise σ (H, W, 2) in rad for the surface fit, or None when a
+    camera has none (the fit then carries no σ)."""
+    if not uncs or any(uncs.get(c) is None for c in cameras):
+        return None
+    return [uncs[c].slope_std_noise_urad * 1e-6 for c in cameras]
