@@ -134,7 +134,7 @@ def _jacobian_kernel(o, p, q, T, S, sig, A, gstd):
     slopes' σ = sqrt(Σ_j A_ij²); T (H, W, 3, 2) or (1, 1, 3, 2) the screen tangents. NaN off S."""
     H, W = S.shape
     per_pixel = 0 if T.shape[0] == 1 else 1
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         for u in range(W):
             if not S[v, u]:
                 for i in range(2):
@@ -262,7 +262,7 @@ def _sample_dg(A, S, seed, k, n_chunks, dg):
     H, W = S.shape
     c = k // 32
     kk = k % 32
-    for v in numba.prange(H):
+    for v in numba.prange(0, H):
         for u in range(W):
             if not S[v, u]:
                 dg[v, u, 0] = 0.0
@@ -335,7 +335,7 @@ def _stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
 
 @numba.njit(cache=True, parallel=True)
 def _geometry(o, d, q, S, z, geo):
-    for v in numba.prange(S.shape[0]):
+    for v in numba.prange(0, S.shape[0]):
         _row_geometry(o, d, q, S, z, v, geo[v])
 
 
