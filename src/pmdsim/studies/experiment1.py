@@ -69,6 +69,7 @@ class CaseResult:
     p_sample_mm: np.ndarray
     reconstructed: np.ndarray
     n_sample: np.ndarray | None = None  # (H, W, 3) float32 reconstructed unit normals (sample frame)
+    uncertainty: dict | None = None  # results.json's height σ keys (studies.experiment_uncertainty), if computed
 
     @classmethod
     def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":
@@ -90,6 +91,7 @@ class CaseResult:
         rec["method"] = self.method
         rec["seed_pixel"] = list(self.seed_pixel)
         rec["converged"] = self.converged
+        rec.update(self.uncertainty or {})
         return rec
 
 

@@ -3,7 +3,7 @@ reconstruction with the calibrated setup, heights relative to the calibrated tab
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -16,6 +16,7 @@ from ..simulation.imaging import needs_points
 from ..simulation.render import trace_setup_camera
 from .calibration_data import simulate_calibration_observations, simulate_decoded
 from .experiment1 import CaseResult, Progress
+from .experiment_uncertainty import case_uncertainty_record
 
 __all__ = ["PAPER_TABLE3", "INITIAL_ERRORS", "Experiment2Bulge", "run_experiment2_bulge", "calibrate_and_reconstruct"]
 
@@ -53,7 +54,7 @@ class Experiment2Bulge:
 def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsample: int = 1,
                           method: str = "stepwise", seed: int = 0, progress: Progress | None = None,
                           image_sink=None, screen_grid: int | None = None,
-                          observations=None) -> Experiment2Bulge:
+                          observations=None, uncertainty: bool = True) -> Experiment2Bulge:
     """Experiment 2 (paper §4) at one Δh: simulate the calibration poses → calibrate (planar
     screen model, nominal start values with :data:`INITIAL_ERRORS`) → simulate the planar
     sample → reconstruct with the calibrated parameters, heights relative to the calibrated
@@ -62,12 +63,14 @@ def run_experiment2_bulge(bulge_mm: float, *, base: Setup | None = None, downsam
     ``screen_grid`` = n (odd, ≥ 3) calibrates the screen as a free-form n × n spline grid
     (border heights held: the rigid frame's plane is the gauge; interior heights free) and
     reconstructs with the calibrated screen — the paper's future work (§5); None: planar.
+    ``uncertainty``: the cases carry results.json's height σ keys (docs/experiments.md).
     """
     base = default_setup() if base is None else base
     truth = base.binned(downsample).with_bulge(bulge_mm)
     return calibrate_and_reconstruct(truth, bulge_mm=bulge_mm, method=method,
                                      start_seed=[seed, int(round(bulge_mm * 1000))], progress=progress,
-                                     image_sink=image_sink, screen_grid=screen_grid, observations=observations)
+                                     image_sink=image_sink, screen_grid=screen_grid, observations=observations,
+                                     uncertainty=uncertainty)
 
 
 #: Decoded regions smaller than this (pixels) are not reconstructed on their own.
@@ -79,7 +82,8 @@ MAX_REGIONS = 64
 def _with_other_regions(reg, rec, method: str):
     """``rec`` plus every further 4-connected region of registered pixels it did not reach (e.g.
     where the lens reversed the finest fringes' contrast and those pixels were flagged, issue 20),
-    each reconstructed from its own seed — the pixel nearest its centroid — at height 0: the
+    each reconstructed from its own seed — the pixel nearest its centroid — at height 0 (returned
+    with ``rec``: the list of (seed pixel, seed height, pixels) of every region): the
     regions' heights are *not* tied by the measurement; each is anchored to the table plane the
     budget's planar sample lies on, as the first region is. Regions under :data:`MIN_REGION_PX`
     pixels are left out; at most :data:`MAX_REGIONS` (largest first)."""
@@ -88,10 +92,11 @@ def _with_other_regions(reg, rec, method: str):
     from ..evaluation.anchor import default_seed_pixel
     from ..evaluation.reconstruction import reconstruct
 
+    parts = [(tuple(rec.seed_pixel), float(rec.height_mm[tuple(rec.seed_pixel)]), rec.reconstructed)]
     rest = reg.valid & ~rec.reconstructed
     labels, n = ndimage.label(rest)
     if n == 0:
-        return rec
+        return rec, parts
     sizes = np.bincount(labels.ravel())[1:]
     order = [i + 1 for i in np.argsort(-sizes, kind="stable") if sizes[i] >= MIN_REGION_PX][:MAX_REGIONS]
     h, p, nrm, done = rec.height_mm.copy(), rec.p_sample_mm.copy(), rec.n_sample.copy(), rec.reconstructed.copy()
@@ -105,14 +110,14 @@ def _with_other_regions(reg, rec, method: str):
         m = r.reconstructed & ~done
         h[m], p[m], nrm[m] = r.height_mm[m], r.p_sample_mm[m], r.n_sample[m]
         done |= m
-    from dataclasses import replace
-
-    return replace(rec, height_mm=h, p_sample_mm=p, n_sample=nrm, reconstructed=done)
+        parts.append((tuple(r.seed_pixel), 0.0, m))
+    return replace(rec, height_mm=h, p_sample_mm=p, n_sample=nrm, reconstructed=done), parts
 
 
 def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, method: str = "stepwise",
                               start_seed=0, progress: Progress | None = None, image_sink=None,
-                              screen_grid: int | None = None, observations=None, glass=None) -> Experiment2Bulge:
+                              screen_grid: int | None = None, observations=None, glass=None,
+                              uncertainty: bool = False) -> Experiment2Bulge:
     """The Experiment 2 chain for any true setup (deformed screen, sagged mirror, …).
 
     Simulate the calibration poses of ``truth`` (or take ``observations`` of it) → calibrate
@@ -124,7 +129,9 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
     (default: the truth's central screen control height). ``glass``: the cover glass the
     calibration models (a :class:`~pmdsim.geometry.cover_glass.CoverGlass`, its thickness fitted
     from this start, :func:`pmdsim.calibration.glass.calibrate_with_glass`); None: the truth's
-    glass, if any, is ignored.
+    glass, if any, is ignored. ``uncertainty``: each case carries the height σ keys of
+    :func:`~pmdsim.studies.experiment_uncertainty.case_uncertainty_record` (Experiments 2, 3
+    and 5 set it; False, the default for other callers such as studies: skip them).
     """
     from ..calibration import calibrate, nominal_state, perturbed_state
     from ..calibration.glass import calibrate_with_glass
@@ -165,7 +172,7 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
                 seed_px = None
         reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed_px, seed_height_mm=0.0,
                                     screen_model=None if screen_model is None else model.screen.surface)
-        rec = _with_other_regions(reg, rec, method)
+        rec, parts = _with_other_regions(reg, rec, method)
         n_rec = int(rec.reconstructed.sum())
         if n_rec < 3:  # nothing to assess: say why instead of failing in the metrics
             n_dec = int(decoded.valid.sum())
@@ -178,5 +185,8 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         # plane its true height is 0, so the reconstructed height is the error.
         err = np.where(rec.reconstructed, rec.height_mm, np.nan)
         metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
-        cases.append(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics))
+        unc = None if not uncertainty else case_uncertainty_record(
+            truth, model, cam, decoded, reg, rec, parts, err, method=method, screen_grid=screen_grid,
+            glass_modelled=glass is not None)
+        cases.append(replace(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics), uncertainty=unc))
     return Experiment2Bulge(float(bulge_mm), result, model, deviation, cases)

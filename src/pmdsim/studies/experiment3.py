@@ -167,7 +167,8 @@ def run_experiment3(scenarios: Iterable[Experiment3Scenario], grids: Iterable[in
                 progress(f"{sc.label}: {label} screen model")
             try:
                 e = calibrate_and_reconstruct(sc.truth, bulge_mm=sc.bulge_mm, method=method,
-                                              start_seed=sc.start_seed, screen_grid=g, observations=obs)
+                                              start_seed=sc.start_seed, screen_grid=g, observations=obs,
+                                              uncertainty=True)
             except CalibrationDataError as err:
                 yield sc, label, err, []
                 continue

@@ -48,6 +48,7 @@ from ..simulation.render import render_images, trace_setup_camera
 from .calibration_data import simulate_calibration_observations
 from .experiment1 import CaseResult
 from .experiment2 import INITIAL_ERRORS
+from .experiment_uncertainty import case_uncertainty_record, stereo_uncertainty_record
 from .figures import height_grid_figure
 from .report import json_ready
 
@@ -188,10 +189,13 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
             if not (decoded[cam].valid[seed_px] and maps[cam].valid[seed_px]):
                 raise ComputationError(f"Experiment 5: camera {cam!r}'s central pixel does not see the foil; no seed")
             seed_h = float(maps[cam].p_sample_mm[seed_px][2])  # its true height above the table
-            _, rec = evaluate_decoded(model, cam, decoded[cam], screen_model=screen, method=method,
-                                      seed_pixel=seed_px, seed_height_mm=seed_h)
+            reg, rec = evaluate_decoded(model, cam, decoded[cam], screen_model=screen, method=method,
+                                        seed_pixel=seed_px, seed_height_mm=seed_h)
             cases.append(_case(truth, model, bulge_mm, cam, f"mono_{name}", rec, label,
                                {"seed_pixel": list(seed_px), "seed_height_mm": seed_h}))
+            cases[-1].record.update(case_uncertainty_record(
+                truth, model, cam, decoded[cam], reg, rec, [(seed_px, seed_h, rec.reconstructed)],
+                cases[-1].case.height_error_mm, method=method, screen_grid=None if name == "planar" else 3))
         _, st = evaluate_stereo_decoded(model, decoded, screen_model=screen)
         summ = st.summary()
         for cam, sc in st.cameras.items():
@@ -199,6 +203,8 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
                      "normal_disagreement_median_urad": summ[cam]["normal_disagreement_median_urad"],
                      "height_discrepancy_median_um": summ[cam]["height_discrepancy_median_um"]}
             cases.append(_case(truth, model, bulge_mm, cam, f"stereo_{name}", sc.reconstruction, label, extra))
+            cases[-1].record.update(stereo_uncertainty_record(truth, sc, cases[-1].case.height_error_mm,
+                                                              screen_grid=None if name == "planar" else 3))
         tick(f"Δh = {bulge_mm:g} mm: {name} evaluations")
     # the reference: no measurement, the foil assumed flat (z = 0 of the true table)
     x0, x1, y0, y1 = PRINTABLE_AREA_MM
