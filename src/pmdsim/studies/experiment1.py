@@ -70,6 +70,7 @@ class CaseResult:
     reconstructed: np.ndarray
     n_sample: np.ndarray | None = None  # (H, W, 3) float32 reconstructed unit normals (sample frame)
     uncertainty: dict | None = None  # results.json's height σ keys (studies.experiment_uncertainty), if computed
+    height_std_um: np.ndarray | None = None  # (H, W) combined height standard uncertainty, µm, if computed
 
     @classmethod
     def from_reconstruction(cls, bulge_mm, camera, rec: Reconstruction, height_error_mm, metrics) -> "CaseResult":

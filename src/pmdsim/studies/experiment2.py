@@ -16,7 +16,7 @@ from ..simulation.imaging import needs_points
 from ..simulation.render import trace_setup_camera
 from .calibration_data import simulate_calibration_observations, simulate_decoded
 from .experiment1 import CaseResult, Progress
-from .experiment_uncertainty import case_uncertainty_record
+from .experiment_uncertainty import case_uncertainty
 
 __all__ = ["PAPER_TABLE3", "INITIAL_ERRORS", "Experiment2Bulge", "run_experiment2_bulge", "calibrate_and_reconstruct"]
 
@@ -185,8 +185,9 @@ def calibrate_and_reconstruct(truth: Setup, *, bulge_mm: float | None = None, me
         # plane its true height is 0, so the reconstructed height is the error.
         err = np.where(rec.reconstructed, rec.height_mm, np.nan)
         metrics = surface_error_metrics(p[..., 0], p[..., 1], err)
-        unc = None if not uncertainty else case_uncertainty_record(
+        unc, h_std = (None, None) if not uncertainty else case_uncertainty(
             truth, model, cam, decoded, reg, rec, parts, err, method=method, screen_grid=screen_grid,
             glass_modelled=glass is not None)
-        cases.append(replace(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics), uncertainty=unc))
+        cases.append(replace(CaseResult.from_reconstruction(bulge_mm, cam, rec, err, metrics), uncertainty=unc,
+                             height_std_um=h_std))
     return Experiment2Bulge(float(bulge_mm), result, model, deviation, cases)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import PmdsimError
 
-__all__ = ["COVERAGE_GAUSSIAN_K2", "coverage_k2", "case_uncertainty_record", "height_std_summary", "uncertainty_record",
+__all__ = ["COVERAGE_GAUSSIAN_K2", "coverage_k2", "case_uncertainty", "case_uncertainty_record", "height_std_summary", "uncertainty_record",
            "reconstruction_uncertainty", "model_error_labels", "screen_representation_error_mm",
            "stereo_uncertainty_record", "STEREO_NO_SIGMA_NOTE", "IGNORES_PLANAR_BULGE", "IGNORES_IDEAL_IMAGES", "IGNORES_MIRROR_SAG",
            "IGNORES_COVER_GLASS", "IGNORES_SCREEN_SHAPE"]
@@ -239,14 +239,23 @@ def model_error_labels(truth, *, screen_grid: int | None,
     return ignores, notes
 
 
-def case_uncertainty_record(truth, model, camera: str, decoded, reg, rec, parts, error_mm, *, method: str,
-                            screen_grid: int | None, glass_modelled: bool = False) -> dict:
-    """The results.json keys (:func:`uncertainty_record`) of one camera of Experiment 2's chain
-    (also Experiments 3 and 5 mono): σ of the reconstruction with the calibrated ``model`` (its
-    covariance gives the calibration part) against ``error_mm`` (nothing removed), labelled by
+def case_uncertainty(truth, model, camera: str, decoded, reg, rec, parts, error_mm, *, method: str,
+                     screen_grid: int | None, glass_modelled: bool = False) -> tuple[dict, np.ndarray | None]:
+    """(results.json keys, combined σ map (H, W) µm or None) of one camera of Experiment 2's
+    chain (also Experiments 3 and 5 mono): σ of the reconstruction with the calibrated ``model``
+    (its covariance gives the calibration part; :func:`reconstruction_uncertainty`) against
+    ``error_mm`` (nothing removed; :func:`uncertainty_record`), labelled by
     :func:`model_error_labels`."""
     screen_model = None if screen_grid is None else model.screen.surface
     maps, notes = reconstruction_uncertainty(model, camera, decoded, reg, rec, parts, method=method,
                                              screen_model=screen_model)
     ignores, label_notes = model_error_labels(truth, screen_grid=screen_grid, screen_glass_modelled=glass_modelled)
-    return uncertainty_record(maps, error_mm, notes=[*notes, *label_notes], ignores=ignores)
+    record = uncertainty_record(maps, error_mm, notes=[*notes, *label_notes], ignores=ignores)
+    return record, (None if maps is None else maps["height_std_um"])
+
+
+def case_uncertainty_record(truth, model, camera: str, decoded, reg, rec, parts, error_mm, *, method: str,
+                            screen_grid: int | None, glass_modelled: bool = False) -> dict:
+    """The results.json keys of :func:`case_uncertainty`."""
+    return case_uncertainty(truth, model, camera, decoded, reg, rec, parts, error_mm, method=method,
+                            screen_grid=screen_grid, glass_modelled=glass_modelled)[0]
