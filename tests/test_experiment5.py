@@ -95,3 +95,21 @@ def test_physics(run):
         sp, sf = rec[(3.0, "stereo_planar", cam)], rec[(3.0, "stereo_free3x3", cam)]
         assert sp["max_abs_error_um"] > 10 * sf["max_abs_error_um"]
         assert sp["normal_disagreement_median_urad"] > 10 * sf["normal_disagreement_median_urad"]
+
+
+def test_height_std_keys(run):
+    """Issue 22: mono cases carry σ statistics and coverage_k2; stereo ones null with the reason;
+    the planar model under the 3 mm bulge and the foil's lateral term are labelled."""
+    from pmdsim.studies.experiment_uncertainty import IGNORES_LATERAL, IGNORES_PLANAR_BULGE, STEREO_NO_SIGMA_NOTE
+
+    out, _ = run
+    for x in json.loads((out / "results.json").read_text()):
+        assert IGNORES_LATERAL in x["height_std_ignores"]
+        assert (IGNORES_PLANAR_BULGE in x["height_std_ignores"]) == (x["method"].endswith("planar")
+                                                                     and x["bulge_mm"] == 3.0)
+        if x["method"].startswith("stereo"):
+            assert x["height_std_um"] is None and x["coverage_k2"] is None
+            assert STEREO_NO_SIGMA_NOTE in x["height_std_notes"]
+        else:
+            assert x["height_std_um"]["pixels"] > 0 and x["height_std_um"]["noise_rms"] > 0
+            assert x["height_std_um"]["calibration_rms"] > 0 and 0 <= x["coverage_k2"] <= 1

@@ -20,7 +20,7 @@ from pmdsim.cli import main
 from pmdsim.setup import default_setup
 from pmdsim.studies import run_experiment2_bulge, screen_deformation, simulate_calibration_observations
 from pmdsim.studies.experiment_uncertainty import (
-    COVERAGE_GAUSSIAN_K2, IGNORES_COVER_GLASS, IGNORES_IDEAL_IMAGES, IGNORES_MIRROR_SAG, IGNORES_PLANAR_BULGE,
+    COVERAGE_GAUSSIAN_K2, IGNORES_COVER_GLASS, IGNORES_IDEAL_IMAGES, IGNORES_LATERAL, IGNORES_MIRROR_SAG, IGNORES_PLANAR_BULGE,
     IGNORES_SCREEN_SHAPE, STEREO_NO_SIGMA_NOTE, coverage_k2, height_std_summary, model_error_labels,
     screen_representation_error_mm, stereo_uncertainty_record)
 
@@ -68,6 +68,8 @@ def test_screen_model_representation_and_labels():
     noisy = bulged.with_patterns(noise_std=2.0).with_mirror_sag(5.0).with_cover_glass(1.0)
     assert model_error_labels(noisy, screen_grid=3)[0] == [IGNORES_MIRROR_SAG, IGNORES_COVER_GLASS]
     assert model_error_labels(noisy, screen_grid=3, screen_glass_modelled=True)[0] == [IGNORES_MIRROR_SAG]
+    assert model_error_labels(noisy, screen_grid=3, screen_glass_modelled=True, curved_sample=True)[0] == [
+        IGNORES_MIRROR_SAG, IGNORES_LATERAL]
 
 
 def test_stereo_without_sigma_is_null_with_a_note():

@@ -195,7 +195,8 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
                                {"seed_pixel": list(seed_px), "seed_height_mm": seed_h}))
             cases[-1].record.update(case_uncertainty_record(
                 truth, model, cam, decoded[cam], reg, rec, [(seed_px, seed_h, rec.reconstructed)],
-                cases[-1].case.height_error_mm, method=method, screen_grid=None if name == "planar" else 3))
+                cases[-1].case.height_error_mm, method=method, screen_grid=None if name == "planar" else 3,
+                curved_sample=True))
         _, st = evaluate_stereo_decoded(model, decoded, screen_model=screen)
         summ = st.summary()
         for cam, sc in st.cameras.items():
@@ -204,7 +205,8 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
                      "height_discrepancy_median_um": summ[cam]["height_discrepancy_median_um"]}
             cases.append(_case(truth, model, bulge_mm, cam, f"stereo_{name}", sc.reconstruction, label, extra))
             cases[-1].record.update(stereo_uncertainty_record(truth, sc, cases[-1].case.height_error_mm,
-                                                              screen_grid=None if name == "planar" else 3))
+                                                              screen_grid=None if name == "planar" else 3,
+                                                              curved_sample=True))
         tick(f"Δh = {bulge_mm:g} mm: {name} evaluations")
     # the reference: no measurement, the foil assumed flat (z = 0 of the true table)
     x0, x1, y0, y1 = PRINTABLE_AREA_MM

@@ -32,7 +32,7 @@ from ..errors import PmdsimError
 __all__ = ["COVERAGE_GAUSSIAN_K2", "coverage_k2", "case_uncertainty", "case_uncertainty_record", "height_std_summary", "uncertainty_record",
            "reconstruction_uncertainty", "model_error_labels", "screen_representation_error_mm",
            "stereo_uncertainty_record", "STEREO_NO_SIGMA_NOTE", "IGNORES_PLANAR_BULGE", "IGNORES_IDEAL_IMAGES", "IGNORES_MIRROR_SAG",
-           "IGNORES_COVER_GLASS", "IGNORES_SCREEN_SHAPE"]
+           "IGNORES_COVER_GLASS", "IGNORES_SCREEN_SHAPE", "IGNORES_LATERAL"]
 
 #: P(|e| ≤ 2σ) of a Gaussian error: erf(2/√2).
 COVERAGE_GAUSSIAN_K2 = math.erf(math.sqrt(2.0))
@@ -43,6 +43,7 @@ IGNORES_SCREEN_SHAPE = "free-form screen model cannot represent the true screen 
 IGNORES_IDEAL_IMAGES = "ideal images: σ covers quantisation only"
 IGNORES_MIRROR_SAG = "mirror sag"
 IGNORES_COVER_GLASS = "unmodelled cover glass"
+IGNORES_LATERAL = "lateral error × sample slope"
 
 #: A screen model whose best representation of the true screen misses it by more than this
 #: (mm) is labelled: 1 µm of screen height moves a slope by ≈ 1e-3 µrad per mm of lever — far
@@ -100,12 +101,13 @@ STEREO_NO_SIGMA_NOTE = ("stereo evaluation: no per-pixel σ (the stereo reconstr
                         "height_std_um and coverage_k2 are null")
 
 
-def stereo_uncertainty_record(truth, camera_result, error_mm, *, screen_grid: int | None) -> dict:
+def stereo_uncertainty_record(truth, camera_result, error_mm, *, screen_grid: int | None,
+                              curved_sample: bool = False) -> dict:
     """The keys of one camera of a stereo evaluation: from its σ maps if the stereo result carries
     them (an ``uncertainty`` attribute with ``height_std_um``, ``height_std_noise_um`` and
     ``height_std_calibration_um``, µm: the σ of the absolute heights the stereo anchors fix),
     else nulls with :data:`STEREO_NO_SIGMA_NOTE`; labelled as the mono evaluations."""
-    ignores, label_notes = model_error_labels(truth, screen_grid=screen_grid)
+    ignores, label_notes = model_error_labels(truth, screen_grid=screen_grid, curved_sample=curved_sample)
     u = getattr(camera_result, "uncertainty", None)
     names = ("height_std_um", "height_std_noise_um", "height_std_calibration_um")
     if u is None or not all(hasattr(u, n) for n in names):
@@ -199,8 +201,8 @@ def screen_representation_error_mm(truth, grid: int | None) -> float:
     return float(np.abs(z_fit - z_true).max())
 
 
-def model_error_labels(truth, *, screen_grid: int | None,
-                       screen_glass_modelled: bool = False) -> tuple[list[str], list[str]]:
+def model_error_labels(truth, *, screen_grid: int | None, screen_glass_modelled: bool = False,
+                       curved_sample: bool = False) -> tuple[list[str], list[str]]:
     """(ignores, notes): the known model errors of an evaluation of ``truth`` that σ ignores.
 
     Parameters
@@ -211,6 +213,10 @@ def model_error_labels(truth, *, screen_grid: int | None,
         The calibration's screen model (None: planar; n: n × n free form).
     screen_glass_modelled : bool
         Whether the calibration and evaluation model the screen's cover glass.
+    curved_sample : bool
+        The error is the height minus the true height at the *reconstructed* (x, y) of a curved
+        sample: a lateral error times the sample's slope enters the error but not σ (which is
+        the height's at a pixel).
     """
     ignores, notes = [], []
     miss = screen_representation_error_mm(truth, screen_grid)
@@ -236,11 +242,16 @@ def model_error_labels(truth, *, screen_grid: int | None,
     if truth.screen.cover_glass.present and not screen_glass_modelled:
         ignores.append(IGNORES_COVER_GLASS)
         notes.append(f"the screen's {truth.screen.cover_glass.thickness_mm:g} mm cover glass is not modelled")
+    if curved_sample:
+        ignores.append(IGNORES_LATERAL)
+        notes.append("σ is the height's at a pixel; the error compares with the true height at the reconstructed "
+                     "(x, y), so a lateral error times the sample's slope is in the error, not in σ")
     return ignores, notes
 
 
 def case_uncertainty(truth, model, camera: str, decoded, reg, rec, parts, error_mm, *, method: str,
-                     screen_grid: int | None, glass_modelled: bool = False) -> tuple[dict, np.ndarray | None]:
+                     screen_grid: int | None, glass_modelled: bool = False,
+                     curved_sample: bool = False) -> tuple[dict, np.ndarray | None]:
     """(results.json keys, combined σ map (H, W) µm or None) of one camera of Experiment 2's
     chain (also Experiments 3 and 5 mono): σ of the reconstruction with the calibrated ``model``
     (its covariance gives the calibration part; :func:`reconstruction_uncertainty`) against
@@ -249,13 +260,14 @@ def case_uncertainty(truth, model, camera: str, decoded, reg, rec, parts, error_
     screen_model = None if screen_grid is None else model.screen.surface
     maps, notes = reconstruction_uncertainty(model, camera, decoded, reg, rec, parts, method=method,
                                              screen_model=screen_model)
-    ignores, label_notes = model_error_labels(truth, screen_grid=screen_grid, screen_glass_modelled=glass_modelled)
+    ignores, label_notes = model_error_labels(truth, screen_grid=screen_grid, screen_glass_modelled=glass_modelled,
+                                              curved_sample=curved_sample)
     record = uncertainty_record(maps, error_mm, notes=[*notes, *label_notes], ignores=ignores)
     return record, (None if maps is None else maps["height_std_um"])
 
 
 def case_uncertainty_record(truth, model, camera: str, decoded, reg, rec, parts, error_mm, *, method: str,
-                            screen_grid: int | None, glass_modelled: bool = False) -> dict:
+                            screen_grid: int | None, glass_modelled: bool = False, curved_sample: bool = False) -> dict:
     """The results.json keys of :func:`case_uncertainty`."""
     return case_uncertainty(truth, model, camera, decoded, reg, rec, parts, error_mm, method=method,
-                            screen_grid=screen_grid, glass_modelled=glass_modelled)[0]
+                            screen_grid=screen_grid, glass_modelled=glass_modelled, curved_sample=curved_sample)[0]
