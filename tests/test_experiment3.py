@@ -65,6 +65,12 @@ def test_cli_experiment3_contract(tmp_path):
         assert {"bulge_mm", "camera", "max_height_diff_um", "max_dev_plane_um", "tilt_urad", "screen_model",
                 "free_parameters", "scenario", "calibration_rms_px"} <= set(x)
     free = {(x["scenario"], x["screen_model"]): x["free_parameters"] for x in recs}
+    # Issue 22: σ keys; the 3 × 3 model cannot represent the off-centre 5 × 5 deformation (labelled), 5 × 5 can.
+    ign = {(x["scenario"], x["screen_model"]): x["height_std_ignores"] for x in recs}
+    assert all(x["height_std_um"]["pixels"] > 0 and 0 <= x["coverage_k2"] <= 1 for x in recs)
+    assert [("offcentre", "3x3") in ign, ("offcentre", "5x5") in ign] == [True, True]
+    assert any("cannot represent" in s for s in ign[("offcentre", "3x3")])
+    assert not any("screen" in s for s in ign[("offcentre", "5x5")] + ign[("bulge", "3x3")])
     # 17×17: control heights no reflection reaches; reported, not run, and the rest goes on.
     assert free == {("bulge", "planar"): 0, ("bulge", "3x3"): 1, ("bulge", "5x5"): 9,
                     ("offcentre", "planar"): 0, ("offcentre", "3x3"): 1, ("offcentre", "5x5"): 9}
