@@ -73,6 +73,9 @@ def test_cli_experiment2_contract(tmp_path):
     for rec in recs:
         assert {"bulge_mm", "camera", "max_height_diff_um", "max_dev_plane_um", "tilt_urad",
                 "calibrated_camera", "camera_deviation_from_truth", "frame_turn_deg"} <= set(rec)
+        # issue 22: the height σ keys (tests/test_experiment_uncertainty.py checks their values)
+        assert {"height_std_um", "coverage_k2", "height_std_notes", "height_std_ignores"} <= set(rec)
+        assert rec["height_std_um"]["pixels"] > 0 and 0 <= rec["coverage_k2"] <= 1
     cal = json.loads((out / "calibration.json").read_text())
     assert cal[0]["converged"] and "std" in cal[0]["cameras"]["left"]
     assert (out / "figure5.png").exists()

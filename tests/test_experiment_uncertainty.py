@@ -14,9 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from pmdsim.cli import main
 from pmdsim.setup import default_setup
 from pmdsim.studies import run_experiment2_bulge, screen_deformation, simulate_calibration_observations
 from pmdsim.studies.experiment_uncertainty import (
@@ -132,13 +130,3 @@ def test_noise_part_follows_the_decoders_noise_model():
         assert ratio == pytest.approx(7.0, rel=0.05)
         assert IGNORES_IDEAL_IMAGES not in b.uncertainty["height_std_ignores"]
 
-
-def test_cli_experiment2_results_json_has_the_keys(tmp_path):
-    out = tmp_path / "e2"
-    r = CliRunner().invoke(main, ["experiment", "2", "--out", str(out), "--downsample", "16", "--bulges-mm", "3",
-                                  "--quiet"])
-    assert r.exit_code == 0, r.output
-    for rec in json.loads((out / "results.json").read_text()):
-        assert KEYS <= set(rec) and rec["height_std_um"]["pixels"] > 0
-        assert 0.0 <= rec["coverage_k2"] <= 1.0
-        assert IGNORES_PLANAR_BULGE in rec["height_std_ignores"]
