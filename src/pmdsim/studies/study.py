@@ -284,7 +284,8 @@ def _study_json(study: Study) -> dict:
     """What ``OUT/study.json`` records: the study, not its expanded cases (those are the rows
     of the results tables; a grid of millions of cases is not listed before it starts)."""
     def param(p):
-        d = {"name": p.name, "path": p.path if not p.linked else list(p.paths), "applies_to": p.applies_to, "mode": p.mode}
+        d = {"name": p.name, "path": p.path if not p.linked else list(p.paths), "applies_to": p.applies_to,
+             "mode": p.mode}
         if p.values is not None:
             d["values"] = list(p.values)
         else:

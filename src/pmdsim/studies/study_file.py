@@ -35,7 +35,8 @@ does. Example (``examples/study_bulge_focal.toml``)::
 A path may end in list indices to vary one entry: ``cameras.left.angles_deg[2]``,
 ``screen.heights_mm[1][1]``. A list of paths links setup keys: each value is set on every one
 of them (``path = ["patterns.periods_x_mm[2]", "patterns.periods_y_mm[2]"]`` varies the finest
-period of both directions together); such a parameter needs a ``name`` (its column). A parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
+period of both directions together); such a parameter needs a ``name`` (its column). A
+parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
 instead of a setup key (a grid of values, e.g. ``values = ["planar", "grid3", "grid5"]``).
 
 Cases are the Cartesian product of the grid parameters (in file order, the last varying
