@@ -45,6 +45,7 @@ from ..io.outputs import partial_file
 from .experiment1 import CaseResult
 from .study_cluster import StudyCluster, open_cluster
 from .study_file import CaseSpec, Study, StudyError
+from .study_uncertainty import UNCERTAINTY_METRICS, uncertainty_metrics
 from .study_results import (CASES_DIR, RESULTS_CSV, RESULTS_PARQUET, RESULTS_WIDE_CSV, read_record,
                             write_results)
 
@@ -71,7 +72,7 @@ def _camera_metrics_simulate(truth, cam) -> dict:
     return {"valid_fraction": float(valid.mean()), "n_valid_px": int(valid.sum())}
 
 
-def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str) -> dict:
+def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str, sigma: bool = False) -> dict:
     from ..evaluation.metrics import surface_error_metrics
     from ..evaluation.pipeline import decode_images, evaluate_decoded
     from ..simulation.render import render_images, trace_setup_camera
@@ -88,13 +89,15 @@ def _camera_metrics_evaluate(truth, model, cam, method: str, screen_model: str) 
     if not np.isfinite(seed_height):
         raise RuntimeError(f"the central pixel of camera {cam!r} does not see the sample; cannot seed")
     surf = model.screen.surface if screen_model == "setup" else None
-    _, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed, seed_height_mm=seed_height,
-                              screen_model=surf)
+    reg, rec = evaluate_decoded(model, cam, decoded, method=method, seed_pixel=seed, seed_height_mm=seed_height,
+                                screen_model=surf)
     p = rec.p_sample_mm
     err = np.where(rec.reconstructed, rec.height_mm - truth.sample.surface.height(p[..., 0], p[..., 1]), np.nan)
     out = {"valid_fraction": float(np.asarray(mapping.valid).mean()),
            "reconstructed_fraction": float(np.asarray(rec.reconstructed).mean())}
     out.update(surface_error_metrics(p[..., 0], p[..., 1], err))
+    if sigma:  # the evaluation's height σ (issue 22): only when a σ metric is asked for
+        out.update(uncertainty_metrics(model, cam, decoded, reg, rec, err, method=method, screen_model=surf))
     z = truth.screen.control_heights()
     return out, CaseResult.from_reconstruction(float(z[z.shape[0] // 2, z.shape[1] // 2]), cam, rec, err, out)
 
@@ -190,7 +193,8 @@ def run_case(spec: CaseSpec, metrics: tuple, numba_threads: int | None = None, m
         elif spec.action == "simulate+evaluate":
             per_cam = {}
             for c in spec.cameras:
-                per_cam[c], maps[c] = _camera_metrics_evaluate(truth, model, c, spec.method, spec.screen_model)
+                per_cam[c], maps[c] = _camera_metrics_evaluate(truth, model, c, spec.method, spec.screen_model,
+                                                               any(m in UNCERTAINTY_METRICS for m in metrics))
         else:
             per_cam, maps = _metrics_calibrate(truth, spec)
         if maps_path is not None and maps:
@@ -280,7 +284,8 @@ def _study_json(study: Study) -> dict:
     """What ``OUT/study.json`` records: the study, not its expanded cases (those are the rows
     of the results tables; a grid of millions of cases is not listed before it starts)."""
     def param(p):
-        d = {"name": p.name, "path": p.path, "applies_to": p.applies_to, "mode": p.mode}
+        d = {"name": p.name, "path": p.path if not p.linked else list(p.paths), "applies_to": p.applies_to,
+             "mode": p.mode}
         if p.values is not None:
             d["values"] = list(p.values)
         else:

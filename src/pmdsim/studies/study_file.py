@@ -33,7 +33,10 @@ does. Example (``examples/study_bulge_focal.toml``)::
     seed = 1
 
 A path may end in list indices to vary one entry: ``cameras.left.angles_deg[2]``,
-``screen.heights_mm[1][1]``. A parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
+``screen.heights_mm[1][1]``. A list of paths links setup keys: each value is set on every one
+of them (``path = ["patterns.periods_x_mm[2]", "patterns.periods_y_mm[2]"]`` varies the finest
+period of both directions together); such a parameter needs a ``name`` (its column). A
+parameter whose path is ``screen_model``, ``method`` or ``seed`` varies that case option
 instead of a setup key (a grid of values, e.g. ``values = ["planar", "grid3", "grid5"]``).
 
 Cases are the Cartesian product of the grid parameters (in file order, the last varying
@@ -67,6 +70,7 @@ from .. import __version__
 from ..errors import PmdsimError, SetupError
 from ..io.heightmap import load_setup, parse_setup  # height-map files of curved samples read (issue 14)
 from ..setup import Setup, default_setup
+from .study_uncertainty import UNCERTAINTY_METRICS
 
 __all__ = ["StudyError", "Parameter", "Study", "CaseSpec", "parse_study", "load_study", "ACTIONS", "METRICS",
            "STUDY_FORMAT", "OPTION_PATHS"]
@@ -83,10 +87,12 @@ ACTIONS = ("simulate", "simulate+evaluate", "calibrate+evaluate")
 _SURFACE_METRICS = ("max_height_diff_um", "max_dev_plane_um", "tilt_urad", "tilt_x_urad", "tilt_y_urad", "rms_um",
                     "mean_um", "n_pixels")
 
-#: The metrics each action can record (per camera unless marked; see :mod:`.study`).
+#: The metrics each action can record (per camera unless marked; see :mod:`.study`); the
+#: default is all of them except the σ metrics (:mod:`.study_uncertainty`), which are computed
+#: only when the study lists them.
 METRICS = {
     "simulate": ("valid_fraction", "n_valid_px"),
-    "simulate+evaluate": ("valid_fraction", "reconstructed_fraction") + _SURFACE_METRICS,
+    "simulate+evaluate": ("valid_fraction", "reconstructed_fraction") + _SURFACE_METRICS + UNCERTAINTY_METRICS,
     "calibrate+evaluate": ("reconstructed_fraction",) + _SURFACE_METRICS
     + ("calibration_rms_px", "calibration_converged", "calibration_iterations", "fx_error_px", "fx_std_px",
        "position_error_mm", "rotation_error_deg", "table_turn_deg"),
@@ -113,7 +119,7 @@ class Parameter:
     Attributes
     ----------
     path : str
-        TOML path of the setup key (``screen.bulge_mm``).
+        TOML path of the setup key (``screen.bulge_mm``); of the first key of linked keys.
     name : str
         Column name in the results (default: the path, prefixed ``model.`` for model keys, and
         for an ``offset`` / ``scale`` parameter wrapped as ``offset(path)`` / ``scale(path)``:
@@ -125,6 +131,8 @@ class Parameter:
         Grid values (None for a Monte-Carlo parameter).
     distribution : tuple or None
         ``("normal", mean, std)`` or ``("uniform", low, high)``.
+    linked : tuple of str
+        Further setup keys that take the same value (``path = [key, …]`` in the study file).
     """
 
     path: str
@@ -133,6 +141,12 @@ class Parameter:
     mode: str = "set"
     values: tuple | None = None
     distribution: tuple | None = None
+    linked: tuple = ()
+
+    @property
+    def paths(self) -> tuple:
+        """Every setup key the parameter sets: ``path`` and the ``linked`` keys."""
+        return (self.path,) + self.linked
 
     def draw(self, rng: np.random.Generator) -> float:
         """One Monte-Carlo draw."""
@@ -310,11 +324,13 @@ def build_case_setups(base: Setup, vals, downsample: int) -> tuple[Setup, Setup]
     vals = [(p, v) for p, v in vals if p.path not in OPTION_PATHS]
     for p, v in vals:
         if p.applies_to == "truth":
-            truth_doc = apply_parameter(truth_doc, p.path, v, p.mode)
+            for path in p.paths:
+                truth_doc = apply_parameter(truth_doc, path, v, p.mode)
     model_doc = truth_doc
     for p, v in vals:
         if p.applies_to == "model":
-            model_doc = apply_parameter(model_doc, p.path, v, p.mode)
+            for path in p.paths:
+                model_doc = apply_parameter(model_doc, path, v, p.mode)
     truth = parse_setup(truth_doc).binned(downsample)
     model = truth if model_doc is truth_doc else parse_setup(model_doc).binned(downsample)
     return truth, model
@@ -411,7 +427,8 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
     for i, c in enumerate(cameras):
         if c not in base.cameras:
             r.fail(f"cameras[{i}]", f"names no camera of the setup ({', '.join(base.cameras)}), got {c!r}")
-    metrics = r.str_list("metrics") or METRICS[action]
+    # σ metrics only when listed: they add the uncertainty computation to every case
+    metrics = r.str_list("metrics") or tuple(m for m in METRICS[action] if m not in UNCERTAINTY_METRICS)
     for i, m in enumerate(metrics):
         if m not in METRICS[action]:
             r.fail(f"metrics[{i}]", f"must be one of {list(METRICS[action])} for action {action!r}, got {m!r}")
@@ -427,10 +444,12 @@ def parse_study(doc: dict[str, Any], *, source: str = "study", base_dir: str | P
     params = [_parse_parameter(t, i, source, base, action, downsample, choices) for i, t in enumerate(raw)]
     for i, p in enumerate(params):  # two parameters on one key would collapse into one case (issue 24)
         for j, q in enumerate(params[:i]):
-            if q.applies_to == p.applies_to and _same_key(p.path, q.path):
-                raise StudyError(f"{source}: parameters[{i}].path {p.path!r} varies the same "
-                                 f"{'case option' if p.path in OPTION_PATHS else 'setup key'} as parameters[{j}] "
-                                 f"({q.path!r}{', both applied to the ' + p.applies_to if p.path not in OPTION_PATHS else ''}); "
+            same = [(a, b) for a in p.paths for b in q.paths if _same_key(a, b)]
+            if q.applies_to == p.applies_to and same:
+                a, b = same[0]
+                raise StudyError(f"{source}: parameters[{i}].path {a!r} varies the same "
+                                 f"{'case option' if a in OPTION_PATHS else 'setup key'} as parameters[{j}] "
+                                 f"({b!r}{', both applied to the ' + p.applies_to if a not in OPTION_PATHS else ''}); "
                                  "give all its values in one parameter")
     names = [p.name for p in params]
     for i, n in enumerate(names):
@@ -475,6 +494,21 @@ def _same_key(a: str, b: str) -> bool:
 def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, downsample: int,
                      choices: dict) -> Parameter:
     k = _Keys(t, f"parameters[{i}].", source, _PARAM_KEYS)
+    linked = ()
+    if isinstance(t.get("path"), list):  # linked keys: one value set on each of them
+        paths = t["path"]
+        if not paths or not all(isinstance(x, str) for x in paths):
+            k.fail("path", f"must be a setup key or a non-empty list of setup keys, got {paths!r}")
+        for n, x in enumerate(paths):
+            if x in OPTION_PATHS:
+                k.fail(f"path[{n}]", f"names the case option {x!r}, which cannot be linked to other keys")
+            if any(_same_key(x, y) for y in paths[:n]):
+                k.fail(f"path[{n}]", f"{x!r} repeats a key listed before it (or an entry of one)")
+        if len(paths) > 1 and "name" not in t:
+            k.fail("name", "is missing: a parameter with linked keys needs a name for its column")
+        path, linked = paths[0], tuple(paths[1:])
+        t = {**t, "path": path}
+        k = _Keys(t, f"parameters[{i}].", source, _PARAM_KEYS)
     path = k.str("path")
     if path in OPTION_PATHS:
         return _parse_option_parameter(t, k, i, path, choices)
@@ -516,13 +550,14 @@ def _parse_parameter(t: dict, i: int, source: str, base: Setup, action: str, dow
         trial = [(None, a), (None, b)] if kind == "uniform" else [(None, a)]
     else:
         raise StudyError(f"{source}: parameters[{i}] needs values (a grid) or distribution (Monte Carlo)")
-    p = Parameter(path, name, applies_to, mode, values, dist)
+    p = Parameter(path, name, applies_to, mode, values, dist, linked)
     for j, v in trial:
         where = f"parameters[{i}].values[{j}]" if j is not None else f"parameters[{i}].distribution"
         try:
             build_case_setups(base, [(p, v)], downsample)
         except SetupError as e:
-            raise StudyError(f"{source}: {where} = {v!r} (path {path!r}): {e}") from None
+            shown = path if not linked else list(p.paths)
+            raise StudyError(f"{source}: {where} = {v!r} (path {shown!r}): {e}") from None
     return p
 
 

@@ -82,7 +82,7 @@ def _param_field(p: Parameter):
     if p.path in OPTION_PATHS:
         return pa.field(p.name, t, metadata=_meta(case_option=p.path))
     units = None if t == pa.bool_() else ("1" if p.mode == "scale" else column_units(p.path))
-    return pa.field(p.name, t, metadata=_meta(units=units, setup_key=p.path, applies_to=p.applies_to, mode=p.mode))
+    return pa.field(p.name, t, metadata=_meta(units=units, setup_key=",".join(p.paths), applies_to=p.applies_to, mode=p.mode))
 
 
 def _metric_field(name: str, metric: str):
