@@ -1,0 +1,162 @@
+"""Per-pixel standard uncertainties of stereo evaluations (issue 22, ``--stereo``): an anchor's σ
+against a Monte Carlo of noisy re-solves (scipy's root finder on the public residual), the
+heights' σ against a Monte Carlo of the anchored integration with noisy slopes and re-solved
+anchors, and the outputs of ``pmdsim evaluate --stereo``."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import h5py
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from pmdsim.evaluation import uncertainty_stereo as US
+from pmdsim.evaluation.pipeline import decode_simulated
+from pmdsim.evaluation.registration import register
+from pmdsim.evaluation.stereo import (StereoView, _integrate_anchored, _search_kernel, _camera_arrays, _view_arrays,
+                                      evaluate_stereo_decoded, reconstruct_stereo, stereo_residual)
+from pmdsim.setup import default_setup
+from pmdsim.simulation.render import noise_generator, trace_setup_camera
+
+import os
+DS = int(os.environ.get("DSX", 24))
+STRIDE = int(os.environ.get("STX", 4))
+
+
+def _views(setup, decoded):
+    """The stereo views of noisy decodes (as evaluate_stereo_decoded registers them, planar screen)."""
+    from pmdsim.geometry.surface import SplineSurface
+
+    scr = setup.screen
+    plane = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
+    T_world_ref = setup.sample.T_world_sample
+    out = {}
+    for cam, dec in decoded.items():
+        cs = setup.cameras[cam]
+        reg = register(cs.camera, cs.T_world_cam, plane, scr.T_world_screen, dec.screen_xy_mm, dec.valid, T_world_ref)
+        out[cam] = StereoView(cs.camera, T_world_ref.inv() @ cs.T_world_cam, reg)
+    return out
+
+
+@pytest.fixture(scope="module")
+def flat():
+    """Table 1 binned 24×, 2 grey levels of noise: the noiseless decoded coordinates with the
+    decoder's σ, the stereo result on them and its σ (K = 256)."""
+    s = default_setup().binned(DS).with_patterns(noise_std=2.0)
+    dec = {}
+    for c in s.cameras:
+        m = trace_setup_camera(s, c)
+        d = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, c, stream=1))
+        dec[c] = replace(d, screen_xy_mm=np.where(d.valid[..., None], m.screen_xy_mm, np.nan))
+    views = _views(s, dec)
+    st = reconstruct_stereo(views, stride_px=STRIDE)
+    unc = US.stereo_uncertainty(s, views, dec, st, samples=256)
+    return s, dec, views, st, unc
+
+
+def _noisy(dec, rng):
+    return {c: replace(d, screen_xy_mm=d.screen_xy_mm + rng.normal(size=d.screen_xy_mm.shape) * d.std_xy_mm)
+            for c, d in dec.items()}
+
+
+def test_anchor_sigma_against_monte_carlo_of_noisy_re_solves(flat):
+    s, dec, views, st, unc = flat
+    cam = "left"
+    c = st.cameras[cam]
+    k = len(c.anchor_height_mm) // 2
+    pixel = tuple(int(x) for x in c.anchor_pixels[k])
+    a0 = float(c.anchor_height_mm[k])
+    predicted = unc[cam][1][k]  # µm
+    rng = np.random.default_rng(11)
+    roots = []
+    for _ in range(200):
+        nv = _views(s, _noisy(dec, rng))
+        f = lambda z: stereo_residual(nv, cam, "right", pixel, z)[0]
+        roots.append(least_squares(f, a0, xtol=1e-14, ftol=1e-15, gtol=1e-15).x[0])
+    observed = np.std(roots, ddof=1) * 1e3
+    print(f"anchor {pixel}: predicted σ {predicted:.3f} µm, observed {observed:.3f} µm (200 draws)")
+    assert abs(observed / predicted - 1) < 0.15
+    # the interpolated partner is less noisy than one of its pixels: the σ is below the
+    # propagation of the pixel's own σ through both cameras at full weight
+    assert np.all(np.isfinite(unc[cam][1])) and np.all(unc[cam][1] > 0)
+
+
+def test_height_sigma_against_monte_carlo_of_the_anchored_integration(flat):
+    s, dec, views, st, unc = flat
+    n_draws = 120
+    rng = np.random.default_rng(5)
+    lo, hi = st.search_range_mm
+    n_steps = int(np.floor((hi - lo) / st.search_step_mm)) + 1
+    zs = {c: [] for c in views}
+    for _ in range(n_draws):
+        nv = _views(s, _noisy(dec, rng))
+        arrays = {c: _view_arrays(v) for c, v in nv.items()}
+        for cam, (o, d, q, valid) in arrays.items():
+            partner = next(p for p in arrays if p != cam)
+            oB, _, qB, okB = arrays[partner]
+            RB, tB, camB = _camera_arrays(nv[partner])
+            vu = st.cameras[cam].anchor_pixels
+            n = len(vu)
+            z, r, cnt = np.empty(n), np.empty(n), np.empty(n, dtype=np.int64)
+            _search_kernel(o, d, q, vu[:, 0].astype(np.int64), vu[:, 1].astype(np.int64), oB, qB, okB, RB, tB, camB,
+                           lo, st.search_step_mm, n_steps, z, r, cnt)
+            assert np.isfinite(z).all()
+            zz = _integrate_anchored(o, d, q, valid, vu, z, 1e-11, 20)[0]
+            zs[cam].append(zz)
+    for cam in views:
+        obs = np.std(np.array(zs[cam]), axis=0, ddof=1) * 1e3
+        pred = unc[cam][0].height_std_um
+        S = st.cameras[cam].reconstructed & np.isfinite(obs)
+        # bins of distance from the anchors' centroid
+        vv, uu = np.nonzero(S)
+        cv, cu = st.cameras[cam].anchor_pixels.mean(axis=0)
+        dist = np.hypot(vv - cv, uu - cu)
+        edges = np.quantile(dist, [0, 0.25, 0.5, 0.75, 1.0])
+        for b in range(4):
+            sel = (dist >= edges[b]) & (dist <= edges[b + 1])
+            ro = np.sqrt(np.mean(obs[vv[sel], uu[sel]] ** 2))
+            rp = np.sqrt(np.mean(pred[vv[sel], uu[sel]] ** 2))
+            print(f"{cam} bin {b} ({edges[b]:.0f}–{edges[b + 1]:.0f} px): predicted {rp:.4f} µm, observed {ro:.4f} µm")
+            assert abs(ro / rp - 1) < 0.15, f"{cam} bin {b}: ratio {ro / rp:.3f}"
+        # the slopes' σ is the mono one (the decoder's σ through the reflection law)
+        assert np.isfinite(unc[cam][0].slope_std_urad[S]).all()
+
+
+def test_cli_evaluate_stereo_writes_the_uncertainty(tmp_path):
+    import subprocess
+    import sys
+
+    base = default_setup().binned(DS)
+    setup_file = tmp_path / "setup.toml"
+    setup_file.write_text(base.to_toml(), encoding="utf-8")
+    run = lambda *a: subprocess.run([sys.executable, "-m", "pmdsim.cli", *a], capture_output=True, text=True)
+    r = run("simulate", "--setup", str(setup_file), "--out", str(tmp_path / "img"), "--quiet")
+    assert r.returncode == 0, r.stderr
+    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev"), "--stereo",
+            "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "height standard uncertainty (k = 1) RMS" in r.stdout
+    names = ("slope_std_urad", "height_std_um", "height_std_noise_um", "height_std_calibration_um",
+             "slope_std_noise_urad", "slope_std_calibration_urad")
+    import json
+
+    with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
+        doc = json.loads(f.attrs["uncertainty"])
+        for cam in base.cameras:
+            g = f[cam]
+            rec = g["reconstructed"][()]
+            for n in names:
+                assert n in g, n
+            h = g["height_std_um"][()]
+            assert np.isfinite(h[rec]).all() and (h[rec] > 0).all()  # absolute: no pixel is held
+            assert g["anchor_height_std_um"].shape == g["anchor_height_mm"].shape
+            assert doc[cam]["samples_K"] == 64
+            assert (tmp_path / "ev" / f"height_std_{cam}.png").exists()
+    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev2"), "--stereo",
+            "--no-uncertainty", "--quiet")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tmp_path / "ev2" / "evaluation.h5") as f:
+        assert "height_std_um" not in f["left"]
+        assert json.loads(f.attrs["uncertainty"])["omitted"]
