@@ -358,9 +358,9 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
             raise UncertaintyError(f"camera {c!r}: the height σ is not finite at some reconstructed pixel")
         a_std = noise[c].std_mm
         fin = a_std[np.isfinite(a_std)]
-        notes = [f"stereo: absolute heights, gauged by {a_std.size} normal-consistency anchors (weight "
-                 f"{ANCHOR_WEIGHT:g}; anchor σ median {np.median(fin) * 1e3 if fin.size else float('nan'):.3g} µm) "
-                 f"included"]
+        notes = [f"stereo: absolute heights gauged by {a_std.size} normal-consistency anchors (weight "
+                 f"{ANCHOR_WEIGHT:g}), their σ included (median {np.median(fin) * 1e3 if fin.size else float('nan'):.3g} "
+                 f"µm)"]
         notes.append(STEREO_CALIBRATION_NOTE if cov is not None else NO_COVARIANCE_NOTE)
         zero_g = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
         h_um = h[c] * 1e3
