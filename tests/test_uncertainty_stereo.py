@@ -170,23 +170,24 @@ def test_height_sigma_against_monte_carlo_of_the_anchored_integration(flat):
 
 
 def test_cli_evaluate_stereo_writes_the_uncertainty(tmp_path):
-    import subprocess
-    import sys
+    import json
+
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
 
     base = default_setup().binned(DS)
     setup_file = tmp_path / "setup.toml"
     setup_file.write_text(base.to_toml(), encoding="utf-8")
-    run = lambda *a: subprocess.run([sys.executable, "-m", "pmdsim.cli", *a], capture_output=True, text=True)
-    r = run("simulate", "--setup", str(setup_file), "--out", str(tmp_path / "img"), "--quiet")
-    assert r.returncode == 0, r.stderr
-    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev"), "--stereo",
-            "--quiet")
-    assert r.returncode == 0, r.stderr
-    assert "height standard uncertainty (k = 1) RMS" in r.stdout
+    runner = CliRunner()
+    run = lambda *a: runner.invoke(main, [str(x) for x in a])
+    r = run("simulate", "--setup", setup_file, "--out", tmp_path / "img", "--quiet")
+    assert r.exit_code == 0, r.output
+    r = run("evaluate", tmp_path / "img", "--setup", setup_file, "--out", tmp_path / "ev", "--stereo", "--quiet")
+    assert r.exit_code == 0, r.output
+    assert "height standard uncertainty (k = 1) RMS" in r.output
     names = ("slope_std_urad", "height_std_um", "height_std_noise_um", "height_std_calibration_um",
              "slope_std_noise_urad", "slope_std_calibration_urad")
-    import json
-
     with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
         doc = json.loads(f.attrs["uncertainty"])
         for cam in base.cameras:
@@ -197,11 +198,12 @@ def test_cli_evaluate_stereo_writes_the_uncertainty(tmp_path):
             h = g["height_std_um"][()]
             assert np.isfinite(h[rec]).all() and (h[rec] > 0).all()  # absolute: no pixel is held
             assert g["anchor_height_std_um"].shape == g["anchor_height_mm"].shape
-            assert doc[cam]["samples_K"] == 64
+            assert doc[cam]["samples_K"] == 64 and doc[cam]["heights_relative_to"].startswith("nothing: absolute")
             assert (tmp_path / "ev" / f"height_std_{cam}.png").exists()
-    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev2"), "--stereo",
+    r = run("evaluate", tmp_path / "img", "--setup", setup_file, "--out", tmp_path / "ev2", "--stereo",
             "--no-uncertainty", "--quiet")
-    assert r.returncode == 0, r.stderr
+    assert r.exit_code == 0, r.output
+    assert "height standard uncertainty" not in r.output
     with h5py.File(tmp_path / "ev2" / "evaluation.h5") as f:
         assert "height_std_um" not in f["left"]
         assert json.loads(f.attrs["uncertainty"])["omitted"]
