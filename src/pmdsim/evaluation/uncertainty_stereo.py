@@ -361,6 +361,9 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         notes = [f"stereo: absolute heights gauged by {a_std.size} normal-consistency anchors (weight "
                  f"{ANCHOR_WEIGHT:g}), their σ included (median {np.median(fin) * 1e3 if fin.size else float('nan'):.3g} "
                  f"µm)"]
+        if fin.size < a_std.size:
+            notes.append(f"{a_std.size - fin.size} anchors without σ (the partner does not see them at the height "
+                         f"found): their own noise is not included")
         notes.append(STEREO_CALIBRATION_NOTE if cov is not None else NO_COVARIANCE_NOTE)
         zero_g = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
         h_um = h[c] * 1e3
