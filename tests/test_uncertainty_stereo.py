@@ -37,12 +37,13 @@ def _one_thread():
         numba.set_num_threads(n)
 
 
-def _views(setup, decoded):
-    """The stereo views of noisy decodes (as evaluate_stereo_decoded registers them, planar screen)."""
+def _views(setup, decoded, surface=None):
+    """The stereo views of noisy decodes (as evaluate_stereo_decoded registers them; planar
+    screen unless ``surface``)."""
     from pmdsim.geometry.surface import SplineSurface
 
     scr = setup.screen
-    plane = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
+    plane = surface or SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
     T_world_ref = setup.sample.T_world_sample
     out = {}
     for cam, dec in decoded.items():
@@ -93,6 +94,39 @@ def test_anchor_sigma_against_monte_carlo_of_noisy_re_solves(flat):
     print(f"anchor {pixel}: predicted σ {predicted:.3f} µm, observed {observed:.3f} µm (200 draws)")
     assert abs(observed / predicted - 1) < 0.15
     assert np.all(np.isfinite(unc[cam][1])) and np.all(unc[cam][1] > 0)
+
+
+def test_anchor_linearisation_on_a_bulged_screen_model_against_re_solves():
+    """The anchors' δa = Σ coef·ξ on a free-form screen model (per-pixel tangents with a z part;
+    their effect on δa is small, ~1e-4 relative, as b̂ nearly projects it out) against central
+    differences of anchors re-solved by scipy on coordinates re-registered with that model."""
+    s = default_setup().with_bulge(3.0).binned(DS).with_patterns(noise_std=2.0)
+    surf = s.screen.surface
+    dec = {c: decode_simulated(s, (m := trace_setup_camera(s, c)).screen_xy_mm, m.valid,
+                               rng=noise_generator(s, c, stream=1)) for c in s.cameras}
+    views = _views(s, dec, surf)
+    st = reconstruct_stereo(views, stride_px=STRIDE)
+    tang = {c: US._tangents(s, surf, dec[c]) for c in views}
+    assert np.ptp(tang["left"][..., 2, :][dec["left"].valid]) > 1e-3  # the bulge tilts the tangents
+    cam = "left"
+    sc = st.cameras[cam]
+    an = US.anchor_noise(views, dec, tang, cam, sc.anchor_pixels, sc.anchor_height_mm)
+    rng = np.random.default_rng(4)
+    xi = {c: rng.choice([-1.0, 1.0], size=dec[c].screen_xy_mm.shape) for c in views}
+    names = list(views)
+    pred = np.zeros(len(sc.anchor_height_mm))
+    for t in range(an.anchor.size):
+        pred[an.anchor[t]] += an.coef[t] @ xi[names[an.camera[t]]].reshape(-1, 2)[an.pixel[t]]
+    ks = np.arange(0, len(pred), max(1, len(pred) // 8))
+    h = 0.1
+    roots = []
+    for sg in (1, -1):
+        nv = _views(s, {c: replace(d, screen_xy_mm=d.screen_xy_mm + sg * h * xi[c] * np.nan_to_num(d.std_xy_mm))
+                        for c, d in dec.items()}, surf)
+        roots.append([least_squares(lambda z: stereo_residual(nv, cam, "right", tuple(sc.anchor_pixels[k]), z)[0],
+                                    sc.anchor_height_mm[k], xtol=1e-15, ftol=1e-15, gtol=1e-15).x[0] for k in ks])
+    fd = (np.array(roots[0]) - np.array(roots[1])) / (2 * h)
+    np.testing.assert_allclose(fd, pred[ks], rtol=1e-3, atol=1e-3 * np.max(np.abs(pred[ks])))
 
 
 def test_linearised_anchored_integration_against_the_nonlinear_one(flat):
