@@ -96,19 +96,14 @@ def test_anchor_sigma_against_monte_carlo_of_noisy_re_solves(flat):
     assert np.all(np.isfinite(unc[cam][1])) and np.all(unc[cam][1] > 0)
 
 
-def test_anchor_linearisation_on_a_bulged_screen_model_against_re_solves():
-    """The anchors' δa = Σ coef·ξ on a free-form screen model (per-pixel tangents with a z part;
-    their effect on δa is small, ~1e-4 relative, as b̂ nearly projects it out) against central
-    differences of anchors re-solved by scipy on coordinates re-registered with that model."""
-    s = default_setup().with_bulge(3.0).binned(DS).with_patterns(noise_std=2.0)
-    surf = s.screen.surface
+def _anchor_fd_check(s, surf, cam):
+    """δa = Σ coef·ξ of ``cam``'s anchors against central differences of anchors re-solved by
+    scipy (on the public residual, with each anchor's partner) on re-registered coordinates."""
     dec = {c: decode_simulated(s, (m := trace_setup_camera(s, c)).screen_xy_mm, m.valid,
                                rng=noise_generator(s, c, stream=1)) for c in s.cameras}
     views = _views(s, dec, surf)
     st = reconstruct_stereo(views, stride_px=STRIDE)
     tang = {c: US._tangents(s, surf, dec[c]) for c in views}
-    assert np.ptp(tang["left"][..., 2, :][dec["left"].valid]) > 1e-3  # the bulge tilts the tangents
-    cam = "left"
     sc = st.cameras[cam]
     an = US.anchor_noise(views, dec, tang, cam, sc.anchor_pixels, sc.anchor_height_mm)
     rng = np.random.default_rng(4)
@@ -123,10 +118,35 @@ def test_anchor_linearisation_on_a_bulged_screen_model_against_re_solves():
     for sg in (1, -1):
         nv = _views(s, {c: replace(d, screen_xy_mm=d.screen_xy_mm + sg * h * xi[c] * np.nan_to_num(d.std_xy_mm))
                         for c, d in dec.items()}, surf)
-        roots.append([least_squares(lambda z: stereo_residual(nv, cam, "right", tuple(sc.anchor_pixels[k]), z)[0],
+        roots.append([least_squares(lambda z: stereo_residual(nv, cam, an.partner[k], tuple(sc.anchor_pixels[k]), z)[0],
                                     sc.anchor_height_mm[k], xtol=1e-15, ftol=1e-15, gtol=1e-15).x[0] for k in ks])
     fd = (np.array(roots[0]) - np.array(roots[1])) / (2 * h)
     np.testing.assert_allclose(fd, pred[ks], rtol=1e-3, atol=1e-3 * np.max(np.abs(pred[ks])))
+    return views, dec, st, tang, an
+
+
+def test_anchor_linearisation_on_a_bulged_screen_model_against_re_solves():
+    """On a free-form screen model (per-pixel tangents with a z part; their effect on δa is
+    small, ~1e-4 relative, as b̂ nearly projects it out)."""
+    s = default_setup().with_bulge(3.0).binned(DS).with_patterns(noise_std=2.0)
+    _, dec, _, tang, _ = _anchor_fd_check(s, s.screen.surface, "left")
+    assert np.ptp(tang["left"][..., 2, :][dec["left"].valid]) > 1e-3  # the bulge tilts the tangents
+
+
+def test_three_cameras_each_anchor_with_its_partner():
+    """A third camera between the two: every anchor keeps the partner the search kept (smallest
+    |r|), its σ linearised with that partner's pixels; the heights' σ is finite everywhere."""
+    from pmdsim.setup.model import CameraSetup, Pose
+
+    s = default_setup().binned(DS).with_patterns(noise_std=2.0)
+    mid = CameraSetup(s.cameras["left"].camera, Pose((0.0, 295.0, -295.0), (45.0, 0.0, 0.0)))
+    s = s.with_cameras({**s.cameras, "mid": mid})
+    views, dec, st, _, an = _anchor_fd_check(s, None, "mid")
+    assert set(an.partner) == {"left", "right"}  # both partners used by the middle camera's anchors
+    unc = US.stereo_uncertainty(s, views, dec, st, samples=16)
+    for c in views:
+        S = st.cameras[c].reconstructed
+        assert np.isfinite(unc[c][0].height_std_um[S]).all() and np.isfinite(unc[c][1]).all()
 
 
 def test_linearised_anchored_integration_against_the_nonlinear_one(flat):
