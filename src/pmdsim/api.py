@@ -442,7 +442,7 @@ def calibrate(observations: list[Observations], nominal: Setup | CalibrationStat
 
 
 def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
-                    search_range_mm=(-20.0, 20.0), **options):
+                    search_range_mm=(-20.0, 20.0), uncertainty: bool = True, **options):
     """Stereo evaluation (issue 14, docs/stereo.md): absolute heights from two or more
     calibrated cameras without a seed — normal consistency on sparse pixels, then each camera's
     slopes integrated from those absolute points, with a per-pixel agreement report.
@@ -457,6 +457,11 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
         As :func:`evaluate`.
     search_range_mm : (float, float)
         Heights searched along the view rays (sample frame, mm).
+    uncertainty : bool
+        Compute every camera's per-pixel standard uncertainties (absolute: the stereo anchors'
+        σ included; :mod:`pmdsim.evaluation.uncertainty_stereo`) into ``cameras[name].uncertainty``
+        and ``anchor_height_std_um``; False skips them when speed matters. If σ cannot be
+        computed, a :class:`~pmdsim.errors.ConsistencyWarning` says why and they stay None.
     **options
         ``search_step_mm``, ``stride_px``, ``max_iter``, ``tol_mm`` of
         :func:`pmdsim.evaluation.stereo.reconstruct_stereo`.
@@ -465,7 +470,8 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
     -------
     StereoReconstruction
         ``cameras[name]``: ``height_mm`` (H, W), ``reconstruction``, ``overlap``,
-        ``normal_disagreement_urad``, ``height_discrepancy_um``, the anchors; ``summary()``.
+        ``normal_disagreement_urad``, ``height_discrepancy_um``, the anchors, ``uncertainty``
+        (a :class:`~pmdsim.evaluation.uncertainty.SurfaceUncertainty` or None); ``summary()``.
         Its arrays are read-only.
     """
     from .evaluation.stereo import evaluate_stereo_decoded
@@ -479,11 +485,22 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
     for c in decoded:
         _check_camera(setup, c)
     decoded = {c: (decode(d, setup) if isinstance(d, Measurement) else d) for c, d in decoded.items()}
-    _, result = evaluate_stereo_decoded(setup, decoded, screen_model=None if screen == "planar" else setup.screen.surface,
-                                        search_range_mm=search_range_mm, **options)
+    model = None if screen == "planar" else setup.screen.surface
+    views, result = evaluate_stereo_decoded(setup, decoded, screen_model=model, search_range_mm=search_range_mm,
+                                            **options)
+    if uncertainty:
+        from .evaluation.uncertainty import UncertaintyError
+        from .evaluation.uncertainty_stereo import stereo_uncertainty, with_uncertainty
+
+        try:
+            result = with_uncertainty(result, stereo_uncertainty(setup, views, decoded, result, screen_model=model))
+        except UncertaintyError as exc:
+            warnings.warn(f"stereo: no uncertainty (heights stand): {exc}", ConsistencyWarning, stacklevel=2)
     for cam in result.cameras.values():  # read-only results, as evaluate's (issue 23)
         _frozen(cam)
         _frozen(cam.reconstruction)
+        if cam.uncertainty is not None:
+            _frozen(cam.uncertainty)
     return result
 
 

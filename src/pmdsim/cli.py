@@ -275,7 +275,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     OUT/height_{camera}.png, OUT/surface_fit.json and OUT/slope_error.png. The height is fixed by
     an anchor (--anchor-*, --seed-*, or the manifest's); without one the heights are relative.
     Per-pixel standard uncertainties (k = 1) of heights and slopes go to evaluation.h5 and
-    OUT/height_std_{camera}.png unless --no-uncertainty (not with --stereo).
+    OUT/height_std_{camera}.png unless --no-uncertainty (with --stereo: absolute σ).
     """
     from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
@@ -309,10 +309,10 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
                                                 search_range_mm=search_range_mm, noise_std=noise_std, force=force,
                                                 command=_command(), progress=lambda msg: bar.update(1),
                                                 inputs=_inputs(setup_path, setup),
-                                                min_valid_fraction=min_valid_fraction)
+                                                min_valid_fraction=min_valid_fraction, uncertainty=not no_uncertainty)
         for line in summary.lines():
             click.echo(line)
-        for w in summary.data_warnings():
+        for w in (*summary.warnings, *summary.data_warnings()):
             click.echo(f"pmdsim: warning: {w}", err=True)
         click.echo(f"wrote evaluation.h5 and height_*.png to {out_dir} in {summary.seconds:.1f} s", err=True)
         failures = summary.failures()

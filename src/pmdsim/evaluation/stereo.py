@@ -345,6 +345,11 @@ class StereoCamera:
         Reconstructed minus anchor height at the anchors, µm.
     searched : int
         Sparse pixels searched; ``ambiguous``: those with more than one consistent height.
+    uncertainty : SurfaceUncertainty or None
+        Per-pixel standard uncertainties (k = 1, absolute) of heights and slopes
+        (:mod:`pmdsim.evaluation.uncertainty_stereo`); None when not computed.
+    anchor_height_std_um : ndarray (n,) or None
+        Standard uncertainty of each anchor height, µm (None when not computed).
     """
 
     __repr__ = compact_repr  # one line: arrays by shape and dtype (issue 23)
@@ -359,6 +364,8 @@ class StereoCamera:
     anchor_fit_um: np.ndarray
     searched: int
     ambiguous: int
+    uncertainty: object = None
+    anchor_height_std_um: np.ndarray | None = None
 
     @property
     def height_mm(self) -> np.ndarray:

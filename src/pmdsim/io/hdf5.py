@@ -284,7 +284,7 @@ def append_stereo_h5(path: str | Path, stereo, attrs: dict[str, Any]) -> None:
     partner camera sees), ``normal_disagreement_urad`` ((H, W), angle between the cameras' implied
     normals, NaN outside the overlap), ``height_discrepancy_um`` ((H, W), z_this − z_partner along
     this camera's ray), ``anchor_pixels`` ((n, 2) row, column; dimensions ``anchor``,
-    ``pixel_axis``), ``anchor_height_mm``, ``anchor_residual_urad`` and ``anchor_fit_um`` ((n,));
+    ``pixel_axis``), ``anchor_height_mm``, ``anchor_residual_urad``, ``anchor_fit_um`` and, with σ, ``anchor_height_std_um`` ((n,));
     file attributes ``stereo`` = True and ``attrs``."""
     with h5py.File(path, "a") as f:
         f.attrs["stereo"] = True
@@ -309,6 +309,9 @@ def append_stereo_h5(path: str | Path, stereo, attrs: dict[str, Any]) -> None:
                  long_name="|g_this - g_partner| at the anchor")
             _put(g, "anchor_fit_um", c.anchor_fit_um, units="um", frame="sample", dims=[anchor],
                  long_name="reconstructed minus anchor height")
+            if getattr(c, "anchor_height_std_um", None) is not None:
+                _put(g, "anchor_height_std_um", c.anchor_height_std_um, units="um", frame="sample", dims=[anchor],
+                     long_name="standard uncertainty (k = 1) of the anchor height")
 
 
 def write_consistency_h5(path: str | Path, checks: dict, image_files: dict[str, list[str]]) -> None:

@@ -576,7 +576,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                               command: str | None = None, progress: Progress | None = None,
                               inputs: Sequence[str | Path | None] = (),
                               min_valid_fraction: float = DEFAULT_MIN_VALID_FRACTION,
-                              consistency: bool = True) -> EvaluationSummary:
+                              consistency: bool = True, uncertainty: bool = True) -> EvaluationSummary:
     """Stereo evaluation of an image set (issue 14, docs/stereo.md): decode and register every
     camera, then :func:`pmdsim.evaluation.stereo.reconstruct_stereo` — absolute heights without
     a seed. Writes ``evaluation.h5`` (the per-camera datasets of :func:`evaluate_image_set`
@@ -592,6 +592,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     from ..evaluation.integration import ReconstructionError
     from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, evaluate_stereo_decoded
     from ..io.hdf5 import append_stereo_h5
+    from . import uncertainty_job as uj
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
     if screen_model is None:
@@ -622,6 +623,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                                             screen_model=None if screen_model == "planar" else setup.screen.surface)
     except ReconstructionError as e:
         raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
+    st, uncs, u_warn = uj.stereo_uncertainty(setup, views, decoded, st, screen=screen_model, enabled=uncertainty)
     results = {cam: (decoded[cam], views[cam].registration, st.cameras[cam].reconstruction) for cam in decoded}
     summary = st.summary()
     with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
@@ -630,8 +632,11 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
             height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
                               title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
                               label="height (µm)", path=tmp / f"height_{cam}.png")
+        uj.stereo_figures(tmp, results, uncs)
         write_evaluation_h5(tmp / "evaluation.h5", results,
-                            {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir)})
+                            {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir),
+                             "uncertainty": uj.stereo_attribute(uncs, uncertainty)},
+                            extras={c: uj.uncertainty_datasets(uncs.get(c)) for c in results})
         append_stereo_h5(tmp / "evaluation.h5", st, {"search_range_mm": list(st.search_range_mm),
                                                       "search_step_mm": st.search_step_mm, "stride_px": st.stride_px})
         if checks:
@@ -651,10 +656,10 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                      "converged": bool(rec.converged), "stereo": summary[cam], "usable": usable,
                      "valid_fraction": n_rec / usable if usable else 0.0,
                      "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else []}
-    from .uncertainty_job import STEREO_NOTE
-    return EvaluationSummary(cams, time.perf_counter() - t0, response=manifest.instrument.response_info,
-                             min_valid_fraction=float(min_valid_fraction), notes=(STEREO_NOTE,))
+                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else [],
+                     **uj.uncertainty_stats(uncs.get(cam))}
+    return EvaluationSummary(cams, time.perf_counter() - t0, warnings=tuple(u_warn),
+                             response=manifest.instrument.response_info, min_valid_fraction=float(min_valid_fraction))
 
 
 # ============================================================================ calibrate

@@ -14,10 +14,7 @@ from ..evaluation.uncertainty import SurfaceUncertainty, UncertaintyError, surfa
 from .figures import height_map_figure
 
 __all__ = ["camera_uncertainty", "uncertainty_datasets", "uncertainty_attribute", "uncertainty_stats",
-           "height_std_figure", "STEREO_NOTE"]
-
-STEREO_NOTE = ("uncertainty: not computed for --stereo evaluations (no σ datasets written); evaluate each camera "
-               "with an anchor for per-pixel σ")
+           "height_std_figure", "stereo_uncertainty", "stereo_figures", "stereo_attribute"]
 
 _NAMES = ("slope_std_urad", "height_std_um", "height_std_noise_um", "height_std_calibration_um",
           "slope_std_noise_urad", "slope_std_calibration_urad")
@@ -78,12 +75,50 @@ def uncertainty_line(cam: str, c: dict) -> str | None:
             + (f" ({'; '.join(c['uncertainty_notes'])})" if c.get("uncertainty_notes") else ""))
 
 
-def height_std_figure(rec, unc: SurfaceUncertainty, cam: str, path: str | Path) -> None:
+def height_std_figure(rec, unc: SurfaceUncertainty, cam: str, path: str | Path, *,
+                      relative_to: str = "relative to the anchor") -> None:
     """``height_std_{camera}.png``: the combined height σ over the sample frame, µm."""
     p = rec.p_sample_mm
     height_map_figure(p[..., 0], p[..., 1], unc.height_std_um,
-                      title=f"{cam}: height standard uncertainty (k = 1, relative to the anchor)",
+                      title=f"{cam}: height standard uncertainty (k = 1, {relative_to})",
                       label="height σ (µm)", path=path, signed=False)
+
+
+def stereo_uncertainty(setup, views: dict, decoded: dict, st, *, screen: str = "planar", enabled: bool = True):
+    """The σ of a stereo evaluation (:func:`pmdsim.evaluation.uncertainty_stereo.stereo_uncertainty`).
+
+    ``screen``: the evaluation's screen model, "planar" or "setup" (the setup's surface).
+    Returns (the StereoReconstruction with each camera's ``uncertainty`` and
+    ``anchor_height_std_um``, {camera: SurfaceUncertainty or None}, warnings); on
+    :class:`UncertaintyError` the heights stand, σ is None and a warning says why."""
+    from ..evaluation.uncertainty_stereo import stereo_uncertainty as _stereo, with_uncertainty
+
+    if not enabled:
+        return st, {}, []
+    try:
+        res = _stereo(setup, views, decoded, st, screen_model=None if screen == "planar" else setup.screen.surface)
+    except UncertaintyError as exc:
+        return st, {c: None for c in views}, [f"stereo: no uncertainty (σ datasets omitted, heights written): {exc}"]
+    return with_uncertainty(st, res), {c: u for c, (u, _) in res.items()}, []
+
+
+def stereo_figures(tmp: Path, results: dict, uncs: dict) -> None:
+    """``height_std_{camera}.png`` of a stereo evaluation (absolute σ)."""
+    for cam, (_, _, rec) in results.items():
+        if uncs.get(cam) is not None:
+            height_std_figure(rec, uncs[cam], cam, Path(tmp) / f"height_std_{cam}.png",
+                              relative_to="absolute, stereo")
+
+
+def stereo_attribute(uncs: dict, enabled: bool) -> str:
+    """The ``uncertainty`` attribute of a stereo evaluation: as :func:`uncertainty_attribute`,
+    the heights' σ absolute (gauged by the stereo anchors)."""
+    doc = json.loads(uncertainty_attribute(uncs, None if enabled else "not requested"))
+    for cam, u in uncs.items():
+        if u is not None:
+            doc[cam]["heights_relative_to"] = ("nothing: absolute, gauged by the stereo anchors (their σ included; "
+                                               "anchor_height_std_um)")
+    return json.dumps(doc)
 
 
 def fit_slope_std(uncs: dict, cameras) -> list | None:
