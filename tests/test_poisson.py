@@ -103,3 +103,39 @@ def test_dct_pcg_matches_spsolve(masked):
         assert np.all(x.ravel()[np.setdiff1d(np.arange(H * W), unk)] == 0.0)
         xm, _, ok = _pcg(D, iD, Ex, Ey, B[k], 0.0, 1e-13, 200)
         assert ok and np.max(np.abs(xm[1:-1, 1:-1] - x)) < 1e-9 * np.max(np.abs(ref))
+
+
+@pytest.mark.parametrize("kind", ["dct", "multigrid"])
+def test_sampled_height_std_batched_equals_the_one_by_one_solves(monkeypatch, kind):
+    """The least-squares σ estimator with its right-hand sides solved in batches (DCT- or
+    multigrid-preconditioned, to SIGMA_RTOL) against the same seeded samples solved one by one
+    to 1e-6 (``_LinearisedIntegration.apply``): equal to the solver tolerance."""
+    from pmdsim.evaluation import uncertainty as U
+    from pmdsim.evaluation import uncertainty_solve as US
+    from pmdsim.evaluation.pipeline import decode_simulated, evaluate_decoded
+    from pmdsim.setup import default_setup
+    from pmdsim.simulation.render import noise_generator, trace_setup_camera
+
+    s = default_setup().binned(40).with_patterns(noise_std=2.0)
+    m = trace_setup_camera(s, "left")
+    dec = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, "left", stream=3))
+    reg, rec = evaluate_decoded(s, "left", dec, method="least_squares", seed_pixel=(12, 30))
+    S = rec.reconstructed
+    R = (s.sample.T_world_sample.inv() @ s.screen.T_world_screen).rotation
+    dq = U._screen_tangents(R, None, dec.screen_xy_mm)
+    A, _ = U._jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, np.nan_to_num(dec.std_xy_mm))
+    lin = U._LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
+    monkeypatch.setattr(US, "DCT_MIN_FILL", 0.0 if kind == "dct" else 2.0)
+    monkeypatch.setattr(US, "DCT_MIN_PIXELS", 0)
+    assert US._SigmaSolver(lin).kind == kind
+    K, seed = 9, 17  # an odd K: a last, partial batch
+    new = U._sampled_std(lin, A, K, seed)
+    A0 = np.ascontiguousarray(np.where(S[..., None, None], A, 0.0))
+    dg = np.empty(S.shape + (2,))
+    acc = np.zeros(S.shape)
+    for k in range(K):
+        U._sample_dg(A0, S, seed, k, 1, dg)
+        acc += np.where(S, lin.apply(dg), 0.0) ** 2
+    old = np.where(S, np.sqrt(acc / K), np.nan)
+    assert np.array_equal(np.isnan(new), np.isnan(old)) and np.nanmax(old) > 0
+    assert np.nanmax(np.abs(new - old)) < 10 * US.SIGMA_RTOL * np.nanmax(old)

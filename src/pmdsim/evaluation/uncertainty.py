@@ -499,13 +499,10 @@ def _sampled_std(lin, A, samples: int, rng_seed: int) -> np.ndarray:
         if not _stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
             raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
                                    "vanishes); no σ")
-    else:
-        dg = np.empty(S.shape + (2,))
-        n_chunks = (K + 31) // 32
-        for k in range(K):
-            _sample_dg(A, S, seed, k, n_chunks, dg)
-            dz = lin.apply(dg)
-            acc += np.where(S, dz, 0.0) ** 2
+    else:  # batched solves (DCT- or multigrid-preconditioned CG)
+        from .uncertainty_solve import least_squares_sum_sq  # noqa: PLC0415 (it imports this module)
+
+        acc = least_squares_sum_sq(lin, A, seed, K)
     return np.where(S, np.sqrt(acc / K), np.nan)
 
 
