@@ -17,6 +17,7 @@ from .integration import (
     _check_seed,
     _points_and_normals,
 )
+from . import poisson
 from .multigrid import _CGWork, _pcg
 from .stepwise import STEP_MAX_ITER, _NB_DU, _NB_DV, _fill_kernel, _interpolate_coarse, _run_stepwise
 
@@ -245,13 +246,22 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     Ey = np.zeros_like(D)
     rhs = np.zeros_like(D)
     work = _CGWork(D.shape)
+    lap = None
+    if poisson.prefers_dct(np.count_nonzero(S) - 1, S.shape):  # the seed is not an unknown
+        lap = poisson.DCTLaplacian(S.shape, seed, dtype=np.float32)
+        work = poisson._DCTWork(1, D.shape)
     converged = False
     change = np.inf
     it = 0
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
-        delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
-                                cap=_INNER_CAP * tol, work=work)
+        if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
+            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+                                       cap=_INNER_CAP * tol, lap=lap, work=work)
+            delta, solved = X[0], bool(ok[0])
+        else:
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+                                    cap=_INNER_CAP * tol, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
             raise ReconstructionError(

@@ -32,7 +32,24 @@ import numba
 import numpy as np
 import scipy.fft
 
-__all__ = ["DCTLaplacian", "dct_pcg"]
+__all__ = ["DCTLaplacian", "dct_pcg", "prefers_dct"]
+
+
+#: The DCT preconditioner is chosen when at least this fraction of the frame are unknowns and
+#: the frame has at least :data:`DCT_MIN_PIXELS` pixels: on masked domains the multigrid
+#: preconditioner needs fewer iterations, and on small grids the compiled multigrid CG's lower
+#: overhead per iteration wins (measured: docs/benchmarks.md, "Integration:
+#: DCT-preconditioned solve").
+DCT_MIN_FILL = 0.999
+
+DCT_MIN_PIXELS = 100_000
+
+
+def prefers_dct(unknowns: int, shape) -> bool:
+    """Whether CG on ``unknowns`` of an H×W frame is preconditioned by the DCT (see
+    :data:`DCT_MIN_FILL`) rather than by multigrid."""
+    n = int(shape[0]) * int(shape[1])
+    return n >= DCT_MIN_PIXELS and unknowns >= DCT_MIN_FILL * n
 
 
 class DCTLaplacian:

@@ -6,7 +6,7 @@ matrix, the Gauss–Newton matrix N of the reconstruction at convergence. They a
 before (``uncertainty._sample_dg``, ``uncertainty._ls_rhs``: the same seeds give the same
 right-hand sides) and solved :data:`SIGMA_BATCH` at a time:
 
-* on a large full frame (at least :data:`DCT_MIN_FILL` of the pixels are unknowns), by CG
+* on a large full frame (:func:`pmdsim.evaluation.poisson.prefers_dct`), by CG
   preconditioned with the pinned Neumann Laplacian's DCT inverse
   (:func:`pmdsim.evaluation.poisson.dct_pcg`, the transforms of a batch stacked);
 * on masked domains, by the multigrid-preconditioned CG
@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from .multigrid import _CGWork, _pcg
+from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
 from .uncertainty import UncertaintyError, _ls_rhs, _sample_dg
 
@@ -41,12 +42,6 @@ SIGMA_MAX_ITER = 500
 #: faster per field on this machine (one core's vector units).
 SIGMA_BATCH = 2
 
-#: The DCT preconditioner is used when at least this fraction of the frame are unknowns and
-#: the frame has at least :data:`DCT_MIN_PIXELS` pixels (on small grids the compiled
-#: multigrid CG's lower overhead per iteration wins).
-DCT_MIN_FILL = 0.999
-
-DCT_MIN_PIXELS = 100_000
 
 
 @numba.njit(cache=True, parallel=True)
@@ -71,8 +66,7 @@ class _SigmaSolver:
     def __init__(self, lin):
         self.lin = lin
         unknown = lin.D > 0.0
-        fill = float(np.count_nonzero(unknown)) / lin.S.size
-        self.kind = "dct" if fill >= DCT_MIN_FILL and lin.S.size >= DCT_MIN_PIXELS else "multigrid"
+        self.kind = "dct" if poisson.prefers_dct(np.count_nonzero(unknown), lin.S.shape) else "multigrid"
         if self.kind == "dct":
             self.unknown = unknown
             self.lap = DCTLaplacian(lin.S.shape, lin.seed, dtype=np.float32)
