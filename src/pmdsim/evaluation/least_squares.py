@@ -1,7 +1,8 @@
 """Zonal (Southwell-type) least-squares integration of the deflectometric slopes (paper §2.5):
 Gauss–Newton iterations over all valid neighbour pairs of the seed's component, each a sparse
-solve by multigrid-preconditioned CG (:mod:`pmdsim.evaluation.multigrid`), started coarse to
-fine from a stepwise solution. Notation: :mod:`pmdsim.evaluation.reconstruction`.
+solve by multigrid-preconditioned CG (:mod:`pmdsim.evaluation.multigrid`; on large full frames
+DCT-preconditioned, :mod:`pmdsim.evaluation.poisson`), started coarse to fine from a stepwise
+solution. Notation: :mod:`pmdsim.evaluation.reconstruction`.
 """
 
 from __future__ import annotations
@@ -389,7 +390,9 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     gradients preconditioned by aggregation multigrid (2×2 aggregates with Galerkin coarse
     operators, symmetric Gauss–Seidel smoothing, over-corrected coarse-grid correction — one
     coarse cycle from the full grid, W-cycles below —, dense Cholesky on the coarsest level),
-    which copes with arbitrary masks. Each update is solved until its estimated error is below
+    which copes with arbitrary masks; on a full frame of at least 100 000 pixels by the DCT
+    inverse of the Neumann Laplacian instead (:func:`pmdsim.evaluation.poisson.prefers_dct`;
+    the same result, fewer iterations). Each update is solved until its estimated error is below
     ``tol_mm``/10 (or 1e-4 relative, if finer, but not below ``tol_mm``/100), so that the
     update that follows, which decides convergence, is accurate to a small fraction of
     ``tol_mm``.
