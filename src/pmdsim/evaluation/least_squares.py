@@ -1,7 +1,8 @@
 """Zonal (Southwell-type) least-squares integration of the deflectometric slopes (paper §2.5):
 Gauss–Newton iterations over all valid neighbour pairs of the seed's component, each a sparse
-solve by multigrid-preconditioned CG (:mod:`pmdsim.evaluation.multigrid`), started coarse to
-fine from a stepwise solution. Notation: :mod:`pmdsim.evaluation.reconstruction`.
+solve by multigrid-preconditioned CG (:mod:`pmdsim.evaluation.multigrid`; on large full frames
+DCT-preconditioned, :mod:`pmdsim.evaluation.poisson`), started coarse to fine from a stepwise
+solution. Notation: :mod:`pmdsim.evaluation.reconstruction`.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from .integration import (
     _check_seed,
     _points_and_normals,
 )
+from . import poisson
 from .multigrid import _CGWork, _pcg
 from .stepwise import STEP_MAX_ITER, _NB_DU, _NB_DV, _fill_kernel, _interpolate_coarse, _run_stepwise
 
@@ -245,13 +247,22 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     Ey = np.zeros_like(D)
     rhs = np.zeros_like(D)
     work = _CGWork(D.shape)
+    lap = None
+    if poisson.prefers_dct(np.count_nonzero(S) - 1, S.shape):  # the seed is not an unknown
+        lap = poisson.DCTLaplacian(S.shape, seed, dtype=np.float32)
+        work = poisson._DCTWork(1, D.shape)
     converged = False
     change = np.inf
     it = 0
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
-        delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
-                                cap=_INNER_CAP * tol, work=work)
+        if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
+            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+                                       cap=_INNER_CAP * tol, lap=lap, work=work)
+            delta, solved = X[0], bool(ok[0])
+        else:
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+                                    cap=_INNER_CAP * tol, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
             raise ReconstructionError(
@@ -379,7 +390,9 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     gradients preconditioned by aggregation multigrid (2×2 aggregates with Galerkin coarse
     operators, symmetric Gauss–Seidel smoothing, over-corrected coarse-grid correction — one
     coarse cycle from the full grid, W-cycles below —, dense Cholesky on the coarsest level),
-    which copes with arbitrary masks. Each update is solved until its estimated error is below
+    which copes with arbitrary masks; on a full frame of at least 100 000 pixels by the DCT
+    inverse of the Neumann Laplacian instead (:func:`pmdsim.evaluation.poisson.prefers_dct`;
+    the same result, fewer iterations). Each update is solved until its estimated error is below
     ``tol_mm``/10 (or 1e-4 relative, if finer, but not below ``tol_mm``/100), so that the
     update that follows, which decides convergence, is accurate to a small fraction of
     ``tol_mm``.

@@ -19,8 +19,9 @@ linear propagation of ``std_xy_mm`` through J = ∂g/∂(x_s, y_s) (exact for sm
 The integrated heights are correlated: a height is a sum of slopes along paths from the seed.
 They are linear in the slope perturbations (linearised at the reconstruction): the stepwise
 integration's recursion (each pixel from its neighbours of the previous wavefront) and the
-least-squares integration's normal equations (the Gauss–Newton matrix at convergence, solved by
-the same multigrid-preconditioned CG). The covariance C = M Σ Mᵀ of the heights is estimated by
+least-squares integration's normal equations (the Gauss–Newton matrix at convergence, its
+sampled right-hand sides solved in batches by DCT- or multigrid-preconditioned CG,
+:mod:`pmdsim.evaluation.uncertainty_solve`). The covariance C = M Σ Mᵀ of the heights is estimated by
 K sampled right-hand sides: δg = J (σ ∘ ξ) with ξ independent Rademacher (±1) per pixel and axis,
 so that E[δg δgᵀ] = J Σ Jᵀ exactly, propagated through the linear map M; σ_z² = mean_k δz_k²
 (the mean of δz is 0 by construction). The relative standard error of the estimated σ is at most
@@ -499,13 +500,10 @@ def _sampled_std(lin, A, samples: int, rng_seed: int) -> np.ndarray:
         if not _stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
             raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
                                    "vanishes); no σ")
-    else:
-        dg = np.empty(S.shape + (2,))
-        n_chunks = (K + 31) // 32
-        for k in range(K):
-            _sample_dg(A, S, seed, k, n_chunks, dg)
-            dz = lin.apply(dg)
-            acc += np.where(S, dz, 0.0) ** 2
+    else:  # batched solves (DCT- or multigrid-preconditioned CG)
+        from .uncertainty_solve import least_squares_sum_sq  # noqa: PLC0415 (it imports this module)
+
+        acc = least_squares_sum_sq(lin, A, seed, K)
     return np.where(S, np.sqrt(acc / K), np.nan)
 
 

@@ -1,0 +1,255 @@
+"""DCT Poisson solver and DCT-preconditioned conjugate gradients for the least-squares
+integration's normal equations (issue 25 item 3).
+
+On the full H×W rectangle, the unit-weight 5-point Neumann Laplacian L (the normal equations of
+the forward-difference least-squares integration with all weights 1) is diagonalised by the
+orthonormal 2-D DCT-II (Strang 1999, "The discrete cosine transform", SIAM Rev. 41, 135):
+
+    L = Cᵀ diag(λ) C,   λ_jk = (2 − 2 cos(π j / H)) + (2 − 2 cos(π k / W)),
+
+with the constants as its null space (λ_00 = 0). The gauge of the integration fixes one pixel
+(the seed s, which is not an unknown); :class:`DCTLaplacian` solves the Laplacian with that
+pixel removed, L_s x = r, exactly: y = L⁺ (r − (Σ r) e_s) (a consistent right-hand side),
+x = y − y_s (see :meth:`DCTLaplacian.solve`).
+
+The Gauss–Newton matrix N = Jᵀ J that the integration actually assembles
+(:func:`pmdsim.evaluation.least_squares._assemble_gauss_newton`) is not L: its edge weights
+−J_a J_b are 1 + O(slope · ray obliquity) (≤ 6e-4 off for Table 1) and its row sums are not 0
+(Robin-type terms ≈ 5e-4 on the border from the slopes' dependence on the heights). Per pixel
+the difference is small, but for the smoothest modes it is of the order of L itself, so L_s⁻¹
+is used as the preconditioner of CG for N (:func:`dct_pcg`), never as its solution; on a
+masked domain (pixels with D = 0 are not unknowns) the preconditioner is P L_s⁻¹ P with P the
+restriction to the unknowns (symmetric positive definite there).
+
+Storage of N: the padded 5-point arrays of :mod:`pmdsim.evaluation.multigrid` (D, Ex, Ey of
+shape (H + 2, W + 2)); vectors are padded the same way, stacked as (k, H + 2, W + 2) for k
+right-hand sides solved together (:func:`dct_pcg`).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.fft
+
+__all__ = ["DCTLaplacian", "dct_pcg", "prefers_dct"]
+
+
+#: The DCT preconditioner is chosen when at least this fraction of the frame are unknowns and
+#: the frame has at least :data:`DCT_MIN_PIXELS` pixels: on masked domains the multigrid
+#: preconditioner needs fewer iterations, and on small grids the compiled multigrid CG's lower
+#: overhead per iteration wins (measured: docs/benchmarks.md, "Integration:
+#: DCT-preconditioned solve").
+DCT_MIN_FILL = 0.999
+
+DCT_MIN_PIXELS = 100_000
+
+
+def prefers_dct(unknowns: int, shape) -> bool:
+    """Whether CG on ``unknowns`` of an H×W frame is preconditioned by the DCT (see
+    :data:`DCT_MIN_FILL`) rather than by multigrid."""
+    n = int(shape[0]) * int(shape[1])
+    return n >= DCT_MIN_PIXELS and unknowns >= DCT_MIN_FILL * n
+
+
+class DCTLaplacian:
+    """Exact solver of the unit-weight Neumann 5-point Laplacian on an H×W grid with one pixel
+    pinned at 0 (L_s⁻¹, module docstring), for one field (H, W) or a stack (k, H, W).
+
+    Parameters
+    ----------
+    shape : tuple (H, W)
+    pinned : tuple of int
+        (row, column) of the pixel that is not an unknown (the seed).
+    dtype : numpy float dtype
+        float64 (exact to round-off) or float32 (the transforms in single precision: about 2×
+        faster, relative error ≈ 1e-6; for preconditioning).
+    workers : int
+        scipy.fft workers.
+    """
+
+    def __init__(self, shape, pinned, dtype=np.float64, workers: int = 1):
+        H, W = (int(n) for n in shape)
+        self.shape = (H, W)
+        self.pinned = (int(pinned[0]), int(pinned[1]))
+        self.dtype = np.dtype(dtype)
+        self.workers = int(workers)
+        lam = (2.0 - 2.0 * np.cos(np.pi * np.arange(H) / H))[:, None] + \
+              (2.0 - 2.0 * np.cos(np.pi * np.arange(W) / W))[None, :]
+        lam[0, 0] = 1.0
+        ilam = 1.0 / lam
+        ilam[0, 0] = 0.0  # the constant: L⁺
+        self.inv_eigenvalues = ilam.astype(self.dtype)
+
+    def solve(self, r, overwrite: bool = False, totals=None) -> np.ndarray:
+        """x = L_s⁻¹ r for r (H, W) or (k, H, W) (r at the pinned pixel is ignored; x is 0
+        there). Returns an array of ``dtype``. ``overwrite`` lets it use r (of ``dtype``) as
+        work space; ``totals`` (scalar or (k,)): Σ r over the other pixels, if known."""
+        sv, su = self.pinned
+        x = np.array(r, dtype=self.dtype, copy=not overwrite)
+        if totals is None:
+            x[..., sv, su] = 0.0
+            totals = x.sum(axis=(-2, -1), dtype=np.float64)
+        x[..., sv, su] = -np.asarray(totals)  # a consistent right-hand side: Σ = 0
+        axes = (-2, -1)
+        f = scipy.fft.dctn(x, type=2, norm="ortho", axes=axes, workers=self.workers, overwrite_x=True)
+        f *= self.inv_eigenvalues
+        y = scipy.fft.idctn(f, type=2, norm="ortho", axes=axes, workers=self.workers, overwrite_x=True)
+        y -= y[..., sv, su][..., None, None]
+        return y
+
+
+@numba.njit(cache=True, parallel=True)
+def _direction_matvec(D, Ex, Ey, Z, P, AP, beta):
+    """P = Z + βP and AP = N P as N Z + β·AP (N P_old is AP already: one pass, no row
+    dependencies between threads); returns P·AP. Padded (H + 2, W + 2) fields."""
+    Hp, Wp = D.shape
+    s = 0.0
+    for v in numba.prange(0, Hp - 2):
+        w = v + 1
+        for u in range(1, Wp - 1):
+            y = (D[w, u] * Z[w, u] - Ex[w, u - 1] * Z[w, u - 1] - Ex[w, u] * Z[w, u + 1]
+                 - Ey[w - 1, u] * Z[w - 1, u] - Ey[w, u] * Z[w + 1, u])
+            p = Z[w, u] + beta * P[w, u]
+            a = y + beta * AP[w, u]
+            P[w, u] = p
+            AP[w, u] = a
+            s += p * a
+    return s
+
+
+@numba.njit(cache=True, parallel=True)
+def _update_gather(X, R, P, AP, alpha, buf):
+    """X += αP, R −= αAP, and buf = R's interior (single precision, for the transforms);
+    returns Σ R."""
+    Hp, Wp = X.shape
+    s = 0.0
+    for v in numba.prange(0, Hp - 2):
+        w = v + 1
+        for u in range(1, Wp - 1):
+            X[w, u] += alpha * P[w, u]
+            r = R[w, u] - alpha * AP[w, u]
+            R[w, u] = r
+            buf[v, u - 1] = r
+            s += r
+    return s
+
+
+@numba.njit(cache=True, parallel=True)
+def _scatter_dot_max(R, y, y0, unknown, Z):
+    """Z = (y − y0) on the unknowns (0 elsewhere; y unpadded, single precision); returns
+    (R·Z, max |Z|)."""
+    Hp, Wp = Z.shape
+    s = 0.0
+    m = 0.0
+    for v in numba.prange(0, Hp - 2):
+        w = v + 1
+        mr = 0.0
+        for u in range(1, Wp - 1):
+            z = (float(y[v, u - 1]) - y0) if unknown[w, u] else 0.0
+            Z[w, u] = z
+            s += R[w, u] * z
+            mr = max(mr, abs(z))
+        m = max(m, mr)
+    return s, m
+
+
+class _DCTWork:
+    """Work arrays of :func:`dct_pcg` for k padded fields of one shape (float64) and the
+    single-precision transform buffer."""
+
+    def __init__(self, k, shape):
+        self.k = int(k)
+        self.X, self.R, self.Z, self.P, self.AP = (np.zeros((self.k,) + tuple(shape)) for _ in range(5))
+        self.buf = np.zeros((self.k, shape[0] - 2, shape[1] - 2), dtype=np.float32)
+
+
+def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None, work=None, unknown=None):
+    """Conjugate gradients for N X_i = B_i (k right-hand sides together), preconditioned by
+    the pinned Neumann Laplacian's DCT inverse in single precision (module docstring; CG
+    itself runs in float64).
+
+    Stops each right-hand side when the max-norm of its preconditioned residual (an estimate
+    of its error) is below ``max(atol, min(rtol · its initial value, cap))``, and adds that
+    last preconditioned residual to it (as :func:`pmdsim.evaluation.multigrid._pcg`).
+
+    Parameters
+    ----------
+    D, Ex, Ey : ndarray (H + 2, W + 2)
+        The padded operator (:mod:`pmdsim.evaluation.multigrid`); D == 0 marks pixels that are
+        not unknowns (``pinned`` must be one of them).
+    B : ndarray (k, H + 2, W + 2)
+        Right-hand sides (0 off the unknowns).
+    pinned : tuple of int
+        (row, column) of the gauge pixel, unpadded.
+    atol, rtol, max_iter, cap
+        As :func:`~pmdsim.evaluation.multigrid._pcg` (``max_iter`` per right-hand side).
+    lap : DCTLaplacian, optional
+        The preconditioner (float32; created if not given).
+    work : _DCTWork, optional
+        Work arrays for k fields (created if not given); X is ``work.X``.
+    unknown : ndarray of bool (H + 2, W + 2), optional
+        D > 0 (computed if not given).
+
+    Returns
+    -------
+    X : ndarray (k, H + 2, W + 2)
+    iterations : ndarray of int (k,)
+    converged : ndarray of bool (k,)
+    """
+    k = B.shape[0]
+    Hp, Wp = D.shape
+    sv, su = int(pinned[0]), int(pinned[1])
+    if lap is None:
+        lap = DCTLaplacian((Hp - 2, Wp - 2), pinned, dtype=np.float32)
+    if work is None or work.k < k or work.X.shape[1:] != D.shape:
+        work = _DCTWork(k, D.shape)
+    if unknown is None:
+        unknown = D > 0.0
+    X, R, Z, P, AP, buf = work.X[:k], work.R[:k], work.Z[:k], work.P[:k], work.AP[:k], work.buf[:k]
+    X[:] = 0.0
+    R[:] = B
+    rz = np.zeros(k)
+    zmax = np.zeros(k)
+    its = np.zeros(k, dtype=np.int64)
+    converged = np.zeros(k, dtype=np.bool_)
+    active = np.ones(k, dtype=np.bool_)
+    sums = np.zeros(k)
+    for i in range(k):
+        buf[i] = R[i, 1:-1, 1:-1]
+        sums[i] = float(np.sum(R[i]))
+
+    def precondition(idx):
+        # L_s⁻¹ on the stacked residuals of idx (buf[idx] holds them, sums their totals).
+        b = buf[idx] if idx.size < k else buf
+        y = lap.solve(b, overwrite=True, totals=sums[idx])
+        for j, i in enumerate(idx):
+            rz[i], zmax[i] = _scatter_dot_max(R[i], y[j], 0.0, unknown, Z[i])
+
+    precondition(np.arange(k))
+    tol = np.maximum(atol, np.minimum(rtol * zmax, cap))
+    beta = np.zeros(k)
+    pAp = np.zeros(k)
+    while True:
+        done = active & (zmax <= tol)
+        for i in np.flatnonzero(done):
+            X[i] += Z[i]
+        converged |= done
+        active &= ~done & (its < max_iter)
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        for i in idx:
+            pAp[i] = _direction_matvec(D, Ex, Ey, Z[i], P[i], AP[i], beta[i])
+            if not (pAp[i] > 0.0 and rz[i] > 0.0):  # breakdown (round-off at convergence)
+                active[i] = False
+                continue
+            sums[i] = _update_gather(X[i], R[i], P[i], AP[i], rz[i] / pAp[i], buf[i])
+            its[i] += 1
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        rz_old = rz.copy()
+        precondition(idx)
+        beta[idx] = rz[idx] / rz_old[idx]
+    return X, its, converged
