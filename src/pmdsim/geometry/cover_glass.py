@@ -69,13 +69,24 @@ _JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
 @numba.njit(**_JIT, inline="always")
 def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, dx, dy, dz, x0, y0, z0,
                          tol, max_iter):
+    """:func:`through_glass_full` without the outer-surface values: ``(x, y, z, status)``."""
+    x, y, z, st, _az, _mx, _my = through_glass_full(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz,
+                                                    dx, dy, dz, x0, y0, z0, tol, max_iter)
+    return x, y, z, st
+
+
+@numba.njit(**_JIT, inline="always")
+def through_glass_full(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, dx, dy, dz, x0, y0, z0,
+                       tol, max_iter):
     """One ray o + s·d (screen frame, towards the screen) through the cover glass.
 
     ``(x0, y0, z0)``: the ray's hit of the bare emitting surface (the start of the foot-point
-    iteration and the warm start of the final intersection). Returns ``(x, y, z, status)``:
-    the point Q on the emitting surface and an :class:`~pmdsim.geometry.surface.IntersectStatus`
-    code (1 PARALLEL where the ray does not enter the outer surface from the sample side,
-    3 NO_CONVERGENCE where the foot point does not converge).
+    iteration and the warm start of the final intersection). Returns ``(x, y, z, status, a_z,
+    m_x, m_y)``: the point Q on the emitting surface, an
+    :class:`~pmdsim.geometry.surface.IntersectStatus` code (1 PARALLEL where the ray does not
+    enter the outer surface from the sample side, 3 NO_CONVERGENCE where the foot point does
+    not converge), and the height of the outer-surface hit A and the plate normal m used there
+    (the tracer's warm starts of the neighbouring pixels; NaN where the status is not 0).
 
     Outer-surface hit: with the foot point u, the outer surface is replaced by its tangent plane
     at A(u) (normal m(u)), the ray's point X on it is taken, and u ← (X − t·m(u))_xy, until u
@@ -103,7 +114,7 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
         pz = h + t * mz
         dm = dx * mx + dy * my + dz * mz
         if not dm < 0.0:  # the ray must meet the outer surface from the sample side
-            return nan, nan, nan, 1
+            return nan, nan, nan, 1, nan, nan, nan
         s = ((px - ox) * mx + (py - oy) * my + (pz - oz) * mz) / dm
         ax = ox + s * dx
         ay = oy + s * dy
@@ -117,7 +128,7 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
             converged = True
             break
     if not converged:
-        return nan, nan, nan, 3
+        return nan, nan, nan, 3, nan, nan, nan
     # Refraction at A (Snell's law in vector form), normal m facing the incident ray.
     inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
     ex = dx * inv
@@ -149,8 +160,8 @@ def through_glass_kernel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, o
         _s, x, y, z, _hx, _hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ax, ay, az, rx, ry, rz,
                                                     tol, max_iter, z)
     if st != 0:
-        return nan, nan, nan, st
-    return x, y, z, 0
+        return nan, nan, nan, st, nan, nan, nan
+    return x, y, z, 0, az, mx, my
 
 
 @numba.njit(**_JIT)

@@ -21,6 +21,7 @@ from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
 from ..geometry.transform import RigidTransform
+from .glass_rows import glass_pixel
 from .trace_rows import _BLK, _NF, _NI, trace_row
 from ..geometry.compact import compact_repr
 
@@ -89,7 +90,7 @@ def _trace_run(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
 ):
     """Trace one band of ``band_rows`` runs of ``run_length`` rays (image rows).
 
@@ -104,6 +105,12 @@ def _trace_run(
     depend on each other, so the processor overlaps their computations instead of waiting for
     the left neighbour's result. Bands are independent and fixed by ``band_rows`` (not by the
     number of threads), so results do not depend on the thread count.
+
+    With a cover glass (``glass_t`` > 0 mm, index ``glass_n``) every reflected ray is traced
+    through it (:mod:`pmdsim.simulation.glass_rows`, warm started from the pixels two and
+    three to the left in the first row of a band, from the rows above in the others:
+    ``z_rows[band]`` has 10 rows then, the screen heights being those of the emitting-surface
+    points seen through the glass).
     """
     n = d_cam.shape[0]
     nan = np.nan
@@ -134,7 +141,7 @@ def _trace_run(
                 s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
                 p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
                 tol, max_iter, sample_codes, screen_codes,
-                screen_xy, status, p_sample, q_screen, store,
+                screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
             )
             continue
         zs_prev = nan  # sample height of the previous pixel
@@ -142,6 +149,16 @@ def _trace_run(
         zp1 = nan
         zp2 = nan
         zp3 = nan
+        # With a glass: the outer-surface heights and plate normals of the previous three pixels.
+        ga1 = nan
+        ga2 = nan
+        ga3 = nan
+        gx1 = nan
+        gx2 = nan
+        gx3 = nan
+        gy1 = nan
+        gy2 = nan
+        gy3 = nan
         for col in range(np.uint64(min(run_length, n - row * run_length))):  # unsigned: no wrap-around
             k = kb + col
             if above:
@@ -162,6 +179,9 @@ def _trace_run(
             qx = nan
             qy = nan
             qz = nan
+            gaz = nan
+            gmx = nan
+            gmy = nan
             if store:
                 for c in range(3):
                     p_sample[k, c] = nan
@@ -210,13 +230,27 @@ def _trace_run(
                     wx = b00 * rx + b01 * ry + b02 * rz
                     wy = b10 * rx + b11 * ry + b12 * rz
                     wz = b20 * rx + b21 * ry + b22 * rz
-                    t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
-                        p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, zq_guess, False
-                    )
-                    if st2 == _NEEDS_SOLVE:
-                        t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
-                            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, max_iter, qz
+                    if glass_t > 0.0:
+                        az_g = 3.0 * ga2 - 2.0 * ga3
+                        mx_g = 3.0 * gx2 - 2.0 * gx3
+                        my_g = 3.0 * gy2 - 2.0 * gy3
+                        if not np.isfinite(az_g + mx_g + my_g):
+                            az_g = ga1
+                            mx_g = gx1
+                            my_g = gy1
+                        qx, qy, qz, st2, gaz, gmx, gmy = glass_pixel(
+                            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, glass_t, glass_n, qox, qoy, qoz, wx,
+                            wy, wz, az_g, mx_g, my_g, zq_guess, tol, max_iter
                         )
+                    else:
+                        t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
+                            p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, zq_guess, False
+                        )
+                        if st2 == _NEEDS_SOLVE:
+                            t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
+                                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol,
+                                max_iter, qz
+                            )
                     if store:
                         p_sample[k, 0] = px
                         p_sample[k, 1] = py
@@ -226,6 +260,9 @@ def _trace_run(
                         qx = nan
                         qy = nan
                         qz = nan
+                        gaz = nan
+                        gmx = nan
+                        gmy = nan
                     else:
                         status[k] = 0
                         if store:
@@ -241,6 +278,22 @@ def _trace_run(
             zr[0, col] = zs_prev
             zr[3, col] = zr[2, col]
             zr[2, col] = qz
+            if glass_t > 0.0:
+                ga3 = ga2
+                ga2 = ga1
+                ga1 = gaz
+                gx3 = gx2
+                gx2 = gx1
+                gx1 = gmx
+                gy3 = gy2
+                gy2 = gy1
+                gy1 = gmy
+                zr[5, col] = zr[4, col]
+                zr[4, col] = gaz
+                zr[7, col] = zr[6, col]
+                zr[6, col] = gmx
+                zr[9, col] = zr[8, col]
+                zr[8, col] = gmy
 
 
 @numba.njit(cache=True, parallel=True)
@@ -249,7 +302,7 @@ def _trace_kernel(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
 ):
     for band in numba.prange(0, z_rows.shape[0]):
         _trace_run(
@@ -257,7 +310,7 @@ def _trace_kernel(
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
             p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
-            screen_xy, status, p_sample, q_screen, store,
+            screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
         )
 
 
@@ -326,9 +379,9 @@ def trace_rays(
     glass : CoverGlass, optional
         The screen's cover glass (docs/conventions.md, "Cover glass"). When present, every
         reflected ray is refracted through it and the mapping holds the point on the emitting
-        surface that the ray reaches (:meth:`CoverGlass.trace`, a second pass over the valid
-        pixels, warm started from the glass-free hit); None or zero thickness: the glass-free
-        trace, unchanged.
+        surface that the ray reaches (:mod:`pmdsim.simulation.glass_rows`: a stage of the
+        tracer, warm started from the neighbouring pixels); None or zero thickness: the
+        glass-free trace, unchanged.
 
     Returns
     -------
@@ -348,7 +401,7 @@ def trace_rays(
     screen_xy = np.empty((n, 2))
     status = np.empty(n, dtype=np.uint8)
     with_glass = glass is not None and glass.present
-    if store_points or with_glass:
+    if store_points:
         p_s = np.empty((n, 3))
         q_p = np.empty((n, 3))
     else:
@@ -361,7 +414,7 @@ def trace_rays(
     # runs of a flat list of rays are not neighbours: one run per band (left neighbours only).
     band_rows = _BAND_ROWS if len(shape) >= 2 else 1
     n_runs = (n + run_length - 1) // run_length
-    z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 4, run_length), np.nan)
+    z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 10 if with_glass else 4, run_length), np.nan)
     scratch = np.empty((z_rows.shape[0], _NF * _BLK))
     pscratch = np.empty((z_rows.shape[0], _NI * _BLK), dtype=np.int64)
     # Bands are handed to the threads one at a time: on a shared machine a thread that is
@@ -375,40 +428,17 @@ def trace_rays(
             s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
             p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max, p.dmax,
             tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
-            screen_xy, status, p_s, q_p, store_points or with_glass,
+            screen_xy, status, p_s, q_p, store_points,
+            float(glass.thickness_mm) if with_glass else 0.0, float(glass.index) if with_glass else 1.5,
         )
     finally:
         numba.set_parallel_chunksize(old_chunksize)
-    if with_glass:
-        from .glass_trace import refract_traced
-
-        refract_traced(glass, screen, T_screen_sample, p_s, q_p, screen_xy, status, _SCREEN_CODES, tol_mm)
     return Mapping(
         screen_xy.reshape(shape + (2,)),
         status.reshape(shape),
         p_s.reshape(shape + (3,)) if store_points else None,
         q_p.reshape(shape + (3,)) if store_points else None,
     )
-
-
-def _refract_through_glass(glass, screen, T_screen_sample, p_s, q_p, screen_xy, status, tol_mm):
-    """Second pass of :func:`trace_rays` with a cover glass: each valid pixel's reflected ray
-    (from its sample point towards its glass-free screen hit, which also warm starts it) is
-    traced through the glass (:meth:`CoverGlass.trace`); ``q_p``, ``screen_xy`` and
-    ``status`` are updated in place."""
-    valid = status == Status.VALID
-    idx = np.flatnonzero(valid)
-    if idx.size == 0:
-        return
-    # (the rotation as one matrix product: RigidTransform.apply is ~30× slower on 2 M points)
-    o = p_s[idx] @ T_screen_sample.rotation.T + T_screen_sample.translation
-    q0 = q_p[idx]
-    q, st = glass.trace(screen, o, q0 - o, q0, tol_mm=tol_mm)
-    ok = st == 0
-    q[~ok] = np.nan
-    q_p[idx] = q
-    screen_xy[idx] = q[:, :2]
-    status[idx] = np.where(ok, Status.VALID, _SCREEN_CODES[np.minimum(st, 3)])
 
 
 def trace_camera(

@@ -40,15 +40,19 @@ from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, intersect_kernel, intersect_solve,
 )
 
-#: Pixels per block (the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 26 kB,
-#: within a 32 kB L1 data cache).
+#: Pixels per block (the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 38 kB, of
+#: which the glass-free trace uses 26 kB: within a 32 kB L1 data cache).
 _BLK = 128
 
 # Scratch fields (float64; codes stored as small integers in float64). The intersection
 # stages work on the generic fields _AX … _C (first for the sample, then for the screen).
 (_VX, _VY, _VZ, _PX, _PY, _PZ, _SC, _QOX, _QOY, _QOZ, _WX, _WY, _WZ,
  _AX, _AY, _BX, _BY, _INV, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(26)
-_NF = 26
+# With a cover glass (pmdsim.simulation.glass_rows): the foot point, the outer-surface height and
+# plate normal (warm starts of the rows below), the edge margin (−1: pixel not traced through the
+# glass), the reflected ray's origin and direction (kept for the scalar fallback).
+(_UX, _UY, _GAZ, _GMX, _GMY, _GM, _OOX, _OOY, _OOZ, _ODX, _ODY, _ODZ) = range(26, 38)
+_NF = 38
 # As pmdsim.simulation.trace._trace_run: nothing is allocated (no reference counting), and
 # fastmath only fuses a·b + c into FMAs (no assumptions about NaN or infinity).
 _JIT = dict(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
@@ -323,14 +327,18 @@ def trace_row(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
 ):
     """Trace the m pixels kb … kb + m − 1 of one image row, warm started from the rows above.
 
-    The arguments are those of :func:`pmdsim.simulation.trace._trace_run`; ``zr`` (4, m): the
-    sample and screen heights of the two rows above (updated here for the next row), ``S``
-    and ``P``: the band's float64 (_NF·_BLK) and int64 (_NI·_BLK) scratch; ``cos2_max``: the
-    squared cosine of the largest angle of incidence on the sample.
+    The arguments are those of :func:`pmdsim.simulation.trace._trace_run`; ``zr`` (4, m), or
+    (10, m) with a cover glass: the sample and screen heights of the two rows above (updated
+    here for the next row), then the glass's warm starts (:func:`.glass_rows.glass_block`);
+    ``S`` and ``P``: the band's float64 (_NF·_BLK) and int64 (_NI·_BLK) scratch; ``cos2_max``:
+    the squared cosine of the largest angle of incidence on the sample; ``glass_t``,
+    ``glass_n``: the cover glass's thickness (0: none) and index — with a glass, stage 4 is
+    :func:`.glass_rows.glass_block` (the screen point is the emitting-surface point seen
+    through the glass).
     """
     B = _BLK
     nan = np.nan
@@ -429,10 +437,14 @@ def trace_row(
         for i in range(n):
             _to_screen(i, S[_C * B + i], S[_VX * B + i], S[_VY * B + i], S[_VZ * B + i], S[_X * B + i],
                        S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i], cos2_max, bm, zq1, zq2, S)
-        # 4. The screen intersection.
-        _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
-        _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, np.bool_(False), np.int64(_WX),
-               S)
+        # 4. The screen intersection (through the cover glass, if any).
+        if glass_t > 0.0:
+            _glass_rows.glass_block(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, glass_t,
+                                    glass_n, zr, col0, S, P)
+        else:
+            _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
+            _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, np.bool_(False),
+                   np.int64(_WX), S)
         # 5. Status codes and stores (three loops: each vectorises with few alias checks).
         for i in range(n):
             k = kc + np.uint64(i)
@@ -450,6 +462,8 @@ def trace_row(
             zs1[i] = S[_PZ * B + i] if sc == 0.0 else nan
             zq2[i] = zq1[i]
             zq1[i] = S[_Z * B + i] if (sc == 0.0) & (qc == 0.0) else nan
+        if glass_t > 0.0:
+            _glass_rows_update(n, zr, col0, S)
         if store:
             for i in range(n):
                 k = kc + np.uint64(i)
@@ -463,3 +477,22 @@ def trace_row(
                 q_screen[k, 0] = S[_X * B + i] if valid else nan
                 q_screen[k, 1] = S[_Y * B + i] if valid else nan
                 q_screen[k, 2] = S[_Z * B + i] if valid else nan
+
+
+@numba.njit(**_JIT)
+def _glass_rows_update(n, zr, col0, S):
+    """The glass's warm starts for the rows below: row − 1 becomes row − 2 (zr[4:10], from
+    column ``col0`` on), this row's A_z, m_x, m_y (NaN where the pixel is not valid)."""
+    B = _BLK
+    nan = np.nan
+    for f in range(3):
+        r1 = zr[4 + 2 * f][col0:]
+        r2 = zr[5 + 2 * f][col0:]
+        for i in range(n):
+            valid = (S[_SC * B + i] == 0.0) & (S[_C * B + i] == 0.0)
+            r2[i] = r1[i]
+            r1[i] = S[(_GAZ + f) * B + i] if valid else nan
+
+
+# (glass_rows uses this module's stages and scratch fields: imported last, as a module)
+from . import glass_rows as _glass_rows  # noqa: E402

@@ -1,0 +1,399 @@
+"""The cover glass inside the tracer: warm-started foot-point Newton steps, row by row.
+
+With a cover glass (:mod:`pmdsim.geometry.cover_glass`) the tracer does not intersect the bare
+emitting surface at all on its fast path. For every pixel it predicts the outer-surface hit A
+from the pixels traced before it — the height A_z and the plate normal m, extrapolated linearly
+from the two rows above (the row kernel, :func:`glass_block`) or from the pixels two and three
+to the left (the first row of a band, :func:`glass_pixel`) — and takes the foot point
+u = A_xy − t·m_xy of that prediction, which lies on the reflected ray's offset line. Then:
+
+1. one Newton step on F(u) = A(u)_xy − (a + b·A(u)_z) (the outer-surface point
+   A(u) = (u, h(u)) + t·m(u) on the ray x = a + b·z), with the exact Jacobian (the surface's
+   second derivatives: one bicubic evaluation of h, ∇h and the Hessian at u,
+   :func:`foot_newton`); the step is accepted by an error bound (below);
+2. the gradient carried to the new foot point by the Hessian, the ray's point on the outer
+   surface's tangent plane there, refraction (Snell's law in vector form);
+3. the emitting-surface hit of the refracted ray: the tracer's intersection stage
+   (one Newton step from the height extrapolated from the rows above, accepted by its error
+   bound; the scalar kernels where it is not).
+
+**Error bound of step 1.** With D₂, D₃ bounds of the surface's second and third derivatives
+(:attr:`~pmdsim.geometry.surface.KernelSurface.dmax`) and |h_x| + |h_y| ≤ 1 on the step, every
+second partial derivative of m (and of g = 1/√(1 + |∇h|²)) is at most K = 3·D₃ + 11·D₂², so
+that of F_i is at most M_i = t·K + |b_i|·(D₂ + t·K). After a Newton step s the residual is
+≤ ½·M·‖s‖₁², and the foot point is off the root by at most ‖J⁻¹‖_∞·M·‖s‖₁² (a safety factor
+2); the step is accepted when that is ≤ 1e-9 mm (the convergence threshold of
+:func:`~pmdsim.geometry.cover_glass.through_glass_full`) and the carried gradient's error
+D₃·‖s‖₁² is ≤ the intersection tolerance. Since the predicted foot point is within ~1e-6 mm of
+the root on smooth screens, one step settles it (its error bound ~1e-15 mm).
+
+**Where the fast path does not apply** — no prediction (the first pixels of a band, next to
+invalid pixels), a step not accepted, the ray not entering the plate from the sample side, the
+emitting-surface hit failing or lying within 3·t·(1 + |b_x| + |b_y|) of the grid's edge (where
+the glass-free hit, which decides the status there, could lie on the other side of it) — the
+pixel is traced exactly as the separate refracting pass did before
+(:func:`fallback_trace`: the bare hit, then
+:func:`~pmdsim.geometry.cover_glass.through_glass_full` from it), so the status codes are those
+of that pass. ``tests/test_cover_glass.py`` compares the two paths pixel by pixel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..geometry.cover_glass import _FOOT_TOL_MM, through_glass_full
+from ..geometry.surface import (
+    _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, eval2_kernel, intersect_kernel, intersect_solve,
+)
+from .trace_rows import (
+    _AX, _AY, _BLK, _BX, _BY, _C, _GAZ, _GM, _GMX, _GMY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX, _OOY, _OOZ, _PID,
+    _PIY, _QOX, _QOY, _QOZ, _SMALL_GRID, _UX, _UY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG, _fixup, _intersect_block,
+)
+
+__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "fallback_trace"]
+
+#: Code (field _C) of a pixel left to :func:`fallback_trace`.
+_FALLBACK = 6.0
+
+
+@numba.njit(**_JIT, inline="always")
+def foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, d2, d3, tol):
+    """One Newton step of the foot point u (module docstring, step 1).
+
+    ``h … hyy``: the emitting surface's height, gradient and second derivatives at u; the ray
+    x = a_x + b_x·z, y = a_y + b_y·z (screen frame); ``t``: the glass thickness; ``d2``, ``d3``:
+    the surface's derivative bounds; ``tol``: the intersection tolerance (for the carried
+    gradient). Returns ``(u_x, u_y, h, h_x, h_y, accepted)`` at the new foot point (height and
+    gradient carried there by Taylor's theorem).
+    """
+    q = 1.0 + hx * hx + hy * hy
+    g = 1.0 / math.sqrt(q)
+    g3 = g / q
+    azu = h - t * g
+    fx = ux + t * (hx * g) - ax - bx * azu
+    fy = uy + t * (hy * g) - ay - by * azu
+    px = hx * hxx + hy * hxy
+    py = hx * hxy + hy * hyy
+    daz_x = hx + t * g3 * px
+    daz_y = hy + t * g3 * py
+    j11 = 1.0 + t * (g * hxx - hx * g3 * px) - bx * daz_x
+    j12 = t * (g * hxy - hx * g3 * py) - bx * daz_y
+    j21 = t * (g * hxy - hy * g3 * px) - by * daz_x
+    j22 = 1.0 + t * (g * hyy - hy * g3 * py) - by * daz_y
+    idet = 1.0 / (j11 * j22 - j12 * j21)
+    sx = (j12 * fy - j22 * fx) * idet
+    sy = (j21 * fx - j11 * fy) * idet
+    h2 = h + hx * sx + hy * sy + 0.5 * (hxx * sx * sx + 2.0 * hxy * sx * sy + hyy * sy * sy)
+    hx2 = hx + hxx * sx + hxy * sy
+    hy2 = hy + hxy * sx + hyy * sy
+    ns = abs(sx) + abs(sy)
+    ns2 = ns * ns
+    km = 3.0 * d3 + 11.0 * d2 * d2
+    jinv = max(abs(j22) + abs(j12), abs(j21) + abs(j11)) * abs(idet)
+    mb = t * km + max(abs(bx), abs(by)) * (d2 + t * km)
+    ok = (jinv * mb * ns2 <= _FOOT_TOL_MM) & (d3 * ns2 <= tol) & (abs(hx) + abs(hy) + 2.0 * d2 * ns <= 1.0)
+    return ux + sx, uy + sy, h2, hx2, hy2, ok
+
+
+@numba.njit(**_JIT, inline="always")
+def glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz, t, n_idx):
+    """Steps 2 of the module docstring at the accepted foot point u (height h, gradient h_x, h_y).
+
+    Returns ``(A_x, A_y, A_z, r_x, r_y, r_z, m_x, m_y, z_plane, enters)``: the ray's point A on
+    the outer surface's tangent plane at A(u), the refracted direction r, the plate normal m,
+    the height at which the refracted ray meets the emitting surface's tangent plane at u (a
+    start for the emitting-surface hit) and whether the ray (direction w) meets the plate from
+    the sample side (w·m < 0).
+    """
+    g = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
+    mx = hx * g
+    my = hy * g
+    mz = -g
+    pux = ux + t * mx
+    puy = uy + t * my
+    puz = h + t * mz
+    den = bx * mx + by * my + mz
+    za = ((pux - ax) * mx + (puy - ay) * my + puz * mz) / den
+    a_x = ax + bx * za
+    a_y = ay + by * za
+    enters = wz * den < 0.0
+    inv = 1.0 / math.sqrt(wx * wx + wy * wy + wz * wz)
+    ex = wx * inv
+    ey = wy * inv
+    ez = wz * inv
+    eta = 1.0 / n_idx
+    cos_i = -(ex * mx + ey * my + ez * mz)
+    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+    f = eta * cos_i - math.sqrt(k)
+    rx = eta * ex + f * mx
+    ry = eta * ey + f * my
+    rz = eta * ez + f * mz
+    # The emitting surface's tangent plane at u along the refracted ray x = A_xy + (r_xy/r_z)(z − A_z).
+    cx = rx / rz
+    cy = ry / rz
+    z_plane = (h + hx * (a_x - cx * za - ux) + hy * (a_y - cy * za - uy)) / (1.0 - hx * cx - hy * cy)
+    return a_x, a_y, za, rx, ry, rz, mx, my, z_plane, enters
+
+
+@numba.njit(**_JIT)
+def fallback_trace(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, dx, dy, dz, z_start, tol, max_iter):
+    """The refracting pass's trace of one reflected ray (origin o, direction d, screen frame):
+    the bare emitting-surface hit (from ``z_start``), then
+    :func:`~pmdsim.geometry.cover_glass.through_glass_full` from it. Returns ``(x, y, z, code,
+    A_z, m_x, m_y)``; ``code`` is the bare hit's :class:`~pmdsim.geometry.surface.IntersectStatus`
+    where that fails, else the glass trace's (clipped to 3), 0 for a hit."""
+    nan = np.nan
+    _t, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol, z_start, False)
+    if st == _NEEDS_SOLVE:
+        _t, x, y, z, _hx, _hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz, tol,
+                                                    max_iter, z)
+    if st != 0:
+        return nan, nan, nan, st, nan, nan, nan
+    x, y, z, st, az, mx, my = through_glass_full(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, dx, dy,
+                                                 dz, x, y, z, tol, max_iter)
+    return x, y, z, min(st, 3), az, mx, my
+
+
+@numba.njit(**_JIT, inline="always")
+def _inside(gx, gy, x, y, margin):
+    return (x >= gx[0] + margin) & (x <= gx[gx.shape[0] - 1] - margin) & (y >= gy[0] + margin) & (
+        y <= gy[gy.shape[0] - 1] - margin)
+
+
+@numba.njit(**_JIT)
+def glass_pixel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, az_g, mx_g, my_g, zq_g,
+                tol, max_iter):
+    """One pixel of the first row of a band (module docstring), scalar: the predicted outer-surface
+    height ``az_g`` and normal (``mx_g``, ``my_g``), the predicted emitting-surface height
+    ``zq_g`` (NaN: none). Returns ``(x, y, z, code, A_z, m_x, m_y)`` as :func:`fallback_trace`."""
+    nan = np.nan
+    if kind == _KIND_PLANE:
+        az_g = -t
+        mx_g = 0.0
+        my_g = 0.0
+    if (kind == _KIND_PLANE or kind == _KIND_SPLINE) and wz != 0.0 and np.isfinite(wz) and np.isfinite(
+            az_g + mx_g + my_g):
+        inv = 1.0 / wz
+        bx = wx * inv
+        by = wy * inv
+        ax = ox - oz * bx
+        ay = oy - oz * by
+        ux = ax + bx * az_g - t * mx_g
+        uy = ay + by * az_g - t * my_g
+        h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
+        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0], dmax[1], tol)
+        if ok:
+            a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz,
+                                                                        t, n_idx)
+            if enters:
+                zs = zq_g if np.isfinite(zq_g) else z_pl
+                _t, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, a_x, a_y, a_z, rx, ry, rz, tol,
+                                                             zs, False)
+                if st == _NEEDS_SOLVE:
+                    _t, x, y, z, _hx, _hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, a_x, a_y, a_z,
+                                                                rx, ry, rz, tol, max_iter, z)
+                if st == 0 and _inside(gx, gy, x, y, 3.0 * t * (1.0 + abs(bx) + abs(by))):
+                    return x, y, z, 0, a_z, mx, my
+    zs = zq_g if np.isfinite(zq_g) else nan
+    return fallback_trace(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, zs, tol, max_iter)
+
+
+@numba.njit(**_JIT)
+def _patches_at(n, gx, gy, S, P):
+    """Patch offsets of the foot points (_UX, _UY) of n pixels (as ``trace_rows._patches_small``:
+    counting grid lines on small grids, bisection otherwise)."""
+    B = _BLK
+    nx = gx.shape[0]
+    ny = gy.shape[0]
+    nx1 = nx - 1
+    if nx1 + ny - 1 > _SMALL_GRID:
+        for i in range(n):
+            P[_PID * B + i] = (_interval(gy, S[_UY * B + i]) * nx1 + _interval(gx, S[_UX * B + i])) * 16
+        return
+    for i in range(n):
+        P[_PID * B + i] = 0
+        P[_PIY * B + i] = 0
+    for m in range(1, nx - 1):
+        g = gx[m]
+        for i in range(n):
+            P[_PID * B + i] += S[_UX * B + i] >= g
+    for m in range(1, ny - 1):
+        g = gy[m]
+        for i in range(n):
+            P[_PIY * B + i] += S[_UY * B + i] >= g
+    if nx > 2:
+        g = gx[1]
+        for i in range(n):
+            P[_PID * B + i] -= S[_UX * B + i] == g
+    if ny > 2:
+        g = gy[1]
+        for i in range(n):
+            P[_PIY * B + i] -= S[_UY * B + i] == g
+    for i in range(n):
+        P[_PID * B + i] = (P[_PIY * B + i] * nx1 + P[_PID * B + i]) * 16
+
+
+@numba.njit(**_JIT, inline="always")
+def _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S):
+    """Steps 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
+    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV, start _ZG), the
+    warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
+    accepted or the ray does not enter the plate)."""
+    B = _BLK
+    ax = S[_AX * B + i]
+    ay = S[_AY * B + i]
+    bx = S[_BX * B + i]
+    by = S[_BY * B + i]
+    a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, S[_WX * B + i],
+                                                                S[_WY * B + i], S[_WZ * B + i], t, n_idx)
+    inv = 1.0 / rz
+    cx = rx * inv
+    cy = ry * inv
+    zg = S[_ZG * B + i]
+    S[_ZG * B + i] = zg if np.isfinite(zg) else z_pl
+    S[_QOX * B + i] = a_x
+    S[_QOY * B + i] = a_y
+    S[_QOZ * B + i] = a_z
+    S[_WX * B + i] = rx
+    S[_WY * B + i] = ry
+    S[_WZ * B + i] = rz
+    S[_AX * B + i] = a_x - a_z * cx
+    S[_AY * B + i] = a_y - a_z * cy
+    S[_BX * B + i] = cx
+    S[_BY * B + i] = cy
+    S[_INV * B + i] = inv
+    S[_GAZ * B + i] = a_z
+    S[_GMX * B + i] = mx
+    S[_GMY * B + i] = my
+    c = S[_C * B + i]
+    S[_C * B + i] = c if c != 0.0 else (0.0 if ok & enters & np.isfinite(a_z + rz) else _FALLBACK)
+
+
+@numba.njit(**_JIT)
+def _foot_run(n, c, gxi, gyj, t, n_idx, d2, d3, tol, S):
+    """Foot-point step and refraction (:func:`foot_newton`, :func:`_foot_store`) for pixels
+    0 … n − 1 of ``S`` (a view from the run's first pixel), which all evaluate on one bicubic
+    patch (coefficients ``c[0:16]``, origin (gxi, gyj)): loop-invariant coefficients, no
+    gathers, one loop that LLVM vectorises."""
+    c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
+    c8, c9, c10, c11, c12, c13, c14, c15 = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
+    B = _BLK
+    for i in range(n):
+        ux = S[_UX * B + i]
+        uy = S[_UY * B + i]
+        sx = ux - gxi
+        sy = uy - gyj
+        r0 = c0 + sx * (c1 + sx * (c2 + sx * c3))
+        r1 = c4 + sx * (c5 + sx * (c6 + sx * c7))
+        r2 = c8 + sx * (c9 + sx * (c10 + sx * c11))
+        r3 = c12 + sx * (c13 + sx * (c14 + sx * c15))
+        e1d0 = c1 + sx * (2.0 * c2 + sx * 3.0 * c3)
+        e1d1 = c5 + sx * (2.0 * c6 + sx * 3.0 * c7)
+        e1d2 = c9 + sx * (2.0 * c10 + sx * 3.0 * c11)
+        e1d3 = c13 + sx * (2.0 * c14 + sx * 3.0 * c15)
+        e0 = 2.0 * c2 + 6.0 * sx * c3
+        e1 = 2.0 * c6 + 6.0 * sx * c7
+        e2 = 2.0 * c10 + 6.0 * sx * c11
+        e3 = 2.0 * c14 + 6.0 * sx * c15
+        h = r0 + sy * (r1 + sy * (r2 + sy * r3))
+        hx = e1d0 + sy * (e1d1 + sy * (e1d2 + sy * e1d3))
+        hy = r1 + sy * (2.0 * r2 + sy * 3.0 * r3)
+        hxx = e0 + sy * (e1 + sy * (e2 + sy * e3))
+        hxy = e1d1 + sy * (2.0 * e1d2 + sy * 3.0 * e1d3)
+        hyy = 2.0 * r2 + 6.0 * sy * r3
+        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
+                                            S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
+        _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+
+
+@numba.njit(**_JIT)
+def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P):
+    """The glass stage of the row kernel for the n pixels of a block (replaces the glass-free
+    screen stage; module docstring). On entry the fields of ``trace_rows._to_screen`` (reflected
+    ray, code _C, start _ZG from the rows above); ``zr[4:10]``: A_z, m_x, m_y of the two rows above
+    (from column ``col0`` on). On return _X, _Y, _Z hold the emitting-surface point, _C the
+    screen code (0 … 3), _GAZ, _GMX, _GMY the warm-start values (for the rows below)."""
+    B = _BLK
+    a1 = zr[4][col0:]
+    a2 = zr[5][col0:]
+    mx1 = zr[6][col0:]
+    mx2 = zr[7][col0:]
+    my1 = zr[8][col0:]
+    my2 = zr[9][col0:]
+    plane = kind == _KIND_PLANE
+    for i in range(n):
+        ax = S[_AX * B + i]
+        ay = S[_AY * B + i]
+        bx = S[_BX * B + i]
+        by = S[_BY * B + i]
+        S[_OOX * B + i] = S[_QOX * B + i]
+        S[_OOY * B + i] = S[_QOY * B + i]
+        S[_OOZ * B + i] = S[_QOZ * B + i]
+        S[_ODX * B + i] = S[_WX * B + i]
+        S[_ODY * B + i] = S[_WY * B + i]
+        S[_ODZ * B + i] = S[_WZ * B + i]
+        azg = 2.0 * a1[i] - a2[i]
+        mxg = 2.0 * mx1[i] - mx2[i]
+        myg = 2.0 * my1[i] - my2[i]
+        if not np.isfinite(azg + mxg + myg):
+            azg = a1[i]
+            mxg = mx1[i]
+            myg = my1[i]
+        if plane:
+            azg = -t
+            mxg = 0.0
+            myg = 0.0
+        ux = ax + bx * azg - t * mxg
+        uy = ay + by * azg - t * myg
+        S[_UX * B + i] = ux
+        S[_UY * B + i] = uy
+        c = S[_C * B + i]
+        S[_GM * B + i] = 3.0 * t * (1.0 + abs(bx) + abs(by)) if c == 0.0 else -1.0
+        S[_C * B + i] = c if (c != 0.0) | np.isfinite(ux + uy) else _FALLBACK
+    d2 = dmax[0]
+    d3 = dmax[1]
+    if plane:
+        for i in range(n):
+            ux, uy, h, hx, hy, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
+                                                S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t, d2,
+                                                d3, tol)
+            _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+    elif kind == _KIND_SPLINE:
+        _patches_at(n, gx, gy, S, P)
+        nx1 = gx.shape[0] - 1
+        i = 0
+        while i < n:
+            s = i
+            b = P[_PID * B + i]
+            i += 1
+            while i < n and P[_PID * B + i] == b:
+                i += 1
+            bi = b // 16
+            _foot_run(i - s, coef[b:b + 16], gx[bi % nx1], gy[bi // nx1], t, n_idx, d2, d3, tol, S[s:])
+    else:
+        for i in range(n):
+            if S[_C * B + i] == 0.0:
+                S[_C * B + i] = _FALLBACK
+    # The emitting-surface hit of the refracted rays (the tracer's intersection stage).
+    _intersect_block(n, kind, gx, gy, coef, dmax, tol, False, S, P)
+    _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_WX), S)
+    # Pixels the fast path did not settle: the refracting pass's trace.
+    for i in range(n):
+        mg = S[_GM * B + i]
+        if mg < 0.0:
+            continue
+        if S[_C * B + i] == 0.0 and _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg):
+            continue
+        x, y, z, st, az, mx, my = fallback_trace(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
+                                                 S[_OOY * B + i], S[_OOZ * B + i], S[_ODX * B + i], S[_ODY * B + i],
+                                                 S[_ODZ * B + i], S[_ZG * B + i], tol, max_iter)
+        S[_X * B + i] = x
+        S[_Y * B + i] = y
+        S[_Z * B + i] = z
+        S[_C * B + i] = float(st)
+        S[_GAZ * B + i] = az
+        S[_GMX * B + i] = mx
+        S[_GMY * B + i] = my
