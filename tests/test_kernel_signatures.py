@@ -128,3 +128,81 @@ def test_prange_from_zero_compiles_a_called_kernel_once():
     assert np.array_equal(a, np.arange(5.0)) and np.array_equal(b, a)
     assert len(two_args.signatures) == 1
     assert len(one_arg.signatures) == 2  # int64 and uint64: why the rule exists
+
+
+def test_readonly_is_a_view_that_leaves_the_array_writable():
+    import numpy as np
+
+    from pmdsim.geometry.kernel_args import readonly
+
+    a = np.arange(6.0).reshape(2, 3)
+    v = readonly(a)
+    assert np.shares_memory(a, v) and v.shape == a.shape and v.dtype == a.dtype and v.flags.c_contiguous
+    assert not v.flags.writeable and a.flags.writeable
+    assert readonly(v) is v
+
+
+def _argument_types(monkeypatch, module, kernel_name):
+    """Replace ``module.<kernel_name>`` by a recorder of the numba types of its arguments
+    (``numba.typeof``: what the dispatcher compiles a signature for); nothing is compiled or run."""
+    import numba
+
+    seen = []
+    monkeypatch.setattr(module, kernel_name, lambda *args: seen.append(tuple(numba.typeof(a) for a in args)))
+    return seen
+
+
+def test_writable_and_read_only_inputs_reach_one_compiled_kernel(monkeypatch, small_toml):
+    # A plane's zero coefficients, rays built by hand, images read from disk are writable; a
+    # spline's coefficients, a camera's cached rays, pmdsim.simulate's images are read-only.
+    # numba types the two differently: each mix compiled the tracer again (five times in the
+    # test suite, minutes each on a cold cache). The wrappers hand the kernels read-only views,
+    # so that every mix is typed like the main path (one signature).
+    import tomllib
+
+    import numpy as np
+
+    import pmdsim
+    from pmdsim.evaluation import consistency, decoding
+    from pmdsim.evaluation.phase import wrapped_phase
+    from pmdsim.geometry.shapes import QuadricSurface
+    from pmdsim.geometry.surface import PlaneSurface, SplineSurface
+    from pmdsim.geometry.transform import RigidTransform
+    from pmdsim.simulation import trace
+    from pmdsim.simulation.render import trace_setup_camera
+
+    traced = _argument_types(monkeypatch, trace, "_trace_kernel")
+    setup = pmdsim.parse_setup(tomllib.loads(small_toml))
+    trace_setup_camera(setup, "left")  # the main path
+    trace_setup_camera(setup.with_sample_shape("sphere", radius_mm=1000.0), "left", store_points=True)
+    T_screen_sample = RigidTransform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, -500.0]).inv()
+    d = np.array([[0.01, 0.02, 1.0], [-0.02, 0.01, 1.0]])
+    g = np.linspace(-300.0, 300.0, 5)
+    z = np.zeros((5, 5))
+    z[2, 2] = 1.0
+    samples = (PlaneSurface((-300.0, 300.0), (-300.0, 300.0)), QuadricSurface.sphere(g, g, 1000.0, (0.0, 0.0)),
+               SplineSurface(g, g, z))
+    screens = (PlaneSurface((-1e5, 1e5), (-1e5, 1e5)), SplineSurface(g * 400.0, g * 400.0, z))
+    for rays in (d, _readonly_copy(d)):
+        for ok in (np.ones(2, bool), _readonly_copy(np.ones(2, bool))):
+            for sample in samples:
+                for screen in screens:
+                    trace.trace_rays(rays, ok, RigidTransform(np.eye(3), [0.0, 0.0, -100.0]), T_screen_sample,
+                                     sample, screen, store_points=True)
+    assert len(traced) == 2 + 2 * 2 * len(samples) * len(screens)
+    assert len(set(traced)) == 1, sorted(set(map(str, traced)))
+
+    decoded = _argument_types(monkeypatch, decoding, "_decode_kernel")
+    stacked = _argument_types(monkeypatch, consistency, "_stack_kernel")
+    img = (np.arange(4 * 3 * 5) % 7 * 30).astype(np.uint8).reshape(4, 3, 5)
+    for images in (img, _readonly_copy(img)):
+        wrapped_phase(images)
+        consistency._stack_stats(images)
+    for seen in (decoded, stacked):
+        assert len(seen) == 2 and seen[0] == seen[1] and not seen[0][0].mutable, seen
+
+
+def _readonly_copy(a):
+    b = a.copy()
+    b.flags.writeable = False
+    return b

@@ -53,6 +53,7 @@ import numba
 import numpy as np
 
 from ..geometry.camera import Camera
+from ..geometry.kernel_args import readonly
 from ..geometry.transform import RigidTransform
 from .phase import (
     QUANTISATION_NOISE_STD,
@@ -241,7 +242,7 @@ def _stack_stats(stack):
     d = equal_shifts(n)
     out = [np.empty((h, w)) for _ in range(4)]
     worst = np.empty((h, w), np.int16)
-    _stack_kernel(arr, np.cos(d), np.sin(d), *out, worst)
+    _stack_kernel(readonly(arr), np.cos(d), np.sin(d), *out, worst)
     if n <= 3:
         out[3][:] = 0.0  # an exact fit: no residual
     return (*out, worst)

@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from ..geometry.compact import compact_repr
+from ..geometry.kernel_args import readonly
 from .phase_flags import (
     _DARK,
     _LOW_MODULATION,
@@ -432,7 +433,7 @@ def _phase_into(stack, shifts, max_value, dark_fraction, min_modulation_fraction
                 min_modulation_ratio, check_saturation, phase, modulation, offset, flags):
     w_a, w_c, w_s = _shift_weights(stack.shape[0], shifts)
     _decode_kernel(
-        stack, w_a, w_c, w_s, bool(check_saturation), float(max_value),
+        readonly(stack), w_a, w_c, w_s, bool(check_saturation), float(max_value),
         dark_fraction * max_value, min_modulation_fraction * max_value, min_modulation_ratio,
         _MODE_PHASE, 1.0, 0.0, 0.0, 0.25, True, False, 1.0, _NO_NOISE,
         phase, flags, modulation, offset, _DUMMY_2D, _DUMMY_2D, _DUMMY_BOOL, -1.0,
@@ -668,7 +669,7 @@ def _decode_direction_into(d: _DirectionInput, check_saturation, coord, flags, m
         w_a, w_c, w_s = _shift_weights(stack.shape[0], None)
         last = level == n_p - 1
         _decode_kernel(
-            stack, w_a, w_c, w_s, bool(check_saturation), d.max_value, d.dark_level,
+            readonly(stack), w_a, w_c, w_s, bool(check_saturation), d.max_value, d.dark_level,
             d.min_modulation, d.min_ratio, _MODE_COARSE if level == 0 else _MODE_REFINE,
             float(d.periods[level]), d.origin, d.upper, d.tolerance, last, last, std_scale,
             d.noise, coord, flags, modulation, offset, std, contrast, rev, d.rev_ratio,

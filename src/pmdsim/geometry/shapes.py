@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kernel_args import readonly
 from .surface import _KIND_QUADRIC, KernelSurface, _SurfaceBase, _validate_grid
 
 __all__ = ["QuadricSurface"]
@@ -79,7 +80,7 @@ class QuadricSurface(_SurfaceBase):
         xs = np.array([gx[0], gx[1], np.clip(vx, gx[0], gx[1])])
         ys = np.array([gy[0], gy[1], np.clip(vy, gy[0], gy[1])])
         X, Y = np.meshgrid(xs, ys)
-        probe = KernelSurface(_KIND_QUADRIC, gx, gy, coef, 0.0, 0.0, np.zeros(2))
+        probe = KernelSurface(_KIND_QUADRIC, gx, gy, coef, 0.0, 0.0, readonly(np.zeros(2)))
         object.__setattr__(self, "kernel", probe)
         h = self.height(X, Y)
         if not np.all(np.isfinite(h)):
@@ -93,7 +94,7 @@ class QuadricSurface(_SurfaceBase):
         pad = 1e-9 + 1e-9 * float(np.max(np.abs(h)))
         kernel = KernelSurface(_KIND_QUADRIC, gx, gy, coef, min(float(np.min(h)), 0.0) - pad,
                                max(float(np.max(h)), 0.0) + pad,
-                               np.zeros(2))
+                               readonly(np.zeros(2)))
         object.__setattr__(self, "kernel", kernel)
 
     # ------------------------------------------------------------------ constructors

@@ -32,6 +32,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from .kernel_args import readonly
 from .shape_kernels import quadric_eval2, quadric_height, quadric_intersect
 
 __all__ = [
@@ -785,7 +786,7 @@ class PlaneSurface(_SurfaceBase):
         object.__setattr__(self, "x_range_mm", (float(gx[0]), float(gx[1])))
         object.__setattr__(self, "y_range_mm", (float(gy[0]), float(gy[1])))
         object.__setattr__(
-            self, "kernel", KernelSurface(_KIND_PLANE, gx, gy, np.zeros(16), -1e-9, 1e-9, np.zeros(2))
+            self, "kernel", KernelSurface(_KIND_PLANE, gx, gy, readonly(np.zeros(16)), -1e-9, 1e-9, readonly(np.zeros(2)))
         )
 
     is_planar = True

@@ -51,6 +51,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import readonly
 from ..geometry.transform import RigidTransform
 
 __all__ = ["focus_path", "default_focus_distance", "uniform_disc_transfer", "defocus_moments", "defocus_covariance", "pixel_jacobian", "screen_normal", "screen_derivatives", "view_geometry"]
@@ -204,7 +205,7 @@ def defocus_moments(T_world_cam: RigidTransform, T_world_sample: RigidTransform,
     fpath = (np.full(shape, -1.0) if focus_path_mm is None
              else np.ascontiguousarray(np.broadcast_to(np.asarray(focus_path_mm, dtype=float), shape)))
     _moments_kernel(p.reshape(-1, 3), q.reshape(-1, 3), o, ex, ey, grad.reshape(-1, 2), hess.reshape(-1, 3),
-                    float(aperture_mm), fpath.reshape(-1), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2),
+                    float(aperture_mm), readonly(fpath.reshape(-1)), cov.reshape(-1, 2, 2), centroid.reshape(-1, 2),
                     cos_view.reshape(-1))
     return cov, centroid, cos_view
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..geometry.camera import Camera
 from ..geometry.cover_glass import CoverGlass
+from ..geometry.kernel_args import readonly
 from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
@@ -395,8 +396,8 @@ def trace_rays(
     if ok.shape != d.shape[:-1]:
         raise ValueError(f"converged must have shape {d.shape[:-1]}, got {ok.shape}")
     shape = d.shape[:-1]
-    df = np.ascontiguousarray(d.reshape(-1, 3))
-    okf = np.ascontiguousarray(ok.reshape(-1))
+    df = readonly(np.ascontiguousarray(d.reshape(-1, 3)))  # one compiled signature for every caller
+    okf = readonly(np.ascontiguousarray(ok.reshape(-1)))
     n = df.shape[0]
     screen_xy = np.empty((n, 2))
     status = np.empty(n, dtype=np.uint8)
@@ -423,8 +424,10 @@ def trace_rays(
     try:
         _trace_kernel(
             df, okf, run_length, band_rows, z_rows, scratch, pscratch,
-            np.ascontiguousarray(T_sample_cam.rotation), np.ascontiguousarray(T_sample_cam.translation),
-            np.ascontiguousarray(T_screen_sample.rotation), np.ascontiguousarray(T_screen_sample.translation),
+            readonly(np.ascontiguousarray(T_sample_cam.rotation)),
+            readonly(np.ascontiguousarray(T_sample_cam.translation)),
+            readonly(np.ascontiguousarray(T_screen_sample.rotation)),
+            readonly(np.ascontiguousarray(T_screen_sample.translation)),
             s.kind, s.grid_x, s.grid_y, s.coef, s.z_min, s.z_max, s.dmax,
             p.kind, p.grid_x, p.grid_y, p.coef, p.z_min, p.z_max, p.dmax,
             tol_mm, FIXED_POINT_MAX_ITER, _SAMPLE_CODES, _SCREEN_CODES,
