@@ -50,19 +50,24 @@ def _edge_jac(geo, va, ua, vb, ub):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _edge_samples(z, za, w, vx, vy, Ja):
-    """z_k += ±vx ± vy − J_a·za_k for the samples of one word (signs: its bits 2k, 2k + 1)."""
-    for k in range(z.size):
+def _edge_samples(cur, i, prev, pa, k0, n, w, vx, vy, Ja):
+    """cur[i, k0 + k] += ±vx ± vy − J_a·prev[pa, k0 + k], k < n, for the samples of one word
+    (signs: its bits 2k, 2k + 1)."""
+    z = cur[i, k0:]  # (no bounds or wraparound checks in the loop: it vectorises)
+    za = prev[pa, k0:]
+    for k in range(n):
         tx = -vx if (w >> np.uint64(2 * k)) & np.uint64(1) else vx
         ty = -vy if (w >> np.uint64(2 * k + 1)) & np.uint64(1) else vy
         z[k] += tx + ty - Ja * za[k]
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _own_samples(z, w, ux, uy, den):
-    """z_k = (z_k ± ux ± uy) / den for the samples of one word; returns Σ_k z_k² (in order)."""
+def _own_samples(cur, i, k0, n, w, ux, uy, den):
+    """z_k = (z_k ± ux ± uy) / den for the samples k < n of one word, z = cur[i, k0:]; returns
+    Σ_k z_k² (in order)."""
+    z = cur[i, k0:k0 + n]
     s = 0.0
-    for k in range(z.size):
+    for k in range(n):
         tx = -ux if (w >> np.uint64(2 * k)) & np.uint64(1) else ux
         ty = -uy if (w >> np.uint64(2 * k + 1)) & np.uint64(1) else uy
         z[k] = (z[k] + tx + ty) / den
@@ -162,8 +167,7 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
                 Ja = e_c[i, j, 2]
                 pa = e_pos[i, j]
                 for c in range(n_chunks):
-                    e = min(K, 32 * c + 32)
-                    _edge_samples(z[32 * c:e], prev[pa, 32 * c:e], w_prev[pa, c], vx, vy, Ja)
+                    _edge_samples(cur, i, prev, pa, 32 * c, min(32, K - 32 * c), w_prev[pa, c], vx, vy, Ja)
             den = b_c[i, 2]
             if den == 0.0:
                 ok = False
@@ -175,8 +179,7 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
             uy = b_c[i, 1]
             s = 0.0
             for c in range(n_chunks):  # Σ_k δz_k² per 32 samples, in order (as the sample-chunked loop)
-                e = min(K, 32 * c + 32)
-                s += _own_samples(z[32 * c:e], w_cur[i, c], ux, uy, den)
+                s += _own_samples(cur, i, 32 * c, min(32, K - 32 * c), w_cur[i, c], ux, uy, den)
             s_out[i] = s
         for i in range(nL):  # scatter
             kb = order[s0 + i]
