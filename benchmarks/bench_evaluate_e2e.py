@@ -3,13 +3,14 @@
 Make a full-resolution image set once (Table 1: two cameras, 1920×1200) and pass its directory:
 
     pmdsim simulate --bulge-mm 3 --out set3
-    python benchmarks/bench_evaluate_e2e.py set3 [--repeat 2] [--no-cli] [--json]
+    python benchmarks/bench_evaluate_e2e.py set3 [--repeat 2] [--no-cli] [--json] [--no-uncertainty]
 
 Prints, for ``--repeat`` evaluations in this process (the first one also loads the cached numba
 kernels; the best is reported): wall time per stage — decode (reading the images + decoding),
 checks (nominal map + consistency checks), registration + reconstruction (with its
-``registration.register`` and ``RigidTransform.apply`` shares), surface fit, files
-(evaluation.h5, PNG figures, JSON) — and the rest, each as wall and CPU time (CPU: all threads of the process, less sensitive to the
+``registration.register`` and ``RigidTransform.apply`` shares), surface fit, uncertainty (the
+per-pixel σ, with the share of its sampled integration ``_sampled_std``), files (evaluation.h5,
+PNG figures — heights, σ maps, slope error —, JSON) — and the rest, each as wall and CPU time (CPU: all threads of the process, less sensitive to the
 other jobs on a shared machine); then, unless ``--no-cli``, the wall time and
 peak resident memory of one ``pmdsim evaluate IMAGE_DIR --out TMP`` subprocess (what a user
 waits for and what it needs, imports and kernel loading included). The load average is printed
@@ -39,7 +40,8 @@ _CPU = defaultdict(float)
 _DEPTH = {"n": 0}
 _ORDER = ("decode", "checks", "registration+reconstruction", "  of which registration.register",
           "  of which RigidTransform.apply", "  of which Camera.view_rays", "surface fit",
-          "  of which fit_paraboloid_slopes", "files", "  of which write_evaluation_h5", "rest")
+          "  of which fit_paraboloid_slopes", "uncertainty", "  of which _sampled_std", "files",
+          "  of which write_evaluation_h5", "  of which PNG figures", "rest")
 
 
 def _timed(stage, fn, *, nested=False):
@@ -70,7 +72,9 @@ def _instrument():
     import pmdsim.geometry.camera as camera
     import pmdsim.geometry.transform as transform
     import pmdsim.studies.jobs as jobs
+    import pmdsim.evaluation.uncertainty as uncertainty
     import pmdsim.studies.surface_figures as surface_figures
+    import pmdsim.studies.uncertainty_job as uncertainty_job
 
     for name in ("load_camera_stacks", "decode_camera_images"):
         setattr(jobs, name, _timed("decode", getattr(jobs, name)))
@@ -85,6 +89,15 @@ def _instrument():
     surface_fit.surface_fit_summary = _timed("surface fit", surface_fit.surface_fit_summary)
     surface_fit.fit_paraboloid_slopes = _timed("  of which fit_paraboloid_slopes",
                                                surface_fit.fit_paraboloid_slopes, nested=True)
+    uncertainty_job.camera_uncertainty = _timed("uncertainty", uncertainty_job.camera_uncertainty)
+    uncertainty._sampled_std = _timed("  of which _sampled_std", uncertainty._sampled_std, nested=True)
+    # the figures: jobs.height_map_figure (heights), uncertainty_job's (σ maps), slope_error_figure
+    uncertainty_job.height_map_figure = _timed("  of which PNG figures", uncertainty_job.height_map_figure,
+                                               nested=True)
+    jobs.height_map_figure = _timed("  of which PNG figures", jobs.height_map_figure, nested=True)
+    surface_figures.slope_error_figure = _timed("  of which PNG figures", surface_figures.slope_error_figure,
+                                                nested=True)
+    uncertainty_job.height_std_figure = _timed("files", uncertainty_job.height_std_figure)
     for name in ("write_evaluation_h5", "write_consistency_h5", "height_map_figure", "write_json"):
         setattr(jobs, name, _timed("files", getattr(jobs, name)))
     jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
@@ -97,6 +110,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--no-uncertainty", action="store_true", help="evaluate without σ (the CLI's --no-uncertainty)")
     args = ap.parse_args()
 
     import numba
@@ -107,7 +121,7 @@ def main() -> None:
     _instrument()
     from pmdsim.studies.jobs import evaluate_image_set
 
-    res = {"pmdsim_version": __version__, "threads": numba.get_num_threads(), "image_dir": args.image_dir,
+    res = {"pmdsim_version": __version__, "uncertainty": not args.no_uncertainty, "threads": numba.get_num_threads(), "image_dir": args.image_dir,
            "load_avg_1min_before": os.getloadavg()[0]}
     setup = default_setup()
     runs = []
@@ -117,7 +131,8 @@ def main() -> None:
             _CPU.clear()
             t = time.perf_counter()
             c = time.process_time()
-            evaluate_image_set(args.image_dir, setup, Path(tmp) / f"e{i}", progress=None)
+            evaluate_image_set(args.image_dir, setup, Path(tmp) / f"e{i}", progress=None,
+                               uncertainty=not args.no_uncertainty)
             total = time.perf_counter() - t
             cpu = time.process_time() - c
             stages = {k: (_T[k], _CPU[k]) for k in _ORDER if k in _T}
@@ -134,6 +149,8 @@ def main() -> None:
             exe = Path(sys.executable).with_name("pmdsim")
             cmd = [str(exe) if exe.exists() else "pmdsim", "evaluate", args.image_dir, "--out",
                    str(Path(tmp) / "cli"), "--quiet"]
+            if args.no_uncertainty:
+                cmd.append("--no-uncertainty")
             t = time.perf_counter()
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             res["cli_wall_s"] = time.perf_counter() - t
@@ -142,7 +159,8 @@ def main() -> None:
     if args.json:
         dump_json(res)
         return
-    print(f"pmdsim {res['pmdsim_version']}, {res['threads']} numba threads (the 2 vCPUs share one core's "
+    print(f"pmdsim {res['pmdsim_version']}, σ {'on' if res['uncertainty'] else 'off (--no-uncertainty)'}, "
+          f"{res['threads']} numba threads (the 2 vCPUs share one core's "
           f"vector units), load {res['load_avg_1min_before']:.2f} → {res['load_avg_1min_after']:.2f}")
     print(f"evaluate in process: best {res['in_process_s']:.2f} s of {['%.2f' % t for t in res['in_process_all_s']]}"
           f" ({res['in_process_cpu_s']:.2f} s CPU), peak RSS {res['in_process_peak_rss_mb']:.0f} MB")

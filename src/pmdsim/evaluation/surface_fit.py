@@ -584,23 +584,30 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     of its coefficients (:func:`with_uncertainty`). Returns the fit and per-camera extras
     ``{"slopes": (H, W, 2), "height_detrended_mm": (H, W), "residual_slopes": (H, W, 2)}``.
     """
-    pts, gs, oks, extras = [], [], [], []
-    sig = [] if slope_std is not None and all(s is not None for s in slope_std) else None
-    for i, rec in enumerate(recs):
+    oks, extras = [], []
+    use_sig = slope_std is not None and all(s is not None for s in slope_std)
+    for rec in recs:
         g = sample_slopes(rec.n_sample)
-        ok = rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1])
-        pts.append(rec.p_sample_mm[..., :2][ok])  # x, y: all the fit uses
-        gs.append(g[ok])
-        oks.append(ok)
-        if sig is not None:
-            sig.append(np.asarray(slope_std[i], dtype=float)[ok])
+        oks.append(rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1]))
         extras.append({"slopes": g})
-    xy, gxy = np.concatenate(pts), np.concatenate(gs)
-    del pts, gs  # the per-camera copies are not needed during the fit
-    fit = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=camera_z_mm)
-    if sig is not None:
-        fit = with_uncertainty(fit, xy, np.concatenate(sig), camera_z_mm)
-    del xy, gxy
+    # x, y and the slopes of the fitted points as (2, M) rows (what the fit reads: no per-camera
+    # copies, no column copies in the fit), cameras in order, pixels in C order
+    m = sum(int(np.count_nonzero(ok)) for ok in oks)
+    xy, gxy = np.empty((2, m)), np.empty((2, m))
+    start = 0
+    for rec, ok, ex in zip(recs, oks, extras):
+        k = int(np.count_nonzero(ok))
+        for j in range(2):
+            xy[j, start:start + k] = rec.p_sample_mm[..., j][ok]
+            gxy[j, start:start + k] = ex["slopes"][..., j][ok]
+        start += k
+    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(m, bool), camera_z_mm=camera_z_mm)
+    del gxy
+    if use_sig:
+        sig = np.concatenate([np.asarray(s, dtype=float)[ok] for s, ok in zip(slope_std, oks)])
+        fit = with_uncertainty(fit, xy.T, sig, camera_z_mm)
+        del sig
+    del xy
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
         k = int(ok.sum())

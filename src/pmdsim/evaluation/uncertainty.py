@@ -52,6 +52,7 @@ from ..errors import PmdsimError
 from ..geometry.compact import compact_repr
 from .least_squares import _assemble_gauss_newton, _row_geometry
 from .multigrid import _CGWork, _Multigrid, _pcg
+from .uncertainty_stepwise import _edge_jac, _splitmix64, stepwise_sampled
 
 __all__ = ["UncertaintyError", "SurfaceUncertainty", "slope_jacobian", "slope_std", "height_std_sampled",
            "anchor_height_derivative", "surface_uncertainty", "combine", "DEFAULT_SAMPLES", "NO_COVARIANCE_NOTE"]
@@ -239,14 +240,6 @@ def _screen_tangents(reg_T_ref_screen_R, screen_model, xy) -> np.ndarray:
 
 
 @numba.njit(cache=True, inline="always")
-def _splitmix64(x):
-    z = x + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-@numba.njit(cache=True, inline="always")
 def _word(seed, pix, chunk, n_chunks):
     """64 random bits of pixel ``pix`` for samples 32·chunk … 32·chunk + 31 (bit 2k: ξ_x, 2k+1: ξ_y)."""
     return _splitmix64(_splitmix64(np.uint64(seed)) ^ np.uint64(pix * n_chunks + chunk))
@@ -276,80 +269,10 @@ def _sample_dg(A, S, seed, k, n_chunks, dg):
             dg[v, u, 1] = A[v, u, 1, 0] * x + A[v, u, 1, 1] * y
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
-    """Σ_k δz_k² per pixel for K samples through the linearised stepwise recursion, wavefront by
-    wavefront (each wavefront depends on the previous one only: two buffers of one wavefront ×
-    32 samples), the samples' slopes A ξ_k drawn on the fly. Returns False if a pixel's
-    coefficient Σ J_b vanishes."""
-    H, W = layer.shape
-    n_layers = starts.size - 1
-    width = 0
-    for L in range(n_layers):
-        width = max(width, starts[L + 1] - starts[L])
-    n_chunks = (K + 31) // 32
-    prev = np.zeros((width, 32))
-    cur = np.zeros((width, 32))
-    bad = np.zeros(1)
-    for c in range(n_chunks):
-        kn = min(32, K - 32 * c)
-        prev[0, :] = 0.0  # the seed: δz = 0
-        for L in range(1, n_layers):
-            s0 = starts[L]
-            for i in range(starts[L + 1] - s0):  # serial: a parallel wavefront measured 5–10× slower
-                kb = order[s0 + i]
-                vb = kb // W
-                ub = kb - vb * W
-                wb = _word(seed, kb, c, n_chunks)
-                ux = 0.0
-                uy = 0.0
-                den = 0.0
-                for k in range(kn):
-                    cur[i, k] = 0.0
-                for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                    va = vb + dv
-                    ua = ub + du
-                    if not (0 <= va < H and 0 <= ua < W) or layer[va, ua] != L - 1:
-                        continue
-                    Ja, Jb, dx, dy = _edge_jac(geo, va, ua, vb, ub)
-                    den += Jb
-                    ux += 0.5 * (A[vb, ub, 0, 0] * dx + A[vb, ub, 1, 0] * dy)
-                    uy += 0.5 * (A[vb, ub, 0, 1] * dx + A[vb, ub, 1, 1] * dy)
-                    vx = 0.5 * (A[va, ua, 0, 0] * dx + A[va, ua, 1, 0] * dy)
-                    vy = 0.5 * (A[va, ua, 0, 1] * dx + A[va, ua, 1, 1] * dy)
-                    wa = _word(seed, va * W + ua, c, n_chunks)
-                    pa = pos[va, ua]
-                    for k in range(kn):
-                        cur[i, k] += vx * _xi(wa, k, 0) + vy * _xi(wa, k, 1) - Ja * prev[pa, k]
-                if den == 0.0:
-                    bad[0] = 1.0
-                    continue
-                s = 0.0
-                for k in range(kn):
-                    z = (cur[i, k] + ux * _xi(wb, k, 0) + uy * _xi(wb, k, 1)) / den
-                    cur[i, k] = z
-                    s += z * z
-                acc[vb, ub] += s
-            prev, cur = cur, prev
-    return bad[0] == 0.0
-
-
 @numba.njit(cache=True, parallel=True)
 def _geometry(o, d, q, S, z, geo):
     for v in numba.prange(0, S.shape[0]):
         _row_geometry(o, d, q, S, z, v, geo[v])
-
-
-@numba.njit(cache=True)
-def _edge_jac(geo, va, ua, vb, ub):
-    """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)."""
-    Gx = 0.5 * (geo[va, ua, 2] + geo[vb, ub, 2])
-    Gy = 0.5 * (geo[va, ua, 3] + geo[vb, ub, 3])
-    dx = geo[vb, ub, 0] - geo[va, ua, 0]
-    dy = geo[vb, ub, 1] - geo[va, ua, 1]
-    Ja = -1.0 + (Gx * geo[va, ua, 6] + Gy * geo[va, ua, 7]) - 0.5 * (geo[va, ua, 4] * dx + geo[va, ua, 5] * dy)
-    Jb = 1.0 - (Gx * geo[vb, ub, 6] + Gy * geo[vb, ub, 7]) - 0.5 * (geo[vb, ub, 4] * dx + geo[vb, ub, 5] * dy)
-    return Ja, Jb, dx, dy
 
 
 @numba.njit(cache=True)
@@ -497,7 +420,7 @@ def _sampled_std(lin, A, samples: int, rng_seed: int) -> np.ndarray:
     K = int(samples)
     acc = np.zeros(S.shape)
     if lin.method == "stepwise":
-        if not _stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
+        if not stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
             raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
                                    "vanishes); no σ")
     else:  # batched solves (DCT- or multigrid-preconditioned CG)

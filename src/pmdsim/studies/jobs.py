@@ -426,6 +426,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import slope_error_figure
     from . import uncertainty_job as uj
+    from .evaluate_memory import kept_for_files
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
     if screen_model is None:
@@ -490,6 +491,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                 warnings += w
                 if uncs[cam] is not None:
                     uj.height_std_figure(rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
+            decoded, reg, rec = results[cam] = kept_for_files(decoded, reg, rec)  # release the rest now
             p = rec.p_sample_mm
             height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
                               title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
