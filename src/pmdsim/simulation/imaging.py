@@ -192,8 +192,11 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     coef = np.ascontiguousarray(maps.coefficients, dtype=float)
     mag = np.abs(coef)
     suffix = np.concatenate([np.cumsum(mag[::-1])[::-1], [0.0]])  # S_m = Σ_{j ≥ m} |c_j|
-    root = np.sqrt(mag[1:])
-    share = np.concatenate([[0.0], root / root.sum() if root.sum() > 0 else root])  # alias budget ∝ √|c_m|
+    # Alias budget of harmonic m ∝ √(|c_m|·|sin(πmP/p)|) (its aliases' weight), summing to 1.
+    m_idx = np.arange(1, coef.size)
+    root = np.sqrt(mag[1:] * (np.abs(np.sin(np.pi * m_idx * maps.hold_pitch_mm / period_mm))
+                              if maps.hold_pitch_mm > 0 else 1.0))
+    share = np.concatenate([[0.0], root / root.sum() if root.sum() > 0 else root])
     m_out = np.empty((0, 0, 0)) if means is None else means
     c_out = np.empty((0, 0), dtype=np.int64) if counts is None else counts
     if means is not None and (means.shape != out.shape or means.dtype != np.float64):

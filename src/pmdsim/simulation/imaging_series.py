@@ -72,37 +72,55 @@ def _family_bound(hold, sig4pi, ju, jv, n_alias):
 @numba.njit(cache=True, error_model="numpy")
 def _alias_reach(cm, sr, hold, sig4pi, ju, jv, tau, zcap):
     """Z such that the aliases with |z| > Z sum to at most ``tau`` (relative radiance); ``zcap``
-    when no power-law tail is available (no transfer factor, or ``tau`` ≤ 0)."""
+    when no power-law tail is available (no transfer factor, or ``tau`` ≤ 0).
+
+    Each transfer factor k_i·z^(−β_i) bounds its own min(1, ·) beyond its threshold z_i; using
+    the factors whose thresholds are ≤ z_s (a prefix of them sorted by threshold) the terms beyond
+    Z ≥ z_s are ≤ κ·z^(−1−β), their tail ≤ 2κZ^(−1−β)(1 + Z/β) ≤ 2κZ^(−β)(1/z_s + 1/β). The
+    smallest Z over the prefixes is returned (each is a valid bound)."""
     if tau <= 0.0:
         return zcap
     if sr == 0.0 or cm == 0.0:
         return 0.5
-    kappa = cm * sr / np.pi
-    zs = max(0.5, sr / np.pi)  # beyond zs every factor used is below 1 (so the power law bounds)
-    beta = 0.0
-    if sig4pi > 0.0:
-        zd = hold * JINC_ENVELOPE ** (2.0 / 3.0) / sig4pi
-        if zd < zcap:
-            zs = max(zs, zd)
-            beta += 1.5
-            kappa *= JINC_ENVELOPE * (hold / sig4pi) ** 1.5
-    if ju > 0.0:
-        zu = hold / ju
-        if zu < zcap:
-            zs = max(zs, zu)
-            beta += 1.0
-            kappa *= hold / ju
+    thr = np.empty(3)
+    kap = np.empty(3)
+    bet = np.empty(3)
+    nf = 0
+    if sig4pi > 0.0:  # C·(4πσz/P)^(−3/2)
+        thr[nf] = hold * JINC_ENVELOPE ** (2.0 / 3.0) / sig4pi
+        kap[nf] = JINC_ENVELOPE * (hold / sig4pi) ** 1.5
+        bet[nf] = 1.5
+        nf += 1
+    if ju > 0.0:  # (P/(π|J_u|))/z
+        thr[nf] = hold / ju
+        kap[nf] = hold / ju
+        bet[nf] = 1.0
+        nf += 1
     if jv > 0.0:
-        zv = hold / jv
-        if zv < zcap:
-            zs = max(zs, zv)
-            beta += 1.0
-            kappa *= hold / jv
-    if beta == 0.0:
-        return zcap
-    # tail(Z) ≤ 2κZ^(−1−β)(1 + Z/β) ≤ 2κZ^(−β)(1/zs + 1/β) for Z ≥ zs
-    z = (2.0 * kappa * (1.0 / zs + 1.0 / beta) / tau) ** (1.0 / beta)
-    return min(max(z, zs), zcap)
+        thr[nf] = hold / jv
+        kap[nf] = hold / jv
+        bet[nf] = 1.0
+        nf += 1
+    best = zcap
+    kappa = cm * sr / np.pi
+    zs = max(0.5, sr / np.pi)
+    beta = 0.0
+    used = np.zeros(3, dtype=np.bool_)
+    for _ in range(nf):  # add the factor with the next smallest threshold
+        j = -1
+        for i in range(nf):
+            if not used[i] and (j < 0 or thr[i] < thr[j]):
+                j = i
+        used[j] = True
+        if thr[j] >= best:
+            break
+        zs = max(zs, thr[j])
+        kappa *= kap[j]
+        beta += bet[j]
+        z = max(zs, (2.0 * kappa * (1.0 / zs + 1.0 / beta) / tau) ** (1.0 / beta))
+        if z < best:
+            best = z
+    return best
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
