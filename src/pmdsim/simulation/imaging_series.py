@@ -12,9 +12,10 @@ Every term is bounded by |c_n|·min(1, |sin πr|/(π|z|))·E(|z|/P), z = r + a, 
 
     E(ν) = min(1, C·(4πσν)^(−3/2)) · min(1, 1/(π|J_u|ν)) · min(1, 1/(π|J_v|ν)),
 
-C = :data:`JINC_ENVELOPE` (|2·J₁(x)/x| ≤ 2·√(2/π)·x^(−3/2): the maxima of √x·|J₁(x)| increase
-towards the asymptotic amplitude √(2/π), DLMF 10.17.3; verified on [0, 10⁵] in
-tests/test_imaging_series.py; 1.6 also covers the renderer's table interpolation). Per pixel the
+C = :data:`JINC_ENVELOPE`: sup_x x^(3/2)·|2·J₁(x)/x| = 1.6501, reached in the main lobe at
+x = 2.166; the later lobes' maxima decrease towards the asymptotic amplitude 2·√(2/π) = 1.5958 of
+J₁(x) ~ √(2/(πx))·cos(x − 3π/4) (DLMF 10.17.3); checked against scipy.special.j1 on [10⁻³, 10⁵]
+in tests/test_imaging_series.py. 1.66 also covers the renderer's table interpolation. Per pixel the
 dropped terms' sum is kept below ``tol_dn`` grey levels: half for the harmonics n ≥ n₀ (suffix sum
 S_{n₀} = Σ_{n ≥ n₀}|c_n| times a bound of one harmonic's terms: E(n₀/p) without screen pixels,
 Λ = 1 + G(½) + 2·Σ_{k=1}^{A} G(k) with them, G(z) = min(1, 1/(πz))·E(z/P) — the aliases of a high
@@ -33,9 +34,10 @@ from .optics import jinc
 
 __all__ = ["JINC_ENVELOPE", "TRUNCATION_TOLERANCE_DN", "series_kernel"]
 
-#: C in |2·J₁(x)/x| ≤ C·x^(−3/2) (2·√(2/π) = 1.5958 for the exact function; the table's linear
-#: interpolation adds at most a factor (1 − h/x)^(−3/2) ≤ 1.0011 where the envelope is below 1).
-JINC_ENVELOPE = 1.6
+#: C in |2·J₁(x)/x| ≤ C·x^(−3/2) for all x > 0 (1.6501 for the exact function, at x = 2.166; the
+#: table's linear interpolation adds at most a factor (1 − h/x)^(−3/2) ≤ 1.0011 where the
+#: envelope is below 1).
+JINC_ENVELOPE = 1.66
 #: Default truncation tolerance (grey levels of the recorded image, on the mean before noise and
 #: rounding): 1e-3 DN, 1/1000 of the quantisation step at any bit depth.
 TRUNCATION_TOLERANCE_DN = 1e-3
