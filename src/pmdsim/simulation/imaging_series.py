@@ -84,41 +84,31 @@ def _alias_reach(cm, sr, hold, sig4pi, ju, jv, tau, zcap):
         return zcap
     if sr == 0.0 or cm == 0.0:
         return 0.5
-    thr = np.empty(3)
-    kap = np.empty(3)
-    bet = np.empty(3)
-    nf = 0
-    if sig4pi > 0.0:  # C·(4πσz/P)^(−3/2)
-        thr[nf] = hold * JINC_ENVELOPE ** (2.0 / 3.0) / sig4pi
-        kap[nf] = JINC_ENVELOPE * (hold / sig4pi) ** 1.5
-        bet[nf] = 1.5
-        nf += 1
-    if ju > 0.0:  # (P/(π|J_u|))/z
-        thr[nf] = hold / ju
-        kap[nf] = hold / ju
-        bet[nf] = 1.0
-        nf += 1
-    if jv > 0.0:
-        thr[nf] = hold / jv
-        kap[nf] = hold / jv
-        bet[nf] = 1.0
-        nf += 1
+    inf = np.inf
+    # The factors (threshold, coefficient, exponent): defocus C·(4πσz/P)^(−3/2), pixel (P/(π|J|))/z.
+    t0, k0, b0 = inf, 1.0, 0.0
+    if sig4pi > 0.0:
+        t0, k0, b0 = hold * JINC_ENVELOPE ** (2.0 / 3.0) / sig4pi, JINC_ENVELOPE * (hold / sig4pi) ** 1.5, 1.5
+    t1, k1, b1 = (hold / ju, hold / ju, 1.0) if ju > 0.0 else (inf, 1.0, 0.0)
+    t2, k2, b2 = (hold / jv, hold / jv, 1.0) if jv > 0.0 else (inf, 1.0, 0.0)
+    # sorted by threshold (three compare-exchanges)
+    if t1 < t0:
+        t0, k0, b0, t1, k1, b1 = t1, k1, b1, t0, k0, b0
+    if t2 < t1:
+        t1, k1, b1, t2, k2, b2 = t2, k2, b2, t1, k1, b1
+    if t1 < t0:
+        t0, k0, b0, t1, k1, b1 = t1, k1, b1, t0, k0, b0
     best = zcap
     kappa = cm * sr / np.pi
     zs = max(0.5, sr / np.pi)
     beta = 0.0
-    used = np.zeros(3, dtype=np.bool_)
-    for _ in range(nf):  # add the factor with the next smallest threshold
-        j = -1
-        for i in range(nf):
-            if not used[i] and (j < 0 or thr[i] < thr[j]):
-                j = i
-        used[j] = True
-        if thr[j] >= best:
+    for i in range(3):
+        th, kf, bf = (t0, k0, b0) if i == 0 else ((t1, k1, b1) if i == 1 else (t2, k2, b2))
+        if bf == 0.0 or th >= best:
             break
-        zs = max(zs, thr[j])
-        kappa *= kap[j]
-        beta += bet[j]
+        zs = max(zs, th)
+        kappa *= kf
+        beta += bf
         z = max(zs, (2.0 * kappa * (1.0 / zs + 1.0 / beta) / tau) ** (1.0 / beta))
         if z < best:
             best = z
