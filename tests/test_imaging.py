@@ -592,15 +592,15 @@ def test_screen_pixel_staircase_moves_the_decoded_coordinate_as_the_box_average_
     err = _wrapped_mm(got - want, p)
     assert np.sqrt(np.mean((stair - stair.mean()) ** 2)) > 5e-3  # the staircase: > 5 µm RMS
     # 16-bit rounding: |Δφ| ≤ (2/N)·Σ½/B = 1/B rad; B = 0.45·|T|, T = sinc(J/p)·sinc(P/p) > 0.9.
-    # The aliases the renderer leaves out (beyond A = min(√(K/HOLD_TOLERANCE), HOLD_ALIASES), each
-    # ≤ K/a², K = 0.45·sin(πP/p)/π · P/(πJ)): their sum over a > A and both signs ≤ 2K/(A − 1),
-    # |Δφ| ≤ 2·sum/B.
-    from pmdsim.simulation.imaging import HOLD_ALIASES, HOLD_TOLERANCE
+    # The aliases beyond the model's cap A = HOLD_ALIASES (each ≤ K/a², K = 0.45·sin(πP/p)/π ·
+    # P/(πJ)): their sum over a > A and both signs ≤ 2K/(A − 1), |Δφ| ≤ 2·sum/B; the terms the
+    # truncation leaves out: ≤ TRUNCATION_TOLERANCE_DN grey levels per image, |Δφ| ≤ 2·tol/B.
+    from pmdsim.simulation.imaging import HOLD_ALIASES, TRUNCATION_TOLERANCE_DN
 
     B = 0.45 * 0.9
     K = 0.45 * np.sin(np.pi * P / p) / np.pi * P / (np.pi * J)
-    A = min(np.sqrt(K / HOLD_TOLERANCE), HOLD_ALIASES)
-    dphi = 1.0 / (B * 65535) + 2 * 2 * K / (A - 1) / B
+    A = HOLD_ALIASES
+    dphi = 1.0 / (B * 65535) + 2 * 2 * K / (A - 1) / B + 2 * TRUNCATION_TOLERANCE_DN / (B * 65535)
     assert np.abs(err).max() <= p / (2 * np.pi) * dphi
 
 

@@ -13,7 +13,10 @@ the footprint's std along it), evaluated at the defocus footprint's centroid (of
 chief ray's screen point by O(D²)), scales by the emission factor and passes the result through
 the sensor (:class:`.sensor.SensorModel`). A harmonic's transfer is real: it scales the modulation
 and, where it is negative (defocus beyond the first zero of J₁), reverses the contrast — a π phase
-flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20).
+flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20). With
+screen pixels each harmonic also carries its aliases (the staircase); the kernel
+(:mod:`.imaging_series`) sums only the terms a bound of whose remainder exceeds the truncation
+tolerance (default 1e-3 grey levels per pixel and image).
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
@@ -25,27 +28,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numba
 import numpy as np
 
 from ..setup import ImagingSetup, Setup
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
+from .imaging_series import TRUNCATION_TOLERANCE_DN, series_kernel
 from .optics import JINC_TABLE, default_focus_distance, defocus_moments, focus_path, jinc, pixel_jacobian
 from ..setup.sensor import SensorModel
 from .trace import Mapping
 
-#: The screen's sample-and-hold staircase: aliases ν = n/p ± a/P of each harmonic are rendered
-#: for a = 1, 2, … until an upper bound of the next pair (weight 1/(π(a − nP/p)) times the
-#: envelopes 1.6/x^1.5 of the defocus transfer and 1/(πJν) of the pixel box) drops below
-#: HOLD_TOLERANCE (relative radiance), at most HOLD_ALIASES pairs. With the f/8 blur of Table 1
-#: a few pairs suffice; for a camera that resolves the pitch the series is cut at 32 pairs (the
-#: rest, each ≤ K/a², sums to ≤ 2K/32 — measured cost: without the cap a sharp point-sampling
-#: camera took minutes per full-resolution frame).
+#: The screen's sample-and-hold staircase: aliases ν = n/p + a/P of each harmonic are rendered
+#: for |a| ≤ HOLD_ALIASES (the model's cap: without any camera transfer — a sharp, point-sampling
+#: camera — the alias series of the held pattern converges only conditionally), of which only
+#: those not bounded below the truncation tolerance are summed (:mod:`.imaging_series`).
 HOLD_ALIASES = 32
-HOLD_TOLERANCE = 1e-6
 
-__all__ = ["HOLD_ALIASES", "HOLD_TOLERANCE", "ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
+__all__ = ["HOLD_ALIASES", "TRUNCATION_TOLERANCE_DN", "ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
            "decoder_response"]
 
 
@@ -140,155 +139,10 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
                        None if im.f_number is None else float(focus))
 
 
-@numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _imaging_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
-                  scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, hold_tol, out):
-    w = valid.shape[1]
-    n = cos_d.shape[0]
-    kmax = coef.shape[0] - 1
-    k1 = 2.0 * np.pi / period
-    t = np.empty(kmax + 1)
-    tsin = np.zeros(kmax + 1)
-    aliasing = hold > 0.0 and n_alias > 0
-    cps1 = sps1 = cyu1 = syu1 = cyv1 = syv1 = 0.0
-    cn = np.empty(kmax + 1)
-    sn = np.empty(kmax + 1)
-    ck = np.empty((n, kmax + 1))
-    sk = np.empty((n, kmax + 1))
-    for k in range(n):  # cos(nδ_k), sin(nδ_k) by the angle-addition recurrence
-        ck[k, 0] = 1.0
-        sk[k, 0] = 0.0
-        for m in range(1, kmax + 1):
-            ck[k, m] = ck[k, m - 1] * cos_d[k] - sk[k, m - 1] * sin_d[k]
-            sk[k, m] = sk[k, m - 1] * cos_d[k] + ck[k, m - 1] * sin_d[k]
-    for v in range(v0, v1):
-        for u in range(w):
-            if not valid[v, u]:
-                for k in range(n):
-                    out[k, v, u] = 0
-                continue
-            phi = k1 * coord[v, u]
-            c1 = np.cos(phi)
-            s1 = np.sin(phi)
-            xj = 2.0 * k1 * np.sqrt(var[v, u])  # 4πσ/p: the first harmonic's jinc argument
-            # sinc(m·x) = sin(m x)/(m x), sin(m x) by the Chebyshev recurrence
-            # sin((m+1)x) = 2 cos x · sin(m x) − sin((m−1)x): one sine and cosine per factor.
-            xa = np.pi * jac[v, u, 0] / period if use_jac else 0.0
-            xb = np.pi * jac[v, u, 1] / period if use_jac else 0.0
-            xh = np.pi * hold / period
-            xq = coord[v, u] / hold if hold > 0.0 else 0.0  # screen position in pixel pitches
-            ca, sa, sa0 = np.cos(xa), np.sin(xa), 0.0
-            cb, sb, sb0 = np.cos(xb), np.sin(xb), 0.0
-            cam_a, cam_a0 = ca, 1.0  # cos(m·x_a), cos(m·x_b) by the same recurrence
-            cam_b, cam_b0 = cb, 1.0
-            if aliasing:  # cos, sin of 2πx/P, πJ_u/P, πJ_v/P (the aliases' steps)
-                cps1, sps1 = np.cos(2.0 * np.pi * xq), np.sin(2.0 * np.pi * xq)
-                yu = np.pi * jac[v, u, 0] / hold if use_jac else 0.0
-                yv = np.pi * jac[v, u, 1] / hold if use_jac else 0.0
-                cyu1, syu1, cyv1, syv1 = np.cos(yu), np.sin(yu), np.cos(yv), np.sin(yv)
-            ch, sh, sh0 = np.cos(xh), np.sin(xh), 0.0
-            cn[0] = 1.0
-            sn[0] = 0.0
-            for m in range(1, kmax + 1):
-                cn[m] = cn[m - 1] * c1 - sn[m - 1] * s1
-                sn[m] = sn[m - 1] * c1 + cn[m - 1] * s1
-                tm = jinc(m * xj, table) if xj != 0.0 else 1.0
-                if xa != 0.0:
-                    tm *= sa / (m * xa)
-                if xb != 0.0:
-                    tm *= sb / (m * xb)
-                if xh != 0.0:
-                    tm *= sh / (m * xh)
-                t[m] = coef[m] * tm
-                tsin[m] = 0.0
-                if aliasing:
-                    # Staircase: aliases at ν = m/p ± a/P (a = 1, 2, …), weight
-                    # sin(πmP/p)/(π(mP/p ± a)), phase ±2πa·x/P, each through the defocus and
-                    # pixel-area transfer at ν; sin(π·J·ν) = sin(m·x_u ± a·y_u) by angle addition,
-                    # the multiples of ψ, y_u, y_v by recurrence. Stops when an upper bound of the
-                    # next pair (1/(π(a − mP/p)) · the transfers' envelopes) is below HOLD_TOLERANCE.
-                    cp, sp, cu, su, cw, sw = 1.0, 0.0, 1.0, 0.0, 1.0, 0.0
-                    r = m * hold / period
-                    for a in range(1, n_alias + 1):
-                        cp, sp = cp * cps1 - sp * sps1, sp * cps1 + cp * sps1
-                        cu, su = cu * cyu1 - su * syu1, su * cyu1 + cu * syu1
-                        cw, sw = cw * cyv1 - sw * syv1, sw * cyv1 + cw * syv1
-                        nu_min = (a - r) / hold
-                        env = abs(coef[m] * sh) / (np.pi * (a - r)) if a > r else abs(coef[m] * sh)
-                        if nu_min > 0.0:
-                            xe = xj * period * nu_min
-                            if xe > 1.0:
-                                env *= 1.6 / (xe * np.sqrt(xe))
-                            ze = np.pi * abs(jac[v, u, 0]) * nu_min if use_jac else 0.0
-                            if ze > 1.0:
-                                env /= ze
-                            ze = np.pi * abs(jac[v, u, 1]) * nu_min if use_jac else 0.0
-                            if ze > 1.0:
-                                env /= ze
-                        if env < hold_tol:
-                            break
-                        for sg in (1.0, -1.0):
-                            nu = m / period + sg * a / hold
-                            den = np.pi * (r + sg * a)
-                            # sin(π·r)/(π(r − a)) → (−1)^a as r → a (a harmonic on an alias of the grid)
-                            ta = coef[m] * (sh / den if den != 0.0 else (1.0 - 2.0 * (a % 2)))
-                            if xj != 0.0:
-                                ta *= jinc(xj * period * abs(nu), table)
-                            if use_jac:
-                                za = np.pi * jac[v, u, 0] * nu
-                                zb = np.pi * jac[v, u, 1] * nu
-                                if za != 0.0:
-                                    ta *= (sa * cu + cam_a * sg * su) / za
-                                if zb != 0.0:
-                                    ta *= (sb * cw + cam_b * sg * sw) / zb
-                            t[m] += ta * cp
-                            tsin[m] += ta * sg * sp
-                cam_a, cam_a0 = 2.0 * ca * cam_a - cam_a0, cam_a
-                cam_b, cam_b0 = 2.0 * cb * cam_b - cam_b0, cam_b
-                sa, sa0 = 2.0 * ca * sa - sa0, sa
-                sb, sb0 = 2.0 * cb * sb - sb0, sb
-                sh, sh0 = 2.0 * ch * sh - sh0, sh
-            g = radiance[v, u] * scale
-            for k in range(n):
-                s = coef[0]
-                for m in range(1, kmax + 1):
-                    # cos(m(φ − δ_k) + ψ) = cos m(φ − δ_k)·cos ψ − sin m(φ − δ_k)·sin ψ (ψ: the
-                    # aliases' phases, folded into t and tsin)
-                    cm = cn[m] * ck[k, m] + sn[m] * sk[k, m]
-                    s += t[m] * cm
-                    if tsin[m] != 0.0:
-                        s -= tsin[m] * (sn[m] * ck[k, m] - cn[m] * sk[k, m])
-                mean = g * s
-                if mean >= clip:  # the full well is reached: the saturation code, no noise (issue 20)
-                    out[k, v, u] = full
-                    continue
-                if mean < 0.0:
-                    mean = 0.0
-                val = dark + mean
-                if use_noise:
-                    val += np.sqrt(shot * mean + const_var) * noise[k, v, u]
-                q = np.floor(val + 0.5)
-                if q < 0.0:
-                    q = 0.0
-                elif q > full:
-                    q = full
-                out[k, v, u] = q
-
-
-@numba.njit(cache=True, parallel=True)
-def _imaging_kernel(coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac, hold, radiance,
-                    scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, hold_tol, out):
-    h = valid.shape[0]
-    rows = 16
-    for b in numba.prange(0, (h + rows - 1) // rows):
-        _imaging_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coef, var, jac, use_jac,
-                      hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias,
-                      hold_tol, out)
-
-
 def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
                           period_mm: float, sequence: FringeSequence, sensor: SensorModel,
-                          rng: np.random.Generator | None) -> np.ndarray:
+                          rng: np.random.Generator | None, *, tolerance_dn: float = TRUNCATION_TOLERANCE_DN,
+                          means: np.ndarray | None = None, counts: np.ndarray | None = None) -> np.ndarray:
     """All N phase-shifted images of one direction and period with the image-formation effects.
 
     Parameters
@@ -303,6 +157,15 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     rng : numpy.random.Generator or None
         Source of the N standard-normal noise fields (float32, drawn in shift order); required
         when the sensor is noisy.
+    tolerance_dn : float
+        Truncation tolerance of the series (grey levels): per pixel and image, the terms left out
+        sum to at most this on the mean grey level before noise and rounding
+        (:mod:`.imaging_series`; docs/conventions.md, "Truncation of the series"). 0: every
+        harmonic and every alias up to :data:`HOLD_ALIASES` (the uncut series).
+    means : ndarray (N, H, W) float64, optional
+        Receives the mean grey levels above the dark offset before clipping, noise and rounding.
+    counts : ndarray (H, W) int64, optional
+        Receives the number of series terms summed per pixel.
 
     Returns
     -------
@@ -326,11 +189,25 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
         noise = np.empty((0, 0, 0), dtype=np.float32)
     jac = maps.jacobian[..., axis, :] if maps.jacobian is not None else np.zeros((1, 1, 2))
     out = np.empty((n,) + ok.shape, dtype=sensor.dtype)
-    _imaging_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), maps.coefficients,
-                    np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
-                    maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
-                    sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
-                    noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, HOLD_TOLERANCE, out)
+    coef = np.ascontiguousarray(maps.coefficients, dtype=float)
+    mag = np.abs(coef)
+    suffix = np.concatenate([np.cumsum(mag[::-1])[::-1], [0.0]])  # S_m = Σ_{j ≥ m} |c_j|
+    # Alias budget of harmonic m ∝ √(|c_m|·|sin(πmP/p)|) (its aliases' weight), summing to 1.
+    m_idx = np.arange(1, coef.size)
+    root = np.sqrt(mag[1:] * (np.abs(np.sin(np.pi * m_idx * maps.hold_pitch_mm / period_mm))
+                              if maps.hold_pitch_mm > 0 else 1.0))
+    share = np.concatenate([[0.0], root / root.sum() if root.sum() > 0 else root])
+    m_out = np.empty((0, 0, 0)) if means is None else means
+    c_out = np.empty((0, 0), dtype=np.int64) if counts is None else counts
+    if means is not None and (means.shape != out.shape or means.dtype != np.float64):
+        raise ValueError(f"means must be a float64 array of shape {out.shape}")
+    if counts is not None and (counts.shape != ok.shape or counts.dtype != np.int64):
+        raise ValueError(f"counts must be an int64 array of shape {ok.shape}")
+    series_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), coef, suffix, share,
+                  np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
+                  maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
+                  sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
+                  noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, float(tolerance_dn), out, m_out, c_out)
     return out
 
 
