@@ -56,6 +56,7 @@ __all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertain
 STEREO_CALIBRATION_NOTE = "stereo: the calibration covariance is not propagated (noise part only)"
 
 _SEED_STRIDE = 0x9E3779B9  # per-camera offset of the estimator's seed
+_RTOL = 1e-4  # relative tolerance of each sample's multigrid-CG solve (docs/benchmarks.md, "Uncertainty: stereo")
 
 
 # ============================================================================ kernels
@@ -274,7 +275,7 @@ class _AnchoredLinear:
         np.add.at(self.rhs, (self.av, self.au), self.w2 * np.asarray(da)[self.keep])
         if float(np.max(np.abs(self.rhs))) == 0.0:
             return np.where(self.S, 0.0, np.nan)
-        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
+        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, _RTOL, 500, work=self.work, mg=self.mg)
         if not ok or not np.isfinite(x).all():
             raise UncertaintyError("the linearised anchored least-squares system did not converge (singular or "
                                    "ill-conditioned normal equations); no σ")
