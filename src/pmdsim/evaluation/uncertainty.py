@@ -371,7 +371,7 @@ class _LinearisedIntegration:
         H, W = S.shape
         self.geo = np.zeros((H, W, 8))
         _geometry(o, d, q, S, z, self.geo)
-        if not np.isfinite(self.geo[S]).all():
+        if not np.isfinite(self.geo).all(axis=-1)[S].all():  # (no (n, 8) copy of the geometry)
             raise UncertaintyError("the slopes' geometry is not finite at some reconstructed pixel; no σ")
         if self.method == "stepwise":
             self.layer = np.empty((H, W), dtype=np.int64)
