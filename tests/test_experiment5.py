@@ -101,7 +101,8 @@ def test_height_std_keys(run):
     """Issue 22: mono and stereo cases carry σ statistics and coverage_k2 (stereo: the noise part, labelled);
     the planar model under the 3 mm bulge and the foil's lateral term are labelled."""
     from pmdsim.evaluation.uncertainty_stereo import STEREO_CALIBRATION_NOTE
-    from pmdsim.studies.experiment_uncertainty import IGNORES_LATERAL, IGNORES_PLANAR_BULGE, STEREO_NO_SIGMA_NOTE
+    from pmdsim.studies.experiment_uncertainty import (IGNORES_LATERAL, IGNORES_PLANAR_BULGE, IGNORES_STEREO_CALIBRATION,
+                                                      STEREO_NO_SIGMA_NOTE)
 
     out, _ = run
     for x in json.loads((out / "results.json").read_text()):
@@ -114,6 +115,7 @@ def test_height_std_keys(run):
             assert x["height_std_um"]["pixels"] > 0 and x["height_std_um"]["noise_rms"] > 0
             assert x["height_std_um"]["calibration_rms"] == 0 and 0 <= x["coverage_k2"] <= 1
             assert STEREO_CALIBRATION_NOTE in x["height_std_notes"]
+            assert IGNORES_STEREO_CALIBRATION in x["height_std_ignores"]
             assert STEREO_NO_SIGMA_NOTE not in x["height_std_notes"]
         else:
             assert x["height_std_um"]["pixels"] > 0 and x["height_std_um"]["noise_rms"] > 0

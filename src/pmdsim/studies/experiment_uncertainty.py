@@ -28,6 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import PmdsimError
+from ..evaluation.uncertainty_stereo import STEREO_CALIBRATION_NOTE
 
 __all__ = ["COVERAGE_GAUSSIAN_K2", "coverage_k2", "case_uncertainty", "case_uncertainty_record", "height_std_summary", "uncertainty_record",
            "reconstruction_uncertainty", "model_error_labels", "screen_representation_error_mm",
@@ -44,6 +45,7 @@ IGNORES_IDEAL_IMAGES = "ideal images: σ covers quantisation only"
 IGNORES_MIRROR_SAG = "mirror sag"
 IGNORES_COVER_GLASS = "unmodelled cover glass"
 IGNORES_LATERAL = "lateral error × sample slope"
+IGNORES_STEREO_CALIBRATION = "the calibration's uncertainty (stereo σ: the images' noise only)"
 
 #: A screen model whose best representation of the true screen misses it by more than this
 #: (mm) is labelled: 1 µm of screen height moves a slope by ≈ 1e-3 µrad per mm of lever — far
@@ -113,8 +115,10 @@ def stereo_uncertainty_record(truth, camera_result, error_mm, *, screen_grid: in
     if u is None or not all(hasattr(u, n) for n in names):
         return uncertainty_record(None, None, notes=(STEREO_NO_SIGMA_NOTE, *label_notes), ignores=ignores)
     maps = {n: np.asarray(getattr(u, n), dtype=float) for n in names}
-    return uncertainty_record(maps, error_mm, notes=(*tuple(getattr(u, "notes", ()) or ()), *label_notes),
-                              ignores=ignores)
+    u_notes = tuple(getattr(u, "notes", ()) or ())
+    if STEREO_CALIBRATION_NOTE in u_notes:  # the absolute level rests on the calibrated poses
+        ignores = (*ignores, IGNORES_STEREO_CALIBRATION)
+    return uncertainty_record(maps, error_mm, notes=(*u_notes, *label_notes), ignores=ignores)
 
 
 def reconstruction_uncertainty(model, camera: str, decoded, reg, rec, parts, *, method: str,
