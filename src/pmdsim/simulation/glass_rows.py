@@ -66,12 +66,14 @@ def foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, d2, d3, tol
     ``h … hyy``: the emitting surface's height, gradient and second derivatives at u; the ray
     x = a_x + b_x·z, y = a_y + b_y·z (screen frame); ``t``: the glass thickness; ``d2``, ``d3``:
     the surface's derivative bounds; ``tol``: the intersection tolerance (for the carried
-    gradient). Returns ``(u_x, u_y, h, h_x, h_y, accepted)`` at the new foot point (height and
-    gradient carried there by Taylor's theorem).
+    gradient). Returns ``(u_x, u_y, h, h_x, h_y, g, accepted)`` at the new foot point (height,
+    gradient and g = 1/√(1 + |∇h|²) carried there by Taylor's theorem: the relative change δ of
+    1 + |∇h|² gives g·(1 − δ/2), off by ≤ 3δ²/8 with δ ≤ 5·D₂·‖s‖₁ — accepted only when that is
+    below the tolerance).
     """
     q = 1.0 + hx * hx + hy * hy
     g = 1.0 / math.sqrt(q)
-    g3 = g / q
+    g3 = g * g * g
     azu = h - t * g
     fx = ux + t * (hx * g) - ax - bx * azu
     fy = uy + t * (hy * g) - ay - by * azu
@@ -89,26 +91,29 @@ def foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, d2, d3, tol
     h2 = h + hx * sx + hy * sy + 0.5 * (hxx * sx * sx + 2.0 * hxy * sx * sy + hyy * sy * sy)
     hx2 = hx + hxx * sx + hxy * sy
     hy2 = hy + hxy * sx + hyy * sy
+    dhx = hx2 - hx
+    dhy = hy2 - hy
+    g2 = g * (1.0 - 0.5 * g * g * (2.0 * (hx * dhx + hy * dhy) + dhx * dhx + dhy * dhy))
     ns = abs(sx) + abs(sy)
     ns2 = ns * ns
     km = 3.0 * d3 + 11.0 * d2 * d2
     jinv = max(abs(j22) + abs(j12), abs(j21) + abs(j11)) * abs(idet)
     mb = t * km + max(abs(bx), abs(by)) * (d2 + t * km)
-    ok = (jinv * mb * ns2 <= _FOOT_TOL_MM) & (d3 * ns2 <= tol) & (abs(hx) + abs(hy) + 2.0 * d2 * ns <= 1.0)
-    return ux + sx, uy + sy, h2, hx2, hy2, ok
+    ok = (jinv * mb * ns2 <= _FOOT_TOL_MM) & (d3 * ns2 <= tol) & (25.0 * d2 * d2 * ns2 <= tol) & (
+        abs(hx) + abs(hy) + 2.0 * d2 * ns <= 1.0)
+    return ux + sx, uy + sy, h2, hx2, hy2, g2, ok
 
 
 @numba.njit(**_JIT, inline="always")
-def glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz, t, n_idx):
-    """Steps 2 of the module docstring at the accepted foot point u (height h, gradient h_x, h_y).
+def glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, wx, wy, wz, t, n_idx):
+    """Step 2 of the module docstring at the accepted foot point u (height h, gradient h_x, h_y,
+    g = 1/√(1 + h_x² + h_y²)).
 
-    Returns ``(A_x, A_y, A_z, r_x, r_y, r_z, m_x, m_y, z_plane, enters)``: the ray's point A on
-    the outer surface's tangent plane at A(u), the refracted direction r, the plate normal m,
-    the height at which the refracted ray meets the emitting surface's tangent plane at u (a
-    start for the emitting-surface hit) and whether the ray (direction w) meets the plate from
-    the sample side (w·m < 0).
+    Returns ``(A_x, A_y, A_z, r_x, r_y, r_z, m_x, m_y, enters)``: the ray's point A on the outer
+    surface's tangent plane at A(u), the refracted direction r (Snell's law in vector form,
+    scaled by |w|: no normalisation), the plate normal m and whether the ray (direction w) meets
+    the plate from the sample side (w·m < 0).
     """
-    g = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
     mx = hx * g
     my = hy * g
     mz = -g
@@ -119,23 +124,23 @@ def glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz, t, n_idx):
     za = ((pux - ax) * mx + (puy - ay) * my + puz * mz) / den
     a_x = ax + bx * za
     a_y = ay + by * za
-    enters = wz * den < 0.0
-    inv = 1.0 / math.sqrt(wx * wx + wy * wy + wz * wz)
-    ex = wx * inv
-    ey = wy * inv
-    ez = wz * inv
+    # e = w/|w|, cos_i = −e·m: r·|w| = η·w + (−η·w·m − √(|w|² − η²(|w|² − (w·m)²)))·m.
+    wm = wx * mx + wy * my + wz * mz
+    ww = wx * wx + wy * wy + wz * wz
     eta = 1.0 / n_idx
-    cos_i = -(ex * mx + ey * my + ez * mz)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    f = eta * cos_i - math.sqrt(k)
-    rx = eta * ex + f * mx
-    ry = eta * ey + f * my
-    rz = eta * ez + f * mz
-    # The emitting surface's tangent plane at u along the refracted ray x = A_xy + (r_xy/r_z)(z − A_z).
+    f = -eta * wm - math.sqrt(ww - eta * eta * (ww - wm * wm))
+    rx = eta * wx + f * mx
+    ry = eta * wy + f * my
+    rz = eta * wz + f * mz
+    return a_x, a_y, za, rx, ry, rz, mx, my, wm < 0.0
+
+
+@numba.njit(**_JIT, inline="always")
+def _plane_start(ux, uy, h, hx, hy, a_x, a_y, a_z, rx, ry, rz):
+    """The height at which the ray A + s·r meets the emitting surface's tangent plane at u."""
     cx = rx / rz
     cy = ry / rz
-    z_plane = (h + hx * (a_x - cx * za - ux) + hy * (a_y - cy * za - uy)) / (1.0 - hx * cx - hy * cy)
-    return a_x, a_y, za, rx, ry, rz, mx, my, z_plane, enters
+    return (h + hx * (a_x - cx * a_z - ux) + hy * (a_y - cy * a_z - uy)) / (1.0 - hx * cx - hy * cy)
 
 
 @numba.njit(**_JIT)
@@ -184,12 +189,13 @@ def glass_pixel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx
         ux = ax + bx * az_g - t * mx_g
         uy = ay + by * az_g - t * my_g
         h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
-        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0], dmax[1], tol)
+        ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0], dmax[1],
+                                               tol)
         if ok:
-            a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz,
-                                                                        t, n_idx)
+            a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, wx, wy, wz, t,
+                                                                  n_idx)
             if enters:
-                zs = zq_g if np.isfinite(zq_g) else z_pl
+                zs = zq_g if np.isfinite(zq_g) else _plane_start(ux, uy, h, hx, hy, a_x, a_y, a_z, rx, ry, rz)
                 _t, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, a_x, a_y, a_z, rx, ry, rz, tol,
                                                              zs, False)
                 if st == _NEEDS_SOLVE:
@@ -237,9 +243,10 @@ def _patches_at(n, gx, gy, S, P):
 
 
 @numba.njit(**_JIT, inline="always")
-def _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S):
-    """Steps 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
-    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV, start _ZG), the
+def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
+    """Step 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
+    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV; the start _ZG from
+    the rows above is kept — where there is none the scalar kernels start from scratch), the
     warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
     accepted or the ray does not enter the plate)."""
     B = _BLK
@@ -247,13 +254,11 @@ def _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S):
     ay = S[_AY * B + i]
     bx = S[_BX * B + i]
     by = S[_BY * B + i]
-    a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, S[_WX * B + i],
-                                                                S[_WY * B + i], S[_WZ * B + i], t, n_idx)
+    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, S[_WX * B + i],
+                                                          S[_WY * B + i], S[_WZ * B + i], t, n_idx)
     inv = 1.0 / rz
     cx = rx * inv
     cy = ry * inv
-    zg = S[_ZG * B + i]
-    S[_ZG * B + i] = zg if np.isfinite(zg) else z_pl
     S[_QOX * B + i] = a_x
     S[_QOY * B + i] = a_y
     S[_QOZ * B + i] = a_z
@@ -304,9 +309,9 @@ def _foot_run(n, c, gxi, gyj, t, n_idx, d2, d3, tol, S):
         hxx = e0 + sy * (e1 + sy * (e2 + sy * e3))
         hxy = e1d1 + sy * (2.0 * e1d2 + sy * 3.0 * e1d3)
         hyy = 2.0 * r2 + 6.0 * sy * r3
-        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
-                                            S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
-        _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+        ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
+                                               S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
+        _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
 
 
 @numba.njit(**_JIT)
@@ -357,18 +362,24 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     d3 = dmax[1]
     if plane:
         for i in range(n):
-            ux, uy, h, hx, hy, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
-                                                S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t, d2,
-                                                d3, tol)
-            _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+            ux, uy, h, hx, hy, g, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
+                                                   S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t,
+                                                   d2, d3, tol)
+            _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
     elif kind == _KIND_SPLINE:
         _patches_at(n, gx, gy, S, P)
         nx1 = gx.shape[0] - 1
+        b0 = P[_PID * B]
+        n_other = 0
+        for i in range(n):
+            n_other += P[_PID * B + i] != b0
         i = 0
         while i < n:
             s = i
             b = P[_PID * B + i]
             i += 1
+            if n_other == 0:
+                i = n
             while i < n and P[_PID * B + i] == b:
                 i += 1
             bi = b // 16
