@@ -53,7 +53,7 @@ from .trace_rows import (
     _PIY, _QOX, _QOY, _QOZ, _SMALL_GRID, _UX, _UY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG, _fixup, _intersect_block,
 )
 
-__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "fallback_trace"]
+__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace"]
 
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0
@@ -168,29 +168,52 @@ def _inside(gx, gy, x, y, margin):
         y <= gy[gy.shape[0] - 1] - margin)
 
 
+#: Foot-point Newton steps of the scalar path (:func:`glass_pixel_at`) before the fallback.
+_SCALAR_STEPS = 4
+
+
 @numba.njit(**_JIT)
 def glass_pixel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, az_g, mx_g, my_g, zq_g,
                 tol, max_iter):
     """One pixel of the first row of a band (module docstring), scalar: the predicted outer-surface
     height ``az_g`` and normal (``mx_g``, ``my_g``), the predicted emitting-surface height
     ``zq_g`` (NaN: none). Returns ``(x, y, z, code, A_z, m_x, m_y)`` as :func:`fallback_trace`."""
-    nan = np.nan
     if kind == _KIND_PLANE:
         az_g = -t
         mx_g = 0.0
         my_g = 0.0
-    if (kind == _KIND_PLANE or kind == _KIND_SPLINE) and wz != 0.0 and np.isfinite(wz) and np.isfinite(
-            az_g + mx_g + my_g):
+    ux = np.nan
+    uy = np.nan
+    if wz != 0.0 and np.isfinite(wz):
+        bx = wx / wz
+        by = wy / wz
+        ux = (ox - oz * bx) + bx * az_g - t * mx_g
+        uy = (oy - oz * by) + by * az_g - t * my_g
+    return glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, ux, uy, zq_g, tol,
+                          max_iter)
+
+
+@numba.njit(**_JIT)
+def glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, ux, uy, zq_g, tol,
+                   max_iter):
+    """:func:`glass_pixel` from a predicted foot point (``ux``, ``uy``; NaN: none), with up to
+    ``_SCALAR_STEPS`` foot-point Newton steps until one is accepted (the row kernel's pixels whose
+    single vectorised step is not accepted come here too)."""
+    nan = np.nan
+    if (kind == _KIND_PLANE or kind == _KIND_SPLINE) and wz != 0.0 and np.isfinite(wz) and np.isfinite(ux + uy):
         inv = 1.0 / wz
         bx = wx * inv
         by = wy * inv
         ax = ox - oz * bx
         ay = oy - oz * by
-        ux = ax + bx * az_g - t * mx_g
-        uy = ay + by * az_g - t * my_g
-        h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
-        ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0], dmax[1],
-                                               tol)
+        ok = False
+        h = hx = hy = g = nan
+        for _ in range(_SCALAR_STEPS):
+            h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
+            ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0],
+                                                   dmax[1], tol)
+            if ok or not np.isfinite(ux + uy):
+                break
         if ok:
             a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, wx, wy, wz, t,
                                                                   n_idx)
@@ -391,16 +414,18 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     # The emitting-surface hit of the refracted rays (the tracer's intersection stage).
     _intersect_block(n, kind, gx, gy, coef, dmax, tol, False, S, P)
     _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_WX), S)
-    # Pixels the fast path did not settle: the refracting pass's trace.
+    # Pixels the fast path did not settle: more foot-point steps (scalar), else the refracting
+    # pass's trace.
     for i in range(n):
         mg = S[_GM * B + i]
         if mg < 0.0:
             continue
         if S[_C * B + i] == 0.0 and _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg):
             continue
-        x, y, z, st, az, mx, my = fallback_trace(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
+        x, y, z, st, az, mx, my = glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
                                                  S[_OOY * B + i], S[_OOZ * B + i], S[_ODX * B + i], S[_ODY * B + i],
-                                                 S[_ODZ * B + i], S[_ZG * B + i], tol, max_iter)
+                                                 S[_ODZ * B + i], S[_UX * B + i], S[_UY * B + i], S[_ZG * B + i], tol,
+                                                 max_iter)
         S[_X * B + i] = x
         S[_Y * B + i] = y
         S[_Z * B + i] = z
