@@ -27,8 +27,10 @@ that of F_i is at most M_i = t·K + |b_i|·(D₂ + t·K). After a Newton step s 
 D₃·‖s‖₁² is ≤ the intersection tolerance. Since the predicted foot point is within ~1e-6 mm of
 the root on smooth screens, one step settles it (its error bound ~1e-15 mm).
 
-**Where the fast path does not apply** — no prediction (the first pixels of a band, next to
-invalid pixels), a step not accepted, the ray not entering the plate from the sample side, the
+**Where the fast path does not apply** — a step not accepted: up to four scalar Newton steps
+from the prediction (:func:`glass_pixel_at`; the second row of a band, which has one row above
+and no extrapolation, mostly takes them); then, or with no prediction (the first pixels of a
+band, next to invalid pixels), the ray not entering the plate from the sample side, the
 emitting-surface hit failing or lying within 3·t·(1 + |b_x| + |b_y|) of the grid's edge (where
 the glass-free hit, which decides the status there, could lie on the other side of it) — the
 pixel is traced exactly as the separate refracting pass did before
