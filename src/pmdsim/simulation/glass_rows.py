@@ -27,8 +27,10 @@ that of F_i is at most M_i = t·K + |b_i|·(D₂ + t·K). After a Newton step s 
 D₃·‖s‖₁² is ≤ the intersection tolerance. Since the predicted foot point is within ~1e-6 mm of
 the root on smooth screens, one step settles it (its error bound ~1e-15 mm).
 
-**Where the fast path does not apply** — no prediction (the first pixels of a band, next to
-invalid pixels), a step not accepted, the ray not entering the plate from the sample side, the
+**Where the fast path does not apply** — a step not accepted: up to four scalar Newton steps
+from the prediction (:func:`glass_pixel_at`; the second row of a band, which has one row above
+and no extrapolation, mostly takes them); then, or with no prediction (the first pixels of a
+band, next to invalid pixels), the ray not entering the plate from the sample side, the
 emitting-surface hit failing or lying within 3·t·(1 + |b_x| + |b_y|) of the grid's edge (where
 the glass-free hit, which decides the status there, could lie on the other side of it) — the
 pixel is traced exactly as the separate refracting pass did before
@@ -53,7 +55,7 @@ from .trace_rows import (
     _PIY, _QOX, _QOY, _QOZ, _SMALL_GRID, _UX, _UY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG, _fixup, _intersect_block,
 )
 
-__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "fallback_trace"]
+__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace"]
 
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0
@@ -66,12 +68,14 @@ def foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, d2, d3, tol
     ``h … hyy``: the emitting surface's height, gradient and second derivatives at u; the ray
     x = a_x + b_x·z, y = a_y + b_y·z (screen frame); ``t``: the glass thickness; ``d2``, ``d3``:
     the surface's derivative bounds; ``tol``: the intersection tolerance (for the carried
-    gradient). Returns ``(u_x, u_y, h, h_x, h_y, accepted)`` at the new foot point (height and
-    gradient carried there by Taylor's theorem).
+    gradient). Returns ``(u_x, u_y, h, h_x, h_y, g, accepted)`` at the new foot point (height,
+    gradient and g = 1/√(1 + |∇h|²) carried there by Taylor's theorem: the relative change δ of
+    1 + |∇h|² gives g·(1 − δ/2), off by ≤ 3δ²/8 with δ ≤ 5·D₂·‖s‖₁ — accepted only when that is
+    below the tolerance).
     """
     q = 1.0 + hx * hx + hy * hy
     g = 1.0 / math.sqrt(q)
-    g3 = g / q
+    g3 = g * g * g
     azu = h - t * g
     fx = ux + t * (hx * g) - ax - bx * azu
     fy = uy + t * (hy * g) - ay - by * azu
@@ -89,26 +93,29 @@ def foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, d2, d3, tol
     h2 = h + hx * sx + hy * sy + 0.5 * (hxx * sx * sx + 2.0 * hxy * sx * sy + hyy * sy * sy)
     hx2 = hx + hxx * sx + hxy * sy
     hy2 = hy + hxy * sx + hyy * sy
+    dhx = hx2 - hx
+    dhy = hy2 - hy
+    g2 = g * (1.0 - 0.5 * g * g * (2.0 * (hx * dhx + hy * dhy) + dhx * dhx + dhy * dhy))
     ns = abs(sx) + abs(sy)
     ns2 = ns * ns
     km = 3.0 * d3 + 11.0 * d2 * d2
     jinv = max(abs(j22) + abs(j12), abs(j21) + abs(j11)) * abs(idet)
     mb = t * km + max(abs(bx), abs(by)) * (d2 + t * km)
-    ok = (jinv * mb * ns2 <= _FOOT_TOL_MM) & (d3 * ns2 <= tol) & (abs(hx) + abs(hy) + 2.0 * d2 * ns <= 1.0)
-    return ux + sx, uy + sy, h2, hx2, hy2, ok
+    ok = (jinv * mb * ns2 <= _FOOT_TOL_MM) & (d3 * ns2 <= tol) & (25.0 * d2 * d2 * ns2 <= tol) & (
+        abs(hx) + abs(hy) + 2.0 * d2 * ns <= 1.0)
+    return ux + sx, uy + sy, h2, hx2, hy2, g2, ok
 
 
 @numba.njit(**_JIT, inline="always")
-def glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz, t, n_idx):
-    """Steps 2 of the module docstring at the accepted foot point u (height h, gradient h_x, h_y).
+def glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, wx, wy, wz, t, n_idx):
+    """Step 2 of the module docstring at the accepted foot point u (height h, gradient h_x, h_y,
+    g = 1/√(1 + h_x² + h_y²)).
 
-    Returns ``(A_x, A_y, A_z, r_x, r_y, r_z, m_x, m_y, z_plane, enters)``: the ray's point A on
-    the outer surface's tangent plane at A(u), the refracted direction r, the plate normal m,
-    the height at which the refracted ray meets the emitting surface's tangent plane at u (a
-    start for the emitting-surface hit) and whether the ray (direction w) meets the plate from
-    the sample side (w·m < 0).
+    Returns ``(A_x, A_y, A_z, r_x, r_y, r_z, m_x, m_y, enters)``: the ray's point A on the outer
+    surface's tangent plane at A(u), the refracted direction r (Snell's law in vector form,
+    scaled by |w|: no normalisation), the plate normal m and whether the ray (direction w) meets
+    the plate from the sample side (w·m < 0).
     """
-    g = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
     mx = hx * g
     my = hy * g
     mz = -g
@@ -119,23 +126,23 @@ def glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz, t, n_idx):
     za = ((pux - ax) * mx + (puy - ay) * my + puz * mz) / den
     a_x = ax + bx * za
     a_y = ay + by * za
-    enters = wz * den < 0.0
-    inv = 1.0 / math.sqrt(wx * wx + wy * wy + wz * wz)
-    ex = wx * inv
-    ey = wy * inv
-    ez = wz * inv
+    # e = w/|w|, cos_i = −e·m: r·|w| = η·w + (−η·w·m − √(|w|² − η²(|w|² − (w·m)²)))·m.
+    wm = wx * mx + wy * my + wz * mz
+    ww = wx * wx + wy * wy + wz * wz
     eta = 1.0 / n_idx
-    cos_i = -(ex * mx + ey * my + ez * mz)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    f = eta * cos_i - math.sqrt(k)
-    rx = eta * ex + f * mx
-    ry = eta * ey + f * my
-    rz = eta * ez + f * mz
-    # The emitting surface's tangent plane at u along the refracted ray x = A_xy + (r_xy/r_z)(z − A_z).
+    f = -eta * wm - math.sqrt(ww - eta * eta * (ww - wm * wm))
+    rx = eta * wx + f * mx
+    ry = eta * wy + f * my
+    rz = eta * wz + f * mz
+    return a_x, a_y, za, rx, ry, rz, mx, my, wm < 0.0
+
+
+@numba.njit(**_JIT, inline="always")
+def _plane_start(ux, uy, h, hx, hy, a_x, a_y, a_z, rx, ry, rz):
+    """The height at which the ray A + s·r meets the emitting surface's tangent plane at u."""
     cx = rx / rz
     cy = ry / rz
-    z_plane = (h + hx * (a_x - cx * za - ux) + hy * (a_y - cy * za - uy)) / (1.0 - hx * cx - hy * cy)
-    return a_x, a_y, za, rx, ry, rz, mx, my, z_plane, enters
+    return (h + hx * (a_x - cx * a_z - ux) + hy * (a_y - cy * a_z - uy)) / (1.0 - hx * cx - hy * cy)
 
 
 @numba.njit(**_JIT)
@@ -163,33 +170,57 @@ def _inside(gx, gy, x, y, margin):
         y <= gy[gy.shape[0] - 1] - margin)
 
 
+#: Foot-point Newton steps of the scalar path (:func:`glass_pixel_at`) before the fallback.
+_SCALAR_STEPS = 4
+
+
 @numba.njit(**_JIT)
 def glass_pixel(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, az_g, mx_g, my_g, zq_g,
                 tol, max_iter):
     """One pixel of the first row of a band (module docstring), scalar: the predicted outer-surface
     height ``az_g`` and normal (``mx_g``, ``my_g``), the predicted emitting-surface height
     ``zq_g`` (NaN: none). Returns ``(x, y, z, code, A_z, m_x, m_y)`` as :func:`fallback_trace`."""
-    nan = np.nan
     if kind == _KIND_PLANE:
         az_g = -t
         mx_g = 0.0
         my_g = 0.0
-    if (kind == _KIND_PLANE or kind == _KIND_SPLINE) and wz != 0.0 and np.isfinite(wz) and np.isfinite(
-            az_g + mx_g + my_g):
+    ux = np.nan
+    uy = np.nan
+    if wz != 0.0 and np.isfinite(wz):
+        bx = wx / wz
+        by = wy / wz
+        ux = (ox - oz * bx) + bx * az_g - t * mx_g
+        uy = (oy - oz * by) + by * az_g - t * my_g
+    return glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, ux, uy, zq_g, tol,
+                          max_iter)
+
+
+@numba.njit(**_JIT)
+def glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz, wx, wy, wz, ux, uy, zq_g, tol,
+                   max_iter):
+    """:func:`glass_pixel` from a predicted foot point (``ux``, ``uy``; NaN: none), with up to
+    ``_SCALAR_STEPS`` foot-point Newton steps until one is accepted (the row kernel's pixels whose
+    single vectorised step is not accepted come here too)."""
+    nan = np.nan
+    if (kind == _KIND_PLANE or kind == _KIND_SPLINE) and wz != 0.0 and np.isfinite(wz) and np.isfinite(ux + uy):
         inv = 1.0 / wz
         bx = wx * inv
         by = wy * inv
         ax = ox - oz * bx
         ay = oy - oz * by
-        ux = ax + bx * az_g - t * mx_g
-        uy = ay + by * az_g - t * my_g
-        h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
-        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0], dmax[1], tol)
+        ok = False
+        h = hx = hy = g = nan
+        for _ in range(_SCALAR_STEPS):
+            h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ux, uy)
+            ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, ax, ay, bx, by, t, dmax[0],
+                                                   dmax[1], tol)
+            if ok or not np.isfinite(ux + uy):
+                break
         if ok:
-            a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, wx, wy, wz,
-                                                                        t, n_idx)
+            a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, wx, wy, wz, t,
+                                                                  n_idx)
             if enters:
-                zs = zq_g if np.isfinite(zq_g) else z_pl
+                zs = zq_g if np.isfinite(zq_g) else _plane_start(ux, uy, h, hx, hy, a_x, a_y, a_z, rx, ry, rz)
                 _t, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, a_x, a_y, a_z, rx, ry, rz, tol,
                                                              zs, False)
                 if st == _NEEDS_SOLVE:
@@ -237,9 +268,10 @@ def _patches_at(n, gx, gy, S, P):
 
 
 @numba.njit(**_JIT, inline="always")
-def _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S):
-    """Steps 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
-    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV, start _ZG), the
+def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
+    """Step 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
+    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV; the start _ZG from
+    the rows above is kept — where there is none the scalar kernels start from scratch), the
     warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
     accepted or the ray does not enter the plate)."""
     B = _BLK
@@ -247,13 +279,11 @@ def _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S):
     ay = S[_AY * B + i]
     bx = S[_BX * B + i]
     by = S[_BY * B + i]
-    a_x, a_y, a_z, rx, ry, rz, mx, my, z_pl, enters = glass_ray(ux, uy, h, hx, hy, ax, ay, bx, by, S[_WX * B + i],
-                                                                S[_WY * B + i], S[_WZ * B + i], t, n_idx)
+    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, S[_WX * B + i],
+                                                          S[_WY * B + i], S[_WZ * B + i], t, n_idx)
     inv = 1.0 / rz
     cx = rx * inv
     cy = ry * inv
-    zg = S[_ZG * B + i]
-    S[_ZG * B + i] = zg if np.isfinite(zg) else z_pl
     S[_QOX * B + i] = a_x
     S[_QOY * B + i] = a_y
     S[_QOZ * B + i] = a_z
@@ -304,9 +334,9 @@ def _foot_run(n, c, gxi, gyj, t, n_idx, d2, d3, tol, S):
         hxx = e0 + sy * (e1 + sy * (e2 + sy * e3))
         hxy = e1d1 + sy * (2.0 * e1d2 + sy * 3.0 * e1d3)
         hyy = 2.0 * r2 + 6.0 * sy * r3
-        ux, uy, h, hx, hy, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
-                                            S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
-        _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+        ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
+                                               S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
+        _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
 
 
 @numba.njit(**_JIT)
@@ -357,18 +387,24 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     d3 = dmax[1]
     if plane:
         for i in range(n):
-            ux, uy, h, hx, hy, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
-                                                S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t, d2,
-                                                d3, tol)
-            _foot_store(i, ux, uy, h, hx, hy, ok, t, n_idx, S)
+            ux, uy, h, hx, hy, g, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
+                                                   S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t,
+                                                   d2, d3, tol)
+            _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
     elif kind == _KIND_SPLINE:
         _patches_at(n, gx, gy, S, P)
         nx1 = gx.shape[0] - 1
+        b0 = P[_PID * B]
+        n_other = 0
+        for i in range(n):
+            n_other += P[_PID * B + i] != b0
         i = 0
         while i < n:
             s = i
             b = P[_PID * B + i]
             i += 1
+            if n_other == 0:
+                i = n
             while i < n and P[_PID * B + i] == b:
                 i += 1
             bi = b // 16
@@ -380,16 +416,18 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     # The emitting-surface hit of the refracted rays (the tracer's intersection stage).
     _intersect_block(n, kind, gx, gy, coef, dmax, tol, False, S, P)
     _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_WX), S)
-    # Pixels the fast path did not settle: the refracting pass's trace.
+    # Pixels the fast path did not settle: more foot-point steps (scalar), else the refracting
+    # pass's trace.
     for i in range(n):
         mg = S[_GM * B + i]
         if mg < 0.0:
             continue
         if S[_C * B + i] == 0.0 and _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg):
             continue
-        x, y, z, st, az, mx, my = fallback_trace(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
+        x, y, z, st, az, mx, my = glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
                                                  S[_OOY * B + i], S[_OOZ * B + i], S[_ODX * B + i], S[_ODY * B + i],
-                                                 S[_ODZ * B + i], S[_ZG * B + i], tol, max_iter)
+                                                 S[_ODZ * B + i], S[_UX * B + i], S[_UY * B + i], S[_ZG * B + i], tol,
+                                                 max_iter)
         S[_X * B + i] = x
         S[_Y * B + i] = y
         S[_Z * B + i] = z
