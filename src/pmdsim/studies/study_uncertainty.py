@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .experiment_uncertainty import coverage_k2 as _coverage
+
 __all__ = ["UNCERTAINTY_METRICS", "EDGE_PERCENTILE", "height_std_edge_um", "coverage_k2", "uncertainty_metrics"]
 
 #: The σ metrics a ``simulate+evaluate`` study may record (per camera).
@@ -41,11 +43,10 @@ def height_std_edge_um(height_std_um) -> float:
 
 def coverage_k2(height_std_um, error_mm) -> float:
     """Fraction of pixels where both are finite with |error| ≤ 2σ (σ in µm, error in mm; NaN
-    if there are none)."""
-    s = np.asarray(height_std_um, dtype=float)
-    e = np.asarray(error_mm, dtype=float) * 1e3
-    ok = np.isfinite(s) & np.isfinite(e)
-    return float(np.mean(np.abs(e[ok]) <= 2.0 * s[ok])) if ok.any() else float("nan")
+    if there are none): :func:`~.experiment_uncertainty.coverage_k2` in the study tables'
+    units, NaN where that gives None."""
+    c = _coverage(np.asarray(error_mm, dtype=float) * 1e3, height_std_um)
+    return float("nan") if c is None else c
 
 
 def uncertainty_metrics(model, camera: str, decoded, reg, rec, error_mm, *, method: str, screen_model) -> dict:
