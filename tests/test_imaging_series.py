@@ -82,3 +82,60 @@ def test_truncated_series_within_its_tolerance_of_the_uncut_series(lens, toleran
             assert kept < 0.5
         elif tol > 0.1:
             assert kept < 0.95
+
+
+def _period_means(setup, periods, tol):
+    m = trace_setup_camera(setup, "left", store_points=True)
+    maps = imaging_maps(setup, "left", m)
+    sensor = SensorModel.from_setup(setup)
+    seq = setup.patterns.sequence
+    out = []
+    for p in periods:
+        means = np.empty((seq.n_shifts,) + m.valid.shape)
+        counts = np.empty(m.valid.shape, dtype=np.int64)
+        render_period_imaging(maps, m.screen_xy_mm, m.valid, "x", p, seq, sensor, np.random.default_rng(0),
+                              tolerance_dn=tol, means=means, counts=counts)
+        out.append((means[:, m.valid], counts[m.valid]))
+    return out
+
+
+@pytest.mark.parametrize("k", [2, 3])
+def test_a_period_of_whole_screen_pixels_renders_as_its_limit(k):
+    """A fringe period of exactly k screen pixels puts aliases at frequency zero (r + a = 0 up to
+    rounding). The images are continuous in the period: at p = k·P they equal those at
+    p = k·P·(1 + 1e-10), where r + a is 1e-10·r away from 0 and the weight sin(πr)/(π(r + a)) is
+    well conditioned. (The weight evaluated from rounding noise at p = k·P was off by up to 2 for
+    harmonics 15–30 of the 256-level display; its mean grey level by ≈ 0.1–0.5 DN.) Uncut series,
+    sharp camera (the staircase resolved), every other effect on."""
+    kw = dict(EVERY_EFFECT)
+    del kw["f_number"], kw["focal_length_mm"]
+    setup = default_setup().with_imaging(**kw).binned(16)
+    pitch = setup.imaging.screen_pixel_pitch_mm
+    exact, near = _period_means(setup, (k * pitch, k * pitch * (1.0 + 1e-10)), 0.0)
+    # the phase moves by 2π·(x/p)·1e-10 ≤ 2e-7 rad at |x| ≤ 300 mm: ≤ 1e-3 DN of a 4095-DN fringe
+    assert np.abs(exact[0] - near[0]).max() < 2e-3
+
+
+def test_harmonics_without_screen_pixels_are_cut_by_the_transfer_envelope():
+    """No screen pixels, f/8 and 256 display levels: harmonic n's terms are bounded by
+    S_n·E(n/p) (the lens's J₁ envelope), so at 1e-3 DN the harmonic series of the 2 mm period is
+    cut short (28.6 of the 48 harmonics kept on average at binning 16; all 48 before the envelope
+    was applied), and the means stay within the tolerance of the uncut series."""
+    kw = {k: v for k, v in EVERY_EFFECT.items() if k not in ("screen_pixel_pitch_mm", "screen_fill_factor")}
+    setup = default_setup().with_imaging(**kw).binned(16)
+    uncut = _period_means(setup, (2.0, 48.0), 0.0)
+    cut = _period_means(setup, (2.0, 48.0), TRUNCATION_TOLERANCE_DN)
+    for (ref, n_ref), (got, n_got) in zip(uncut, cut):
+        assert np.all(n_ref == 48)
+        assert np.abs(got - ref).max() <= TRUNCATION_TOLERANCE_DN
+    assert cut[0][1].mean() < 0.9 * 48  # 2 mm at f/8: the envelope leaves harmonics out
+
+
+@pytest.mark.parametrize("tol", [float("nan"), -1e-3, float("inf")])
+def test_a_tolerance_that_is_not_a_finite_non_negative_number_is_refused(tol):
+    setup = default_setup().binned(16)
+    m = trace_setup_camera(setup, "left", store_points=True)
+    maps = imaging_maps(setup, "left", m)
+    with pytest.raises(ValueError, match="tolerance_dn"):
+        render_period_imaging(maps, m.screen_xy_mm, m.valid, "x", 2.0, setup.patterns.sequence,
+                              SensorModel.from_setup(setup), np.random.default_rng(0), tolerance_dn=tol)

@@ -173,6 +173,9 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     """
     if direction not in DIRECTIONS:
         raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
+    tol = float(tolerance_dn)
+    if not (np.isfinite(tol) and tol >= 0.0):
+        raise ValueError(f"tolerance_dn must be a finite number of grey levels ≥ 0, got {tolerance_dn!r}")
     axis = DIRECTIONS.index(direction)
     n = sequence.n_shifts
     delta = 2.0 * np.pi * np.arange(n) / n
@@ -207,7 +210,7 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
                   np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
                   maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
                   sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
-                  noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, float(tolerance_dn), out, m_out, c_out)
+                  noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, tol, out, m_out, c_out)
     return out
 
 

@@ -190,16 +190,17 @@ def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, suffix, share
             terms = 0
             for m in range(1, kmax + 1):
                 cn, sn = cn * c1 - sn * s1, sn * c1 + cn * s1
-                # Harmonics m … K dropped when their bound is within half the budget.
-                if suffix[m] <= 0.5 * tau:
-                    if not aliasing:
-                        if suffix[m] * _envelope(m / period, sig4pi, ju, jv) <= 0.5 * tau:
-                            break
-                    else:
-                        if lam < 0.0:
-                            lam = _family_bound(hold, sig4pi, ju, jv, na)
-                        if suffix[m] * lam <= 0.5 * tau:
-                            break
+                # Harmonics m … K dropped when their bound is within half the budget: S_m·E(m/p)
+                # without screen pixels (E is non-increasing in ν), S_m·Λ with them (Λ ≥ 1, so
+                # S_m ≤ τ/2 is necessary and tested first).
+                if not aliasing:
+                    if suffix[m] * _envelope(m / period, sig4pi, ju, jv) <= 0.5 * tau:
+                        break
+                elif suffix[m] <= 0.5 * tau:
+                    if lam < 0.0:
+                        lam = _family_bound(hold, sig4pi, ju, jv, na)
+                    if suffix[m] * lam <= 0.5 * tau:
+                        break
                 if not aliasing:
                     tm = coef[m]
                     if xj != 0.0:
@@ -226,20 +227,34 @@ def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, suffix, share
                         ia = abs(a)
                         sg = 1.0 if a >= 0 else -1.0
                         z = r + a
-                        ta = coef[m] * (sh / (np.pi * z) if z != 0.0 else (1.0 - 2.0 * (ia % 2)))
+                        # sin(πr)/(πz) = (−1)^a·sin(πz)/(πz). Where z is within rounding of 0 (a
+                        # period that is a whole number of screen pixels: r = −a exactly, but
+                        # m·P/p is not) the recurrence's sin(πr) and z are both rounding noise:
+                        # the limit (−1)^a·(1 − (πz)²/6) is used for |z| < 1e-6 (its error there
+                        # < 1e-22; sh/(πz) elsewhere, relative error ≲ m·1e-16/|πz| ≤ m·3e-11).
+                        if abs(z) < 1e-6:
+                            ta = coef[m] * (1.0 - 2.0 * (ia % 2)) * (1.0 - (np.pi * z) ** 2 / 6.0)
+                        else:
+                            ta = coef[m] * sh / (np.pi * z)
                         if xj != 0.0:
                             ta *= jinc(xj * period / hold * abs(z), table)
                         if use_jac:
                             nu = z / hold
                             za = np.pi * jac[v, u, 0] * nu
                             zb = np.pi * jac[v, u, 1] * nu
-                            if za != 0.0:
+                            # sinc factors sin(ζ)/ζ; near ζ = 0 the angle-addition numerator is
+                            # rounding noise of the size of ζ itself: the limit 1 − ζ²/6 there.
+                            if abs(za) >= 1e-6:
                                 ta *= (sa * cua[ia] + cam_a * sg * sua[ia]) / za
-                            if zb != 0.0:
+                            else:
+                                ta *= 1.0 - za * za / 6.0
+                            if abs(zb) >= 1e-6:
                                 ta *= (sb * cva[ia] + cam_b * sg * sva[ia]) / zb
+                            else:
+                                ta *= 1.0 - zb * zb / 6.0
                         t += ta * cpa[ia]
                         ts += ta * sg * spa[ia]
-                    terms += a_hi - a_lo + 1
+                    terms += max(0, a_hi - a_lo + 1)
                 # Σ_k: cos(m(φ − δ_k) + ψ) through the residue ρ = m mod N (cos mδ_k = cos ρδ_k).
                 rho = m % n
                 acc_c[rho] += t * cn - ts * sn
