@@ -155,11 +155,20 @@ def test_least_squares_integration_with_the_dct_preconditioner(monkeypatch):
     dec = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, "left", stream=4))
     model = s.with_bulge(0.0)
     runs = {}
+    real, calls = P.dct_pcg, []
+
+    def counted(*a, **k):  # the real solver, counted: the "dct" run must take the DCT branch
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(P, "dct_pcg", counted)
     for kind in ("dct", "multigrid"):
         monkeypatch.setattr(P, "DCT_MIN_PIXELS", 0)
         monkeypatch.setattr(P, "DCT_MIN_FILL", 0.0 if kind == "dct" else 2.0)
+        calls.clear()
         _, rec = evaluate_decoded(model, "left", dec, method="least_squares")
         assert rec.converged
+        assert (len(calls) > 0) == (kind == "dct"), (kind, len(calls))
         runs[kind] = rec.height_mm
     assert dec.valid.all() and np.isfinite(runs["dct"]).all()
     assert np.max(np.abs(runs["dct"] - runs["multigrid"])) < 1e-9

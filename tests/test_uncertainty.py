@@ -214,3 +214,23 @@ def test_api_and_anchor_key(tiny):
     a = anchor_from_dict({"kind": "distance", "pixel_vu": [7, 12], "distance_mm": 600.0,
                           "point_world_mm": [0, 0, 0], "distance_std_mm": 0.05})
     assert a.distance_std_mm == 0.05 and anchor_std_mm(a, None) == 0.05 and anchor_std_mm(a, 0.1) == 0.1
+
+
+def test_a_decoder_sigma_that_is_not_finite_is_refused_and_the_heights_stand(tiny):
+    """NaN σ of the screen coordinates at reconstructed pixels (a decoder or an importer that
+    cannot state it) would propagate as σ = 0, i.e. exact heights: surface_uncertainty refuses
+    it, naming the camera and the count; pmdsim.evaluate warns and returns the same heights."""
+    from dataclasses import replace
+
+    import pmdsim
+    from pmdsim.errors import ConsistencyWarning
+
+    s, _, dec = tiny
+    holed = replace(dec, std_xy_mm=np.where(dec.valid[..., None], np.nan, dec.std_xy_mm))
+    reg, rec = evaluate_decoded(s, "left", holed)
+    with pytest.raises(U.UncertaintyError, match=r"'left'.*std_xy_mm.*not finite at \d+ reconstructed"):
+        U.surface_uncertainty(s, "left", holed, reg, rec, method="stepwise")
+    with pytest.warns(ConsistencyWarning, match="uncertainty"):
+        ev = pmdsim.evaluate(holed, s, "left")
+    assert ev.uncertainty is None
+    np.testing.assert_array_equal(ev.height_mm, pmdsim.evaluate(dec, s, "left", uncertainty=False).height_mm)

@@ -252,6 +252,8 @@ def test_cli_evaluate_stereo_writes_the_uncertainty(tmp_path):
             h = g["height_std_um"][()]
             assert np.isfinite(h[rec]).all() and (h[rec] > 0).all()  # absolute: no pixel is held
             assert g["anchor_height_std_um"].shape == g["anchor_height_mm"].shape
+            assert g["anchor_height_std_um"].attrs["units"] == "um"  # self-describing, as anchor_height_mm
+            assert g["anchor_height_std_um"].dims[0].keys() == g["anchor_height_mm"].dims[0].keys()
             assert doc[cam]["samples_K"] == 64 and doc[cam]["heights_relative_to"].startswith("nothing: absolute")
             assert (tmp_path / "ev" / f"height_std_{cam}.png").exists()
     r = run("evaluate", tmp_path / "img", "--setup", setup_file, "--out", tmp_path / "ev2", "--stereo",
@@ -275,3 +277,27 @@ def test_api_evaluate_stereo_carries_the_uncertainty(flat):
         assert c.anchor_height_std_um.shape == c.anchor_height_mm.shape
         np.testing.assert_allclose(c.anchor_height_std_um, unc[cam][1])  # the same anchors, the same σ
     assert all(c.uncertainty is None for c in pmdsim.evaluate_stereo(dec, s, uncertainty=False).cameras.values())
+
+
+def test_what_stereo_sigma_cannot_use_is_refused_and_the_heights_stand(flat):
+    """One camera is no stereo; a decoder σ that is NaN at reconstructed pixels would give σ = 0
+    (exact heights) if taken as it is: both are refused with the reason, and the API keeps the
+    heights and warns."""
+    import pmdsim
+    from pmdsim.errors import ConsistencyWarning
+    from pmdsim.evaluation.uncertainty import UncertaintyError
+
+    s, dec, views, st, _ = flat
+    with pytest.raises(UncertaintyError, match="at least two cameras"):
+        US.stereo_uncertainty(s, {"left": views["left"]}, dec, st)
+    holed = dict(dec)
+    d = dec["left"]
+    holed["left"] = replace(d, std_xy_mm=np.where(d.valid[..., None], np.nan, d.std_xy_mm))
+    with pytest.raises(UncertaintyError, match=r"'left'.*std_xy_mm.*not finite at \d+ reconstructed"):
+        US.stereo_uncertainty(s, views, holed, st)
+    with pytest.warns(ConsistencyWarning, match="no uncertainty"):
+        res = pmdsim.evaluate_stereo(holed, s, stride_px=STRIDE)
+    ref = pmdsim.evaluate_stereo(dec, s, stride_px=STRIDE, uncertainty=False)
+    for cam, c in res.cameras.items():
+        assert c.uncertainty is None
+        np.testing.assert_array_equal(c.reconstruction.p_sample_mm, ref.cameras[cam].reconstruction.p_sample_mm)

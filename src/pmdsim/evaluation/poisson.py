@@ -86,7 +86,8 @@ class DCTLaplacian:
         there). Returns an array of ``dtype``. ``overwrite`` lets it use r (of ``dtype``) as
         work space; ``totals`` (scalar or (k,)): Σ r over the other pixels, if known."""
         sv, su = self.pinned
-        x = np.array(r, dtype=self.dtype, copy=not overwrite)
+        # overwrite: r itself when it is already of ``dtype`` (else a converted copy, as numpy ≥ 2 requires)
+        x = np.asarray(r, dtype=self.dtype) if overwrite else np.array(r, dtype=self.dtype)
         if totals is None:
             x[..., sv, su] = 0.0
             totals = x.sum(axis=(-2, -1), dtype=np.float64)

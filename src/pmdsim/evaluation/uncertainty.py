@@ -506,7 +506,12 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
     T_ref_screen = setup.sample.T_world_sample.inv() @ setup.screen.T_world_screen
     R = np.asarray(T_ref_screen.rotation, dtype=float)
     dq = _screen_tangents(R, screen_model, decoded.screen_xy_mm)
-    std = np.nan_to_num(np.asarray(decoded.std_xy_mm, dtype=float))
+    std = np.asarray(decoded.std_xy_mm, dtype=float)
+    bad = int(np.count_nonzero(~np.isfinite(std[S]).all(axis=-1)))
+    if bad:
+        raise UncertaintyError(f"camera {camera!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
+                               f"pixel(s); no σ of the surface")
+    std = np.nan_to_num(std)  # outside the reconstructed pixels: unused
     A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
     if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
         notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")

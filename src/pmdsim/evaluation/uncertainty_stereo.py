@@ -191,7 +191,6 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
                np.zeros((n, 16)), np.zeros(n, dtype=np.bool_))
         _anchor_kernel(o, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, *out)
         r = np.where(out[6], out[3], np.inf)
-        cand = (partner, oB, out)
         if best is None:
             best = [np.array([partner] * n, dtype=object), oB, *[a.copy() for a in out]]
             best_r = r
@@ -200,7 +199,7 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
         best_r = np.where(take, r, best_r)
         best[0][take] = partner
         for j in range(7):
-            best[2 + j][take] = cand[2][j][take]
+            best[2 + j][take] = out[j][take]
     partners, _, p, qB_pt, J, _, idx, w, ok = best
     # A's own term: c_A = −(JᵀJ)⁻¹ Jᵀ G_A T_A diag(σ_A)
     sA = np.nan_to_num(np.asarray(decoded[camera].std_xy_mm, dtype=float))[rows, cols]
@@ -223,7 +222,10 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
                              slope_jacobian(oB, p[sel, None], qB_pt[sel, None], E2)[:, 0, :, :1]], axis=-1)  # (m, 2, 3)
         HB, WB = decoded[partner].valid.shape
         TB = tangents[partner].reshape(HB * WB, 3, 2)[idx[sel]]  # (m, 16, 3, 2)
-        sB = np.nan_to_num(np.asarray(decoded[partner].std_xy_mm, dtype=float)).reshape(HB * WB, 2)[idx[sel]]
+        sB = np.asarray(decoded[partner].std_xy_mm, dtype=float).reshape(HB * WB, 2)[idx[sel]]
+        # an interpolation pixel without σ leaves the anchor without σ (noted), not with a smaller one
+        ok[sel[~(np.isfinite(sB).all(axis=-1) | (w[sel] == 0.0)).all(axis=1)]] = False
+        sB = np.nan_to_num(sB)
         jG = np.einsum("ni,nik->nk", J[sel], np.nan_to_num(GB))  # (m, 3)
         cB = (inv[sel] [:, None, None] * w[sel][..., None] * np.einsum("nk,nmkj->nmj", jG, TB) * sB)  # (m, 16, 2)
         var[sel] += np.sum(cB ** 2, axis=(1, 2))
@@ -231,7 +233,7 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
         terms_c.append(np.full(sel.size * 16, names.index(partner)))
         terms_p.append(idx[sel].reshape(-1))
         terms_k.append(cB.reshape(-1, 2))
-    std = np.where(ok, np.sqrt(var), np.nan)
+    std = np.where(ok & (jj > 0), np.sqrt(var), np.nan)  # J = 0: the height is not determined
     return AnchorNoise(std, tuple(partners), np.ascontiguousarray(np.concatenate(terms_a), dtype=np.int64),
                        np.ascontiguousarray(np.concatenate(terms_c), dtype=np.int64),
                        np.ascontiguousarray(np.concatenate(terms_p), dtype=np.int64),
@@ -339,12 +341,24 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
     UncertaintyError
         σ cannot be computed (the caller keeps the heights).
     """
+    if len(views) < 2:
+        raise UncertaintyError(f"stereo σ needs at least two cameras' views, got {len(views)}")
+    missing = [c for c in views if c not in stereo.cameras or c not in decoded]
+    if missing:
+        raise UncertaintyError(f"camera(s) {missing} have a view but no stereo reconstruction or decoded images")
+    if int(samples) < 2:
+        raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
     tangents = {c: _tangents(setup, screen_model, decoded[c]) for c in views}
     A, g_noise, noise, lins = {}, {}, {}, {}
     for c, view in views.items():
         reg = view.registration
         rec = stereo.cameras[c].reconstruction
-        std = np.nan_to_num(np.asarray(decoded[c].std_xy_mm, dtype=float))
+        std = np.asarray(decoded[c].std_xy_mm, dtype=float)
+        bad = int(np.count_nonzero(~np.isfinite(std[rec.reconstructed]).all(axis=-1)))
+        if bad:
+            raise UncertaintyError(f"camera {c!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
+                                   f"pixel(s); no σ of the surface")
+        std = np.nan_to_num(std)  # outside the reconstructed pixels: unused
         A[c], g_noise[c] = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, tangents[c],
                                             rec.reconstructed, std)
         sc = stereo.cameras[c]
@@ -366,6 +380,8 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
             notes.append(f"{a_std.size - fin.size} anchors without σ (the partner does not see them at the height "
                          f"found): their own noise is not included")
         notes.append(STEREO_CALIBRATION_NOTE if cov is not None else NO_COVARIANCE_NOTE)
+        if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
+            notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
         zero_g = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
         h_um = h[c] * 1e3
         g_urad = g_noise[c] * 1e6
