@@ -52,7 +52,7 @@ from ..errors import PmdsimError
 from ..geometry.compact import compact_repr
 from .least_squares import _assemble_gauss_newton, _row_geometry
 from .multigrid import _CGWork, _Multigrid, _pcg
-from .uncertainty_stepwise import _edge_jac, _splitmix64, stepwise_sampled
+from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key, stepwise_sampled
 
 __all__ = ["UncertaintyError", "SurfaceUncertainty", "slope_jacobian", "slope_std", "height_std_sampled",
            "anchor_height_derivative", "surface_uncertainty", "combine", "DEFAULT_SAMPLES", "NO_COVARIANCE_NOTE"]
@@ -242,7 +242,7 @@ def _screen_tangents(reg_T_ref_screen_R, screen_model, xy) -> np.ndarray:
 @numba.njit(cache=True, inline="always")
 def _word(seed, pix, chunk, n_chunks):
     """64 random bits of pixel ``pix`` for samples 32·chunk … 32·chunk + 31 (bit 2k: ξ_x, 2k+1: ξ_y)."""
-    return _splitmix64(_splitmix64(np.uint64(seed)) ^ np.uint64(pix * n_chunks + chunk))
+    return _draw_word(_seed_key(seed), pix, chunk, n_chunks)
 
 
 @numba.njit(cache=True, inline="always")

@@ -37,6 +37,20 @@ def _splitmix64(x):
     return z ^ (z >> np.uint64(31))
 
 
+@numba.njit(cache=True, inline="always")
+def _seed_key(seed):
+    """The hashed seed of a set of draws (:func:`_draw_word`)."""
+    return _splitmix64(np.uint64(seed))
+
+
+@numba.njit(cache=True, inline="always")
+def _draw_word(key, pix, chunk, n_chunks):
+    """64 random bits of pixel ``pix`` (flat index) for samples 32·chunk … 32·chunk + 31 (bit 2k:
+    ξ_x, 2k + 1: ξ_y), ``key`` = :func:`_seed_key` (seed): the one definition of the σ
+    estimator's Rademacher draws (the stepwise kernel, the least-squares and stereo paths)."""
+    return _splitmix64(key ^ np.uint64(pix * n_chunks + chunk))
+
+
 @numba.njit(cache=True)
 def _edge_jac(geo, va, ua, vb, ub):
     """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)."""
@@ -120,11 +134,11 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
     e_c = np.zeros((width, 4, 3))  # per incoming edge: ½ (A_a^T Δxy) x, y and J_a
     b_c = np.zeros((width, 3))  # Σ ½ (A_b^T Δxy) x, y and Σ J_b
     s_out = np.zeros(width)
-    key = _splitmix64(np.uint64(seed))
+    key = _seed_key(seed)
     ok = True
     k0 = order[0]
     for c in range(n_chunks):  # the seed: δz = 0, its draws enter its neighbours' equations
-        w_prev[0, c] = _splitmix64(key ^ np.uint64(k0 * n_chunks + c))
+        w_prev[0, c] = _draw_word(key, k0, c, n_chunks)
     for L in range(1, n_layers):
         s0 = starts[L]
         nL = starts[L + 1] - s0
@@ -157,7 +171,7 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
         for i in range(nL):  # all K samples of each pixel
             kb = order[s0 + i]
             for c in range(n_chunks):
-                w_cur[i, c] = _splitmix64(key ^ np.uint64(kb * n_chunks + c))
+                w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
             z = cur[i]
             for k in range(K):
                 z[k] = 0.0
