@@ -22,7 +22,7 @@ from ..geometry.surface import (
     _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
 )
 from ..geometry.transform import RigidTransform
-from .glass_rows import glass_pixel
+from .glass_switch import glass_pixel_if
 from .trace_rows import _BLK, _NF, _NI, trace_row
 from ..geometry.compact import compact_repr
 
@@ -91,7 +91,7 @@ def _trace_run(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass,
 ):
     """Trace one band of ``band_rows`` runs of ``run_length`` rays (image rows).
 
@@ -111,7 +111,9 @@ def _trace_run(
     through it (:mod:`pmdsim.simulation.glass_rows`, warm started from the pixels two and
     three to the left in the first row of a band, from the rows above in the others:
     ``z_rows[band]`` has 10 rows then, the screen heights being those of the emitting-surface
-    points seen through the glass).
+    points seen through the glass). ``with_glass`` is a boolean literal: the glass-free entry
+    kernel :func:`_trace_kernel` passes ``False`` and does not compile the glass stage
+    (:mod:`pmdsim.simulation.glass_switch`); :func:`_trace_kernel_glass` passes ``True``.
     """
     n = d_cam.shape[0]
     nan = np.nan
@@ -142,7 +144,7 @@ def _trace_run(
                 s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
                 p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
                 tol, max_iter, sample_codes, screen_codes,
-                screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
+                screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass,
             )
             continue
         zs_prev = nan  # sample height of the previous pixel
@@ -239,9 +241,9 @@ def _trace_run(
                             az_g = ga1
                             mx_g = gx1
                             my_g = gy1
-                        qx, qy, qz, st2, gaz, gmx, gmy = glass_pixel(
-                            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, glass_t, glass_n, qox, qoy, qoz, wx,
-                            wy, wz, az_g, mx_g, my_g, zq_guess, tol, max_iter
+                        qx, qy, qz, st2, gaz, gmx, gmy = glass_pixel_if(
+                            with_glass, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, glass_t, glass_n,
+                            qox, qoy, qoz, wx, wy, wz, az_g, mx_g, my_g, zq_guess, tol, max_iter
                         )
                     else:
                         t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
@@ -311,7 +313,25 @@ def _trace_kernel(
             s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
             p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
             tol, max_iter, sample_codes, screen_codes,
-            screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
+            screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, False,
+        )
+
+
+@numba.njit(cache=True, parallel=True)
+def _trace_kernel_glass(
+    d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
+    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+    p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
+    tol, max_iter, sample_codes, screen_codes,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
+):
+    for band in numba.prange(0, z_rows.shape[0]):
+        _trace_run(
+            band, d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
+            s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
+            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
+            tol, max_iter, sample_codes, screen_codes,
+            screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, True,
         )
 
 
@@ -422,7 +442,7 @@ def trace_rays(
     # descheduled for a while does not hold up the others.
     old_chunksize = numba.set_parallel_chunksize(1)
     try:
-        _trace_kernel(
+        (_trace_kernel_glass if with_glass else _trace_kernel)(
             df, okf, run_length, band_rows, z_rows, scratch, pscratch,
             readonly(np.ascontiguousarray(T_sample_cam.rotation)),
             readonly(np.ascontiguousarray(T_sample_cam.translation)),

@@ -327,7 +327,7 @@ def trace_row(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass,
 ):
     """Trace the m pixels kb … kb + m − 1 of one image row, warm started from the rows above.
 
@@ -338,7 +338,8 @@ def trace_row(
     the squared cosine of the largest angle of incidence on the sample; ``glass_t``,
     ``glass_n``: the cover glass's thickness (0: none) and index — with a glass, stage 4 is
     :func:`.glass_rows.glass_block` (the screen point is the emitting-surface point seen
-    through the glass).
+    through the glass); ``with_glass``: a boolean literal, ``False`` in the glass-free tracer,
+    which then does not compile the glass stage (:mod:`.glass_switch`).
     """
     B = _BLK
     nan = np.nan
@@ -439,8 +440,8 @@ def trace_row(
                        S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i], cos2_max, bm, zq1, zq2, S)
         # 4. The screen intersection (through the cover glass, if any).
         if glass_t > 0.0:
-            _glass_rows.glass_block(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, glass_t,
-                                    glass_n, zr, col0, S, P)
+            _glass_switch.glass_block_if(with_glass, n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol,
+                                         max_iter, glass_t, glass_n, zr, col0, S, P)
         else:
             _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
             _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, np.bool_(False),
@@ -495,4 +496,4 @@ def _glass_rows_update(n, zr, col0, S):
 
 
 # (glass_rows uses this module's stages and scratch fields: imported last, as a module)
-from . import glass_rows as _glass_rows  # noqa: E402
+from . import glass_switch as _glass_switch  # noqa: E402
