@@ -51,7 +51,7 @@ def test_apparent_points_match_the_exact_refraction_trace():
     mir = np.array([[0.0, 0.0, 1.0, 1e6]])  # a plane far away: c' = reflect(cen) is set through cen below
     cen = (c - 2.0 * (c @ mir[0, :3] - mir[0, 3]) * mir[0, :3])[None]  # reflects back to c
     glass_points_kernel(np.array([0]), np.array([50]), np.array([0]), np.array([0]), q, np.zeros((50, 2)), cen, mir,
-                        glass.thickness_mm, glass.index, qa, gl, bad)
+                        glass.thickness_mm, glass.index, True, q, qa, gl, bad)
     assert not bad.any()
     exact = glass.apparent_points(PlaneSurface((0.0, 708.0), (0.0, 398.0)), c, q)
     np.testing.assert_allclose(qa, exact, atol=1e-8, rtol=0)

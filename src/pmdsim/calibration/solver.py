@@ -298,7 +298,8 @@ def _acceleration_gradient(data: _Data, state: CalibrationState, delta: np.ndarr
     ng = state.n_glass
     glass_on, q, gl, dwx, dwy, gsel, g_units, _ = glass_inputs(data, state, _screen_q(data.q, data.wx, data.wy,
                                                                                      state.screen))
-    q_t = np.ascontiguousarray(glass_inputs(data, probe, _screen_q(data.q, data.wx, data.wy, probe.screen))[1])
+    q_t = np.ascontiguousarray(glass_inputs(data, probe, _screen_q(data.q, data.wx, data.wy, probe.screen),
+                                            derivatives=False)[1])
     d_cam = np.ascontiguousarray(delta[:_NC * nc].reshape(nc, _NC))
     d_mir = np.ascontiguousarray(delta[_NC * nc:_NC * nc + _NM * len(state.mirrors)].reshape(-1, _NM))
     d_h = np.ascontiguousarray(delta[delta.size - nf - ng:delta.size - ng])

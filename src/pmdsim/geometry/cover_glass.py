@@ -191,6 +191,90 @@ def _trace_many(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, o, d, q, tol, 
                      tol, max_iter, out, status)
 
 
+@numba.njit(**_JIT)
+def _apparent_range(start, end, kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, p, q, ok, tol_inv, max_iter_inv,
+                    tol, max_iter, out, converged):
+    """:meth:`CoverGlass.apparent_points` for the points ``start:end`` (its fixed point per point,
+    then the straight line's hit of the emitting surface)."""
+    nan = np.nan
+    for i in range(start, end):
+        converged[i] = True
+        if not ok[i]:
+            out[i, 0] = nan
+            out[i, 1] = nan
+            out[i, 2] = nan
+            continue
+        px = p[i, 0]
+        py = p[i, 1]
+        pz = p[i, 2]
+        qx = q[i, 0]
+        qy = q[i, 1]
+        qz = q[i, 2]
+        _h, hx, hy = eval_kernel(kind, gx, gy, coef, qx, qy)
+        nrm = math.sqrt(hx * hx + hy * hy + 1.0)
+        ax = qx + t * (hx / nrm)
+        ay = qy + t * (hy / nrm)
+        az = qz + t * (-1.0 / nrm)
+        failed = False
+        todo = True
+        # The foot point of A (where the offset normal through A meets the emitting surface):
+        # Q for the first trace, then A − t·m with the plate normal of the previous trace.
+        ux = qx
+        uy = qy
+        for _ in range(max_iter_inv):
+            x, y, z, st, _az, mx, my = through_glass_full(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, px, py, pz,
+                                                          ax - px, ay - py, az - pz, ux, uy, qz, tol, max_iter)
+            if st != 0:
+                failed = True
+                todo = False
+                break
+            sx = qx - x
+            sy = qy - y
+            sz = qz - z
+            ax += sx
+            ay += sy
+            az += sz
+            ux = ax - t * mx
+            uy = ay - t * my
+            if max(abs(sx), abs(sy), abs(sz)) < tol_inv:
+                todo = False
+                break
+        converged[i] = not todo
+        if failed or todo:
+            out[i, 0] = nan
+            out[i, 1] = nan
+            out[i, 2] = nan
+            continue
+        # The straight line P → A meets the emitting surface near Q: Newton steps from Q's height,
+        # the safeguarded solver if they do not settle (as in through_glass_full).
+        z = qz
+        st = _NEEDS_SOLVE
+        for _ in range(_NEWTON_STEPS):
+            _s, x, y, z, _hx, _hy, st = intersect_kernel(kind, gx, gy, coef, dmax, px, py, pz, ax - px, ay - py,
+                                                         az - pz, tol, z, False)
+            if st != _NEEDS_SOLVE:
+                break
+        if st == _NEEDS_SOLVE:
+            _s, x, y, z, _hx, _hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, px, py, pz, ax - px,
+                                                        ay - py, az - pz, tol, max_iter, z)
+        if st != 0:
+            x = nan
+            y = nan
+            z = nan
+        out[i, 0] = x
+        out[i, 1] = y
+        out[i, 2] = z
+
+
+@numba.njit(cache=True, parallel=True)
+def _apparent_many(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, p, q, ok, tol_inv, max_iter_inv, tol, max_iter,
+                   out, converged):
+    n = p.shape[0]
+    for c in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
+        _apparent_range(c * _CHUNK, min(n, (c + 1) * _CHUNK), kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, p, q,
+                        ok, tol_inv, max_iter_inv, tol, max_iter, out, converged)
+
+
 @dataclass(frozen=True)
 class CoverGlass:
     """A cover-glass plate of ``thickness_mm`` and refractive ``index`` (module docstring).
@@ -285,26 +369,14 @@ class CoverGlass:
         p, q = np.broadcast_arrays(np.asarray(p_mm, dtype=float), np.asarray(q_mm, dtype=float))
         if not self.present:
             return (q.copy(), np.ones(q.shape[:-1], dtype=bool)) if return_converged else q.copy()
-        t = self.thickness_mm
-        ok = np.isfinite(p).all(axis=-1) & np.isfinite(q).all(axis=-1)
-        qs = np.where(ok[..., None], q, 0.0)
-        ps = np.where(ok[..., None], p, 0.0)
-        grad = surface.gradient(qs[..., 0], qs[..., 1])
-        m = np.concatenate([grad, -np.ones_like(grad[..., :1])], axis=-1)
-        m /= np.linalg.norm(m, axis=-1, keepdims=True)
-        a = qs + t * m
-        st = np.where(ok, 0, 1).astype(np.uint8)
-        todo = ok.copy()  # not yet converged (and tracing)
-        failed = np.zeros(ok.shape, dtype=bool)
-        for _ in range(int(max_iter)):
-            q1, st1 = self.trace(surface, ps, a - ps, qs, status=np.where(todo, st, 1).astype(np.uint8))
-            good = todo & (st1 == 0)
-            failed |= todo & (st1 != 0)
-            step = np.where(good[..., None], qs - q1, 0.0)
-            a = a + step
-            todo = good & (np.abs(step).max(axis=-1) >= tol_mm)
-            if not todo.any():
-                break
-        _t, out, st1 = surface.intersect(ps, a - ps)
-        out[~(ok & ~failed & ~todo & (st1 == 0))] = np.nan
-        return (out, ~todo) if return_converged else out
+        shape = q.shape[:-1]
+        pf = np.ascontiguousarray(p.reshape(-1, 3))
+        qf = np.ascontiguousarray(q.reshape(-1, 3))
+        ok = np.isfinite(pf).all(axis=-1) & np.isfinite(qf).all(axis=-1)
+        out = np.empty_like(qf)
+        conv = np.empty(qf.shape[0], dtype=np.bool_)
+        k = surface.kernel
+        _apparent_many(k.kind, k.grid_x, k.grid_y, k.coef, k.z_min, k.z_max, k.dmax, self.thickness_mm, self.index,
+                       pf, qf, ok, float(tol_mm), int(max_iter), INTERSECT_TOL_MM, FIXED_POINT_MAX_ITER, out, conv)
+        out = out.reshape(shape + (3,))
+        return (out, conv.reshape(shape)) if return_converged else out
