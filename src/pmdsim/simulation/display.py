@@ -11,8 +11,9 @@
 * Pixel structure: the screen shows the pattern constant over each pixel of pitch P
   (sample-and-hold: the pattern sampled at the pixel centres (j + ½)·P and held, a staircase in
   position; its spectrum is harmonic n of period p at ν = n/p plus aliases at ν = n/p + a/P with
-  weight sin(πnP/p)/(π(nP/p + a)), a = 0 giving sinc(n·P/p) — simulation.imaging renders |a| ≤ 32,
-  each through the camera's transfer at its own frequency, truncated by a bound of the rest) and emits through an aperture of area fraction f (the black
+  weight sin(πnP/p)/(π(nP/p + a)), a = 0 giving sinc(n·P/p); the renderer sums it in position,
+  simulation.imaging_held: the held values weighted by the footprint kernel over each screen
+  pixel) and emits through an aperture of area fraction f (the black
   matrix: a rectangular wave of pitch P and duty √f per axis, whose harmonics survive the blur
   only where the camera resolves the pitch). The mean radiance is normalised to that of a fully
   emitting screen (the exposure refers to the screen's average white).

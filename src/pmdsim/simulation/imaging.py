@@ -13,10 +13,13 @@ the footprint's std along it), evaluated at the defocus footprint's centroid (of
 chief ray's screen point by O(D²)), scales by the emission factor and passes the result through
 the sensor (:class:`.sensor.SensorModel`). A harmonic's transfer is real: it scales the modulation
 and, where it is negative (defocus beyond the first zero of J₁), reverses the contrast — a π phase
-flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20). With
-screen pixels each harmonic also carries its aliases (the staircase); the kernel
-(:mod:`.imaging_series`) sums only the terms a bound of whose remainder exceeds the truncation
-tolerance (default 1e-3 grey levels per pixel and image).
+flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20). The
+kernel (:mod:`.imaging_series`) sums only the terms a bound of whose remainder exceeds the
+truncation tolerance (default 1e-3 grey levels per pixel and image). With screen pixels each
+harmonic also carries its aliases (the staircase); :func:`render_direction_imaging` (used by
+``render_images``) then renders the held pattern in position instead (:mod:`.imaging_held`: the
+exact displayed values weighted by the footprint kernel's integral over each screen pixel, the
+same model summed to infinity), once per direction for all its periods and shifts.
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
