@@ -11,8 +11,9 @@
 * Pixel structure: the screen shows the pattern constant over each pixel of pitch P
   (sample-and-hold: the pattern sampled at the pixel centres (j + ½)·P and held, a staircase in
   position; its spectrum is harmonic n of period p at ν = n/p plus aliases at ν = n/p + a/P with
-  weight sin(πnP/p)/(π(nP/p + a)), a = 0 giving sinc(n·P/p) — simulation.imaging renders |a| ≤ 32,
-  each through the camera's transfer at its own frequency, truncated by a bound of the rest) and emits through an aperture of area fraction f (the black
+  weight sin(πnP/p)/(π(nP/p + a)), a = 0 giving sinc(n·P/p); the renderer sums it in position,
+  simulation.imaging_held: the held values weighted by the footprint kernel over each screen
+  pixel) and emits through an aperture of area fraction f (the black
   matrix: a rectangular wave of pitch P and duty √f per axis, whose harmonics survive the blur
   only where the camera resolves the pitch). The mean radiance is normalised to that of a fully
   emitting screen (the exposure refers to the screen's average white).
@@ -108,7 +109,13 @@ def black_matrix_factor(screen_xy_mm, pitch_mm: float, fill_factor: float, var_x
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, table, out):
+    # sin(m·x), cos(m·x) of the harmonics m = 1 … M by the Chebyshev recurrences (one sine and
+    # cosine per angle and pixel instead of one per harmonic); sinc(m·w) once.
     h, wd = out.shape
+    sw = np.empty(n_harmonics + 1)
+    for m in range(1, n_harmonics + 1):
+        xw = np.pi * m * w
+        sw[m] = 2.0 * w * np.sin(xw) / xw
     for v in numba.prange(0, h):
         for u in range(wd):
             f = 1.0
@@ -118,14 +125,25 @@ def _black_matrix_kernel(xy, var, jac, use_jac, pitch, w, n_harmonics, table, ou
                     f = 1.0
                     break
                 acc = w
+                th = 2.0 * np.pi * (c - 0.5 * pitch) / pitch
+                c1, s1 = np.cos(th), np.sin(th)
+                x0 = np.pi * jac[v, u, a, 0] / pitch if use_jac else 0.0
+                x1 = np.pi * jac[v, u, a, 1] / pitch if use_jac else 0.0
+                c0a, s0a = np.cos(x0), np.sin(x0)
+                c0b, s0b = np.cos(x1), np.sin(x1)
+                cm, sm = 1.0, 0.0  # cos(mθ), sin(mθ)
+                ca, sa = 1.0, 0.0  # cos(m·x0), sin(m·x0)
+                cb, sb = 1.0, 0.0
+                sig = np.sqrt(var[v, u, a])
                 for m in range(1, n_harmonics + 1):
-                    t = jinc(4.0 * np.pi * m * np.sqrt(var[v, u, a]) / pitch, table)
-                    if use_jac:
-                        for j in range(2):
-                            x = np.pi * m * jac[v, u, a, j] / pitch
-                            if x != 0.0:
-                                t *= np.sin(x) / x
-                    xw = np.pi * m * w
-                    acc += 2.0 * w * (np.sin(xw) / xw) * t * np.cos(2.0 * np.pi * m * (c - 0.5 * pitch) / pitch)
+                    cm, sm = cm * c1 - sm * s1, sm * c1 + cm * s1
+                    ca, sa = ca * c0a - sa * s0a, sa * c0a + ca * s0a
+                    cb, sb = cb * c0b - sb * s0b, sb * c0b + cb * s0b
+                    t = jinc(4.0 * np.pi * m * sig / pitch, table)
+                    if x0 != 0.0:
+                        t *= sa / (m * x0)
+                    if x1 != 0.0:
+                        t *= sb / (m * x1)
+                    acc += sw[m] * t * cm
                 f *= acc / w
             out[v, u] = f

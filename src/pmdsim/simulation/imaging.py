@@ -13,10 +13,13 @@ the footprint's std along it), evaluated at the defocus footprint's centroid (of
 chief ray's screen point by O(D²)), scales by the emission factor and passes the result through
 the sensor (:class:`.sensor.SensorModel`). A harmonic's transfer is real: it scales the modulation
 and, where it is negative (defocus beyond the first zero of J₁), reverses the contrast — a π phase
-flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20). With
-screen pixels each harmonic also carries its aliases (the staircase); the kernel
-(:mod:`.imaging_series`) sums only the terms a bound of whose remainder exceeds the truncation
-tolerance (default 1e-3 grey levels per pixel and image).
+flip that the decoder flags (UNWRAP_INCONSISTENT against the coarser periods; issue 20). The
+kernel (:mod:`.imaging_series`) sums only the terms a bound of whose remainder exceeds the
+truncation tolerance (default 1e-3 grey levels per pixel and image). With screen pixels each
+harmonic also carries its aliases (the staircase); :func:`render_direction_imaging` (used by
+``render_images``) then renders the held pattern in position instead (:mod:`.imaging_held`: the
+exact displayed values weighted by the footprint kernel's integral over each screen pixel, the
+same model summed to infinity), once per direction for all its periods and shifts.
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
@@ -44,7 +47,8 @@ from .trace import Mapping
 #: those not bounded below the truncation tolerance are summed (:mod:`.imaging_series`).
 HOLD_ALIASES = 32
 
-__all__ = ["HOLD_ALIASES", "TRUNCATION_TOLERANCE_DN", "ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging", "grey_level_response",
+__all__ = ["HOLD_ALIASES", "TRUNCATION_TOLERANCE_DN", "ImagingMaps", "needs_points", "imaging_maps", "render_period_imaging",
+           "render_direction_imaging", "grey_level_response",
            "decoder_response"]
 
 
@@ -76,6 +80,10 @@ class ImagingMaps:
     focus_distance_mm : float or None
         The camera's focus distance used (``imaging.focus_distance_mm`` or the default); None
         without defocus.
+    display : tuple or None
+        ``(response, levels)`` of the display (:func:`.display.display_response`, ``display_levels``):
+        with screen pixels the held values are r(Q(A + B·cos θ)) exactly (:mod:`.imaging_held`);
+        None: the displayed pattern is the cosine series of ``coefficients``.
     """
 
     var_xy_mm2: np.ndarray
@@ -85,6 +93,7 @@ class ImagingMaps:
     coefficients: np.ndarray
     centroid_xy_mm: np.ndarray | None = None
     focus_distance_mm: float | None = None
+    display: tuple | None = None
 
 
 def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=None) -> ImagingMaps:
@@ -132,11 +141,11 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
         radiance = radiance * black_matrix_factor(xy, im.screen_pixel_pitch_mm, im.screen_fill_factor, var, jac)
     radiance = np.where(np.isfinite(radiance), radiance, 0.0)
     seq = setup.patterns.sequence
-    coef = harmonic_coefficients(display_response(im.display_gamma, im.display_black_level), seq.mean_level,
-                                 seq.amplitude, levels=im.display_levels)
+    resp = display_response(im.display_gamma, im.display_black_level)
+    coef = harmonic_coefficients(resp, seq.mean_level, seq.amplitude, levels=im.display_levels)
     return ImagingMaps(np.ascontiguousarray(var), None if jac is None else np.ascontiguousarray(jac),
                        np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid,
-                       None if im.f_number is None else float(focus))
+                       None if im.f_number is None else float(focus), (resp, im.display_levels))
 
 
 def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
@@ -212,6 +221,61 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
                   sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
                   noise, sensor.noisy, JINC_TABLE, HOLD_ALIASES, tol, out, m_out, c_out)
     return out
+
+
+def render_direction_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
+                             sequence: FringeSequence, sensor: SensorModel, rng: np.random.Generator | None, *,
+                             tolerance_dn: float = TRUNCATION_TOLERANCE_DN,
+                             means: np.ndarray | None = None) -> np.ndarray:
+    """All images of one direction, every period coarsest first: (P, N, H, W).
+
+    With screen pixels (``maps.hold_pitch_mm`` > 0) the held pattern is rendered in position
+    (:mod:`.imaging_held`): the per-pixel weights of the screen pixels under the footprint are
+    computed once and shared by every period and shift; the displayed values are exact
+    (``maps.display``). Without, each period is the harmonic series of
+    :func:`render_period_imaging` (truncated at ``tolerance_dn``). The noise is drawn from ``rng``
+    period by period exactly as :func:`render_period_imaging` draws it (the same images for the
+    same seed).
+    """
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
+    periods = sequence.periods(direction)
+    n = sequence.n_shifts
+    ok = np.ascontiguousarray(valid, dtype=bool)
+    if means is not None and (means.shape != (len(periods), n) + ok.shape or means.dtype != np.float64):
+        raise ValueError(f"means must be a float64 array of shape {(len(periods), n) + ok.shape}")
+    if maps.hold_pitch_mm <= 0.0:
+        return np.stack([render_period_imaging(maps, screen_xy_mm, ok, direction, p, sequence, sensor, rng,
+                                               tolerance_dn=tolerance_dn, means=None if means is None else means[i])
+                         for i, p in enumerate(periods)])
+    from .imaging_held import held_values, render_direction_held
+
+    axis = DIRECTIONS.index(direction)
+    coord = screen_xy_mm[..., axis]
+    if maps.centroid_xy_mm is not None:
+        coord = coord + maps.centroid_xy_mm[..., axis]
+    noise = None
+    if sensor.noisy:
+        if rng is None:
+            raise ValueError("a noisy sensor needs a seeded rng for reproducible images")
+        noise = np.empty((len(periods), n) + ok.shape, dtype=np.float32)
+        for i in range(len(periods)):
+            rng.standard_normal(dtype=np.float32, out=noise[i])
+    radius = 2.0 * np.sqrt(maps.var_xy_mm2[..., axis])
+    if maps.jacobian is not None:
+        box_a, box_b = maps.jacobian[..., axis, 0], maps.jacobian[..., axis, 1]
+    else:
+        box_a = box_b = np.zeros(ok.shape)
+    if maps.display is not None:
+        resp, levels = maps.display
+
+        def pattern(theta):
+            return held_values(theta, maps.coefficients, resp, levels, sequence.mean_level, sequence.amplitude)
+    else:
+        def pattern(theta):
+            return held_values(theta, maps.coefficients)
+    return render_direction_held(coord, ok, radius, box_a, box_b, maps.hold_pitch_mm, periods, n, pattern,
+                                 maps.radiance, sensor, noise, means=means)
 
 
 def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) -> tuple[np.ndarray, np.ndarray]:

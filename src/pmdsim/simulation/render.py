@@ -77,9 +77,10 @@ def render_images(setup: Setup, camera: str, mapping: Mapping, *,
     calibration mirror pose, so that the noise of different image sets is uncorrelated.
 
     With image-formation effects (``setup.imaging``, :mod:`.imaging`) the images are rendered
-    by :func:`~.imaging.render_period_imaging`; ``T_world_sample`` is then the pose of the
-    surface ``mapping`` was traced with (default: the setup's sample), and defocus or angular
-    emission need ``mapping`` traced with ``store_points=True``.
+    by :func:`~.imaging.render_direction_imaging` (all images of a direction at once);
+    ``T_world_sample`` is then the pose of the surface ``mapping`` was traced with (default: the
+    setup's sample), and defocus or angular emission need ``mapping`` traced with
+    ``store_points=True``.
     """
     p = setup.patterns
     key = _noise_key(setup, camera, stream)
@@ -110,16 +111,17 @@ def noise_generator(setup: Setup, camera: str, *, stream: int | None = None) -> 
 
 
 def _render_images_imaging(setup, camera, mapping, key, T_world_sample):
-    from .imaging import imaging_maps, render_period_imaging
+    from .imaging import imaging_maps, render_direction_imaging
     from ..setup.sensor import SensorModel
 
     sensor = SensorModel.from_setup(setup)
     maps = imaging_maps(setup, camera, mapping, T_world_sample=T_world_sample)
     rng = np.random.default_rng(key) if sensor.noisy else None
-    stack = None
-    for spec in image_specs(setup, camera):
+    seq = setup.patterns.sequence
+    stacks, direction = None, None
+    for spec in image_specs(setup, camera):  # display order: one direction's periods together
         f = spec.frame
-        if f.shift_index == 0:
-            stack = render_period_imaging(maps, mapping.screen_xy_mm, mapping.valid, f.direction, f.period_mm,
-                                          setup.patterns.sequence, sensor, rng)
-        yield spec, stack[f.shift_index]
+        if f.direction != direction:  # the direction's images share the per-pixel geometry
+            direction = f.direction
+            stacks = render_direction_imaging(maps, mapping.screen_xy_mm, mapping.valid, direction, seq, sensor, rng)
+        yield spec, stacks[spec.period_index, f.shift_index]
