@@ -419,16 +419,16 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     from scipy import stats as sst
     from scipy.optimize import nnls
 
-    usable = [(st["A"], st["rss"] / (st["n"] - 3), st["n"] - 3) for st in stats_list if st["n"] > 3]
+    usable = [(st["A"], st["rss"], st["n"] - 3) for st in stats_list if st["n"] > 3]
     if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
         return None
     lines = []
     idx = np.flatnonzero(mask)
     if idx.size > _MAX_NOISE_SAMPLES:  # a seeded subsample: the medians/means need no more
         idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
-    for a_map, var_map, nu in usable:
+    for a_map, rss_map, nu in usable:
         av = a_map.ravel()[idx]
-        vv = var_map.ravel()[idx]
+        vv = rss_map.ravel()[idx] / nu  # RSS/ν at the sampled pixels only (no full-size quotient)
         # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
         # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
         # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
