@@ -91,17 +91,21 @@ def _instrument():
                                                surface_fit.fit_paraboloid_slopes, nested=True)
     uncertainty_job.camera_uncertainty = _timed("uncertainty", uncertainty_job.camera_uncertainty)
     uncertainty._sampled_std = _timed("  of which _sampled_std", uncertainty._sampled_std, nested=True)
-    # the figures: jobs.height_map_figure (heights), uncertainty_job's (σ maps), slope_error_figure
-    uncertainty_job.height_map_figure = _timed("  of which PNG figures", uncertainty_job.height_map_figure,
-                                               nested=True)
-    jobs.height_map_figure = _timed("  of which PNG figures", jobs.height_map_figure, nested=True)
-    surface_figures.slope_error_figure = _timed("  of which PNG figures", surface_figures.slope_error_figure,
-                                                nested=True)
+    # the figures (PNG files): heights (jobs), σ maps (uncertainty_job), slope error (surface_figures);
+    # the names of the tree measured (matplotlib figures before, Pillow-written PNGs after issue 25)
+    fig_names = [n for n in ("write_height_map_png", "height_map_figure") if hasattr(jobs, n)][:1]
+    slope_name = next(n for n in ("write_slope_error_png", "slope_error_figure") if hasattr(surface_figures, n))
+    for mod in (uncertainty_job, jobs):
+        for n in fig_names:
+            if hasattr(mod, n):
+                setattr(mod, n, _timed("  of which PNG figures", getattr(mod, n), nested=True))
+    setattr(surface_figures, slope_name, _timed("  of which PNG figures", getattr(surface_figures, slope_name),
+                                                nested=True))
     uncertainty_job.height_std_figure = _timed("files", uncertainty_job.height_std_figure)
-    for name in ("write_evaluation_h5", "write_consistency_h5", "height_map_figure", "write_json"):
+    for name in ("write_evaluation_h5", "write_consistency_h5", *fig_names, "write_json"):
         setattr(jobs, name, _timed("files", getattr(jobs, name)))
     jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
-    surface_figures.slope_error_figure = _timed("files", surface_figures.slope_error_figure)
+    setattr(surface_figures, slope_name, _timed("files", getattr(surface_figures, slope_name)))
 
 
 def main() -> None:

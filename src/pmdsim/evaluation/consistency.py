@@ -62,6 +62,7 @@ from .phase import (
     ScreenCoordinates,
     equal_shifts,
 )
+from .fast_atan import _phase_0_2pi
 from .unwrapping import REVERSAL_CONTRAST_RATIO, _refine_reversal
 
 __all__ = [
@@ -197,39 +198,53 @@ class ConsistencyResult:
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
     """Per pixel of one (N, H, W) stack with equal shifts: A, B, φ ∈ [0, 2π), RSS of the N-step
-    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns")."""
+    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns").
+
+    Row by row, image by image along the row (contiguous, vectorised across pixels; per pixel
+    the sums run over k in order, so A, B, RSS and the worst image are those of the pixel-by-
+    pixel loop bit for bit), φ by the decoder's branch-free atan2 (:mod:`.fast_atan`, within
+    1e-15 rad of libm's)."""
     n, h, w = images.shape
-    two_pi = 2.0 * math.pi
     for v in numba.prange(0, h):
+        sa = np.zeros(w)
+        sc = np.zeros(w)
+        ss = np.zeros(w)
+        for k in range(n):
+            ck = cos_d[k]
+            sk = sin_d[k]
+            row = images[k, v]
+            for u in range(w):
+                x = np.float64(row[u])
+                sa[u] += x
+                sc[u] += x * ck
+                ss[u] += x * sk
         for u in range(w):
-            sa = 0.0
-            sc = 0.0
-            ss = 0.0
-            for k in range(n):
-                x = np.float64(images[k, v, u])
-                sa += x
-                sc += x * cos_d[k]
-                ss += x * sin_d[k]
-            a = sa / n
-            c = 2.0 * sc / n
-            s = 2.0 * ss / n
-            phi = math.atan2(s, c)
-            if phi < 0.0:
-                phi += two_pi
-            rss = 0.0
-            best = -1.0
-            worst = 0
-            for k in range(n):
-                r = np.float64(images[k, v, u]) - a - c * cos_d[k] - s * sin_d[k]
-                rss += r * r
-                if abs(r) > best:
-                    best = abs(r)
-                    worst = k
+            a = sa[u] / n
+            c = 2.0 * sc[u] / n
+            s = 2.0 * ss[u] / n
+            sa[u] = a
+            sc[u] = c
+            ss[u] = s
             a_out[v, u] = a
             b_out[v, u] = math.sqrt(c * c + s * s)
-            phi_out[v, u] = phi
-            rss_out[v, u] = rss
-            worst_out[v, u] = worst
+            phi_out[v, u] = _phase_0_2pi(s, c)
+        rss = np.zeros(w)
+        best = np.full(w, -1.0)
+        worst = np.zeros(w, np.int64)
+        for k in range(n):
+            ck = cos_d[k]
+            sk = sin_d[k]
+            row = images[k, v]
+            for u in range(w):
+                r = np.float64(row[u]) - sa[u] - sc[u] * ck - ss[u] * sk
+                rss[u] += r * r
+                ar = abs(r)
+                gt = ar > best[u]
+                best[u] = ar if gt else best[u]
+                worst[u] = k if gt else worst[u]
+        for u in range(w):
+            rss_out[v, u] = rss[u]
+            worst_out[v, u] = worst[u]
 
 
 def _stack_stats(stack):
@@ -404,16 +419,16 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     from scipy import stats as sst
     from scipy.optimize import nnls
 
-    usable = [(st["A"], st["rss"] / (st["n"] - 3), st["n"] - 3) for st in stats_list if st["n"] > 3]
+    usable = [(st["A"], st["rss"], st["n"] - 3) for st in stats_list if st["n"] > 3]
     if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
         return None
     lines = []
     idx = np.flatnonzero(mask)
     if idx.size > _MAX_NOISE_SAMPLES:  # a seeded subsample: the medians/means need no more
         idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
-    for a_map, var_map, nu in usable:
+    for a_map, rss_map, nu in usable:
         av = a_map.ravel()[idx]
-        vv = var_map.ravel()[idx]
+        vv = rss_map.ravel()[idx] / nu  # RSS/ν at the sampled pixels only (no full-size quotient)
         # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
         # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
         # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).

@@ -76,21 +76,26 @@ def _jacobian_median(xy, ok):
     return J
 
 
-def check_orientation(setup, camera: str, decoded_xy_mm, decoded_valid) -> list[str]:
-    """Compare the decoded mapping's orientation with the flat-sample prediction.
+#: Images with more pixels than this take the orientation check's medians on a sub-grid.
+ORIENTATION_FULL_GRID_PX = 262_144
+#: Samples of the sub-grid (about): its stride is √(H·W / this).
+ORIENTATION_SAMPLES = 36_000
 
-    The sample frame's plane z = 0 is taken as a mirror; each decoded pixel's view ray is
-    reflected there and meets the screen frame's plane z = 0 at the predicted (x, y). With
-    J_dec, J_pred the median Jacobians ∂(x, y)/∂(u, v), M = J_dec·J_pred⁻¹ is close to the
-    identity for a mirror that is not strongly curved; a negative diagonal entry means that
-    screen axis runs the other way in the data than in the setup (a flipped display axis). A
-    concave mirror beyond its centre of curvature inverts the image as well, hence a warning,
-    not an error."""
-    cs = setup.cameras[camera]
-    ok = np.asarray(decoded_valid, bool)
-    if ok.sum() < 16:
-        return []
-    d_cam, conv = cs.camera.sensor_rays()
+
+def orientation_stride(shape) -> int:
+    """Pixel stride of :func:`check_orientation`'s medians: 1 (every pixel) up to
+    :data:`ORIENTATION_FULL_GRID_PX` pixels, else about √(H·W / :data:`ORIENTATION_SAMPLES`)
+    (8 for 1920×1200: 36 000 samples; a median of a smooth Jacobian from them differs from the
+    full one by far less than the sign test needs)."""
+    h, w = int(shape[0]), int(shape[1])
+    if h * w <= ORIENTATION_FULL_GRID_PX or h < 3 or w < 3:
+        return 1
+    return max(1, int(np.sqrt(h * w / ORIENTATION_SAMPLES)))
+
+
+def _predicted_xy(setup, cs, d_cam):
+    """Screen (x, y) (…, 2) where view rays ``d_cam`` (…, 3, camera frame) reflected at the
+    sample frame's plane z = 0 meet the screen plane, and whether both hits lie ahead."""
     T_s_c = setup.sample.T_world_sample.inv() @ cs.T_world_cam
     o = np.asarray(T_s_c.translation, dtype=float)
     d = T_s_c.apply_vector(d_cam)
@@ -103,11 +108,61 @@ def check_orientation(setup, camera: str, decoded_xy_mm, decoded_valid) -> list[
         r_scr = T_scr_s.apply_vector(r)
         s = -p_scr[..., 2] / r_scr[..., 2]
         pred = p_scr[..., :2] + s[..., None] * r_scr[..., :2]
-    good = ok & conv & (t > 0) & (s > 0) & np.isfinite(pred).all(axis=-1)
-    if good.sum() < 16:
+    return pred, (t > 0) & (s > 0) & np.isfinite(pred).all(axis=-1)
+
+
+def _stencil_median(f, good):
+    """Median Jacobian from 5-point stencils: ``f`` (5, …, 2) at (centre, u−1, u+1, v−1, v+1),
+    central differences (np.gradient's interior formula) where both neighbours are ``good``."""
+    with np.errstate(invalid="ignore"):
+        du = np.where((good[1] & good[2])[..., None], (f[2] - f[1]) / 2.0, np.nan)
+        dv = np.where((good[3] & good[4])[..., None], (f[4] - f[3]) / 2.0, np.nan)
+    return np.array([[np.nanmedian(du[..., 0]), np.nanmedian(dv[..., 0])],
+                     [np.nanmedian(du[..., 1]), np.nanmedian(dv[..., 1])]])
+
+
+def _orientation_jacobians(setup, camera: str, decoded_xy_mm, ok, stride: int):
+    """(J_dec, J_pred) of :func:`check_orientation`, or None with fewer than 16 usable pixels;
+    ``stride`` > 1: central differences at every stride-th interior pixel (v, u ≡ 1 mod stride)."""
+    cs = setup.cameras[camera]
+    d_cam, conv = cs.camera.sensor_rays()
+    xy = np.asarray(decoded_xy_mm, float)
+    if stride == 1:
+        pred, ahead = _predicted_xy(setup, cs, d_cam)
+        good = ok & conv & ahead
+        if good.sum() < 16:
+            return None
+        return _jacobian_median(xy, good), _jacobian_median(pred, good)
+    h, w = ok.shape
+    V, U = np.meshgrid(np.arange(1, h - 1, stride), np.arange(1, w - 1, stride), indexing="ij")
+    sv = np.stack([V, V, V, V - 1, V + 1])
+    su = np.stack([U, U - 1, U + 1, U, U])
+    pred, ahead = _predicted_xy(setup, cs, d_cam[sv, su])
+    good = ok[sv, su] & conv[sv, su] & ahead
+    if good[0].sum() < 16:
+        return None
+    return _stencil_median(xy[sv, su], good), _stencil_median(pred, good)
+
+
+def check_orientation(setup, camera: str, decoded_xy_mm, decoded_valid) -> list[str]:
+    """Compare the decoded mapping's orientation with the flat-sample prediction.
+
+    The sample frame's plane z = 0 is taken as a mirror; each decoded pixel's view ray is
+    reflected there and meets the screen frame's plane z = 0 at the predicted (x, y). With
+    J_dec, J_pred the median Jacobians ∂(x, y)/∂(u, v), M = J_dec·J_pred⁻¹ is close to the
+    identity for a mirror that is not strongly curved; a negative diagonal entry means that
+    screen axis runs the other way in the data than in the setup (a flipped display axis). A
+    concave mirror beyond its centre of curvature inverts the image as well, hence a warning,
+    not an error. Images above :data:`ORIENTATION_FULL_GRID_PX` pixels take the medians over
+    a regular sub-grid (:func:`orientation_stride`), the central differences still between
+    neighbouring pixels."""
+    ok = np.asarray(decoded_valid, bool)
+    if ok.sum() < 16:
         return []
-    Jd = _jacobian_median(np.asarray(decoded_xy_mm, float), good)
-    Jp = _jacobian_median(pred, good)
+    J = _orientation_jacobians(setup, camera, decoded_xy_mm, ok, orientation_stride(ok.shape))
+    if J is None:
+        return []
+    Jd, Jp = J
     if not (np.isfinite(Jd).all() and np.isfinite(Jp).all()) or abs(np.linalg.det(Jp)) < 1e-300:
         return []
     M = Jd @ np.linalg.inv(Jp)

@@ -584,36 +584,35 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     of its coefficients (:func:`with_uncertainty`). Returns the fit and per-camera extras
     ``{"slopes": (H, W, 2), "height_detrended_mm": (H, W), "residual_slopes": (H, W, 2)}``.
     """
-    oks, extras = [], []
+    from .surface_fit_rows import gather_rows, gather_sigma, scatter_residuals, slopes_and_mask
+
+    oks, extras, counts = [], [], []
     use_sig = slope_std is not None and all(s is not None for s in slope_std)
     for rec in recs:
-        g = sample_slopes(rec.n_sample)
-        oks.append(rec.reconstructed & np.isfinite(g[..., 0]) & np.isfinite(g[..., 1]))
+        g, ok, k = slopes_and_mask(rec.n_sample, rec.reconstructed)
+        oks.append(ok)
+        counts.append(k)
         extras.append({"slopes": g})
     # x, y and the slopes of the fitted points as (2, M) rows (what the fit reads: no per-camera
-    # copies, no column copies in the fit), cameras in order, pixels in C order
-    m = sum(int(np.count_nonzero(ok)) for ok in oks)
+    # copies, no column copies in the fit), cameras in order, pixels in C order; their σ as (M, 2)
+    # only after the fit (not alive at its peak)
+    m = sum(counts)
     xy, gxy = np.empty((2, m)), np.empty((2, m))
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
-        k = int(np.count_nonzero(ok))
-        for j in range(2):
-            xy[j, start:start + k] = rec.p_sample_mm[..., j][ok]
-            gxy[j, start:start + k] = ex["slopes"][..., j][ok]
-        start += k
+        start = gather_rows(rec.p_sample_mm, ex["slopes"], ok, start, xy, gxy)
     fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(m, bool), camera_z_mm=camera_z_mm)
     del gxy
     if use_sig:
-        sig = np.concatenate([np.asarray(s, dtype=float)[ok] for s, ok in zip(slope_std, oks)])
+        sig = np.empty((m, 2))
+        start = 0
+        for s, ok in zip(slope_std, oks):
+            start = gather_sigma(s, ok, start, sig)
         fit = with_uncertainty(fit, xy.T, sig, camera_z_mm)
         del sig
     del xy
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
-        k = int(ok.sum())
-        res = np.full(ok.shape + (2,), np.nan)
-        res[ok] = fit.residual_slopes[start:start + k]
-        start += k
-        ex["residual_slopes"] = res
+        ex["residual_slopes"], start = scatter_residuals(fit.residual_slopes, ok, start)
         ex["height_detrended_mm"] = remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0]
     return fit, extras

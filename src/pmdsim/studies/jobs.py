@@ -53,7 +53,7 @@ from ..setup import Setup
 from ..simulation.imaging import needs_points
 from ..setup.sensor import SensorModel
 from ..simulation.render import image_specs, render_images, trace_setup_camera
-from .figures import height_map_figure
+from .figures import write_height_map_png
 from .uncertainty_job import uncertainty_line
 from .report import json_ready
 
@@ -424,7 +424,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
     from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
     from ..evaluation.surface_fit import surface_fit_summary
-    from .surface_figures import slope_error_figure
+    from .surface_figures import write_slope_error_png
     from . import uncertainty_job as uj
     from .evaluate_memory import kept_for_files
 
@@ -493,10 +493,10 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                     uj.height_std_figure(rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
             decoded, reg, rec = results[cam] = kept_for_files(decoded, reg, rec)  # release the rest now
             p = rec.p_sample_mm
-            height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                              title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
-                                    f"{', relative' if ar.relative else ''})",
-                              label="height (µm)", path=tmp / f"height_{cam}.png")
+            write_height_map_png(p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                                 title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
+                                       f"{', relative' if ar.relative else ''})",
+                                 label="height (µm)", path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
         cam0 = manifest.cameras[0]
         try:
@@ -509,8 +509,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                     {"focal_length_x_mm": None, "focal_length_y_mm": None, "slope_residual_rms_mrad": None})
         write_json(tmp / "surface_fit.json", fit_json)
         if fit is not None:
-            slope_error_figure({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
-                                for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
+            write_slope_error_png({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
+                                   for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
                              "instrument": json.dumps(json_ready(manifest.instrument.describe())),
@@ -631,9 +631,9 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
         for cam, (_, _, rec) in results.items():
             p = rec.p_sample_mm
-            height_map_figure(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                              title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
-                              label="height (µm)", path=tmp / f"height_{cam}.png")
+            write_height_map_png(p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                                 title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
+                                 label="height (µm)", path=tmp / f"height_{cam}.png")
         uj.stereo_figures(tmp, results, uncs)
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir),

@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 
 from .figures import _panel, _save
 
-__all__ = ["slope_error_figure"]
+__all__ = ["slope_error_figure", "write_slope_error_png"]
 
 
 def slope_error_figure(per_camera: dict, fit, *, path: str | Path | None = None) -> Figure:
@@ -26,3 +26,16 @@ def slope_error_figure(per_camera: dict, fit, *, path: str | Path | None = None)
                    f"(f_x {fit.focal_length_x_mm:.6g} mm, f_y {fit.focal_length_y_mm:.6g} mm, "
                    f"RMS {fit.slope_residual_rms_mrad:.3g} mrad)", "slope error (mrad)")
     return _save(fig, path)
+
+
+def write_slope_error_png(per_camera: dict, fit, *, path: str | Path) -> list:
+    """:func:`slope_error_figure` written to the PNG ``path`` with Pillow (the same panels,
+    :mod:`.map_png`); returns the panels' :class:`~pmdsim.studies.map_png.PanelLayout`."""
+    from .map_png import MapPanel, write_map_png
+
+    panels = [MapPanel(p[..., 0], p[..., 1], res[..., k] * 1e3,
+                       f"{name}: slope error {comp} after the best-fit paraboloid\n"
+                       f"(f_x {fit.focal_length_x_mm:.6g} mm, f_y {fit.focal_length_y_mm:.6g} mm, "
+                       f"RMS {fit.slope_residual_rms_mrad:.3g} mrad)", "slope error (mrad)")
+              for name, (p, res) in per_camera.items() for k, comp in enumerate("xy")]
+    return write_map_png(path, panels, ncols=2, figsize=(10.0, 4.2 * max(1, len(per_camera))), dpi=110)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluation.uncertainty import SurfaceUncertainty, UncertaintyError, surface_uncertainty
-from .figures import height_map_figure
+from .figures import write_height_map_png
 
 __all__ = ["camera_uncertainty", "uncertainty_datasets", "uncertainty_attribute", "uncertainty_stats",
            "height_std_figure", "stereo_uncertainty", "stereo_figures", "stereo_attribute"]
@@ -79,9 +79,9 @@ def height_std_figure(rec, unc: SurfaceUncertainty, cam: str, path: str | Path, 
                       relative_to: str = "relative to the anchor") -> None:
     """``height_std_{camera}.png``: the combined height σ over the sample frame, µm."""
     p = rec.p_sample_mm
-    height_map_figure(p[..., 0], p[..., 1], unc.height_std_um,
-                      title=f"{cam}: height standard uncertainty (k = 1, {relative_to})",
-                      label="height σ (µm)", path=path, signed=False)
+    write_height_map_png(p[..., 0], p[..., 1], unc.height_std_um,
+                         title=f"{cam}: height standard uncertainty (k = 1, {relative_to})",
+                         label="height σ (µm)", path=path, signed=False)
 
 
 def stereo_uncertainty(setup, views: dict, decoded: dict, st, *, screen: str = "planar", enabled: bool = True):

@@ -1,0 +1,44 @@
+"""The joint surface fit's gathers and scatters (issue 25 item 1) against numpy's boolean-mask
+indexing and the slope expression they replace: bit for bit, with NaN normals, unreconstructed
+pixels and a zero n_z."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pmdsim.evaluation.surface_fit_rows import gather_rows, gather_sigma, scatter_residuals, slopes_and_mask
+
+
+def test_rows_equal_numpy_masks_bit_for_bit():
+    rng = np.random.default_rng(2)
+    H, W = 23, 31
+    n = rng.normal(0, 0.05, (H, W, 3))
+    n[..., 2] = -1.0
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[3, 4] = np.nan
+    n[5, 6, 2] = 0.0  # slopes ±inf: not fitted
+    rec = rng.random((H, W)) > 0.2
+    p = rng.normal(0, 50, (H, W, 3))
+    sig = rng.random((H, W, 2)) * 1e-6
+    g, ok, m = slopes_and_mask(n, rec)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g_ref = -n[..., :2] / n[..., 2:3]
+    ok_ref = rec & np.isfinite(g_ref[..., 0]) & np.isfinite(g_ref[..., 1])
+    np.testing.assert_array_equal(g, g_ref)
+    np.testing.assert_array_equal(ok, ok_ref)
+    assert m == ok_ref.sum() and not ok[3, 4] and not ok[5, 6]
+    # two cameras into one set of rows
+    xy, gxy, sg = np.empty((2, 2 * m)), np.empty((2, 2 * m)), np.empty((2 * m, 2))
+    j = gather_rows(p, g, ok, 0, xy, gxy)
+    assert gather_rows(p[::-1].copy(), g[::-1].copy(), ok[::-1].copy(), j, xy, gxy) == 2 * m
+    assert gather_sigma(sig[::-1].copy(), ok[::-1].copy(), gather_sigma(sig, ok, 0, sg), sg) == 2 * m
+    np.testing.assert_array_equal(xy[:, :m], p[..., :2][ok].T)
+    np.testing.assert_array_equal(xy[:, m:], p[::-1][..., :2][ok[::-1]].T)
+    np.testing.assert_array_equal(gxy[:, :m], g[ok].T)
+    np.testing.assert_array_equal(sg, np.concatenate([sig[ok], sig[::-1][ok[::-1]]]))
+    res = rng.normal(0, 1e-3, (2 * m, 2))
+    out, k = scatter_residuals(res, ok, m)
+    ref = np.full((H, W, 2), np.nan)
+    ref[ok] = res[m:]
+    assert k == 2 * m
+    np.testing.assert_array_equal(out, ref)
