@@ -200,7 +200,7 @@ def run_experiment5_bulge(bulge_mm: float, base: Setup, *, warpage: FoilWarpage 
                 cases[-1].case.height_error_mm, method=method, screen_grid=None if name == "planar" else 3,
                 curved_sample=True))
         views, st = evaluate_stereo_decoded(model, decoded, screen_model=screen)
-        try:  # σ of the absolute stereo heights (noise part; docs/conventions.md "Uncertainty: stereo")
+        try:  # σ of the absolute stereo heights (noise and calibration; docs/conventions.md "Uncertainty: stereo")
             st = with_uncertainty(st, stereo_uncertainty(model, views, decoded, st, screen_model=screen))
         except UncertaintyError:
             pass  # the records say "no σ" (stereo_uncertainty_record); the heights stand
