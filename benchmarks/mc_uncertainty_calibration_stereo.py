@@ -16,6 +16,9 @@ compared with the predicted
 every ``--predict-every``-th calibration's prediction): the ratio of RMS over pixels, overall and
 in 5 bins of distance from the anchors' centroid. The sampling error of one ratio is about
 1/√(2(N − 1)) (the heights' σ is nearly one number per camera: the bins are correlated).
+Also, per draw, the observed deviations against the linearisation's J·(θ_i − θ̄) with each
+calibration's own parameters θ_i: this separates the propagation (J) from how well the
+reported covariance describes the N calibrations' scatter.
 
     python benchmarks/mc_uncertainty_calibration_stereo.py [--downsample 16] [--calibrations 60]
         [--models planar,5x5] [--noise 2] [--stride 8] [--predict-every 10] [--json]
@@ -33,7 +36,8 @@ from pmdsim import __version__
 from pmdsim.calibration import calibrate, calibrated_setup, free_screen_model, nominal_setup, nominal_state
 from pmdsim.evaluation.stereo import evaluate_stereo_decoded
 from pmdsim.evaluation.surface_fit import sample_slopes
-from pmdsim.evaluation.uncertainty_stereo_calibration import stereo_calibration_contribution
+from pmdsim.evaluation.uncertainty_stereo_calibration import (StereoLinearisation, stereo_calibration_contribution,
+                                                              stereo_calibration_parameters)
 from pmdsim.setup import default_setup
 from pmdsim.simulation.render import trace_setup_camera
 from pmdsim.studies import observe_calibration_poses, trace_calibration_poses
@@ -59,6 +63,7 @@ def run_model(label, args):
     centroid, anchors0 = {}, {}
     t_cal = t_eval = t_pred = 0.0
     axes = 0
+    results, first = [], None
     for i in range(args.calibrations):
         t = time.perf_counter()
         res = calibrate(observe_calibration_poses(truth.with_patterns(noise_std=args.noise, seed=args.seed0 + i),
@@ -71,6 +76,8 @@ def run_model(label, args):
         t = time.perf_counter()
         _, st = evaluate_stereo_decoded(model, decoded, screen_model=sm)
         t_eval += time.perf_counter() - t
+        results.append(res)
+        first = first or (model, st, sm)
         for c, sc in st.cameras.items():
             rec = sc.reconstruction
             f = np.concatenate([rec.height_mm[..., None] * 1e3, sample_slopes(rec.n_sample) * 1e6], axis=-1)
@@ -92,6 +99,8 @@ def run_model(label, args):
     out = {"model": label, "calibrations": args.calibrations, "predictions": len(pred_v[next(iter(pred_v))]),
            "principal_axes": axes, "seconds_calibrate": t_cal, "seconds_evaluate": t_eval, "seconds_predict": t_pred,
            "cameras": {}}
+    linear = _linear_check(first, results, decoded, obs_f)
+    out["linear_check"] = linear
     for c in truth.cameras:
         f = np.stack(obs_f[c])
         obs = np.nanstd(f, axis=0, ddof=1)
@@ -116,6 +125,41 @@ def run_model(label, args):
         cam["anchors"] = {"observed_rms_um": float(np.sqrt(np.nanmean(a_obs ** 2))),
                           "predicted_rms_um": float(np.sqrt(np.mean(np.square(pred_a[c]))))}
         out["cameras"][c] = cam
+    return out
+
+
+def _linear_check(first, results, decoded, obs_f) -> dict:
+    """Per draw, the observed deviation of heights and slopes from their mean over the draws
+    against the linearisation's J·(θ_i − θ̄) (J: one unit step per parameter of the first
+    calibration's evaluation, θ_i each calibration's parameters): separates the propagation from
+    the sampling of the calibrations' scatter. Ratio sqrt(Σ obs² / Σ pred²) and the residual
+    fraction sqrt(Σ (obs − pred)² / Σ obs²) over pixels and draws, per camera and quantity."""
+    model, st, sm = first
+    names = stereo_calibration_parameters(model, st.cameras, screen_model=sm)
+    pn = list(results[0].parameter_names)
+    idx = [pn.index("mirror0." + n[6:] if n.startswith("table.") else n) for n in names]
+    d = np.array([results[0].state.increment_to(r.state)[idx] for r in results])
+    d -= d.mean(axis=0)
+    lin = StereoLinearisation(model, decoded, st, names, screen_model=sm)
+    sd = model.calibration_covariance.subset(names).std
+    J = {c: [] for c in st.cameras}
+    for j in range(len(names)):
+        delta = np.zeros(len(names))
+        delta[j] = 0.01 * sd[j]
+        for c, (dz, dg, _) in lin.change(delta).items():
+            J[c].append(np.concatenate([dz[..., None] * 1e3, dg * 1e6], axis=-1) / delta[j])
+    out = {}
+    for c in st.cameras:
+        pred = np.einsum("ip,phwk->ihwk", d, np.stack(J[c]))
+        f = np.stack(obs_f[c])
+        obs = f - np.nanmean(f, axis=0)
+        ok = np.isfinite(obs).all(axis=(0, -1)) & np.isfinite(pred).all(axis=(0, -1))
+        cam = {}
+        for k, name in enumerate(("height", "slope_x", "slope_y")):
+            o, p = obs[:, ok, k], pred[:, ok, k]
+            cam[name] = {"ratio": float(np.sqrt(np.sum(o ** 2) / np.sum(p ** 2))),
+                         "residual_fraction": float(np.sqrt(np.sum((o - p) ** 2) / np.sum(o ** 2)))}
+        out[c] = cam
     return out
 
 
@@ -149,6 +193,10 @@ def main():
                           f"anchors' centroid: " + " ".join(f"{b:.3f}" for b in q["ratio_bins"]))
                 a = cam["anchors"]
                 print(f"  {c} anchors' heights: RMS pred {a['predicted_rms_um']:.4g} obs {a['observed_rms_um']:.4g} µm")
+                lc = out["linear_check"][c]
+                print(f"  {c} per draw, observed deviation vs J·(θ_i − θ̄): " + "; ".join(
+                    f"{n} ratio {lc[n]['ratio']:.3f}, residual {lc[n]['residual_fraction']:.3f}"
+                    for n in ("height", "slope_x", "slope_y")))
     res["peak_rss_mb"] = peak_rss_mb()
     if args.json:
         dump_json(res)

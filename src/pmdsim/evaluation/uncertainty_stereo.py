@@ -49,7 +49,8 @@ from .uncertainty import (DEFAULT_RNG_SEED, DEFAULT_SAMPLES, NO_COVARIANCE_NOTE,
                           UncertaintyError, _geometry, _jacobian_scaled, _ls_rhs, _sample_dg, _screen_tangents,
                           _word, _xi, combine, slope_jacobian)
 
-__all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty"]
+__all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty",
+           "stereo_with_uncertainty"]
 
 _SEED_STRIDE = 0x9E3779B9  # per-camera offset of the estimator's seed
 _RTOL = 1e-4  # relative tolerance of each sample's multigrid-CG solve (docs/benchmarks.md, "Uncertainty: stereo")
@@ -414,3 +415,22 @@ def with_uncertainty(stereo: StereoReconstruction, uncs: dict) -> StereoReconstr
     cams = {c: (replace(sc, uncertainty=uncs[c][0], anchor_height_std_um=uncs[c][1]) if c in uncs else sc)
             for c, sc in stereo.cameras.items()}
     return replace(stereo, cameras=cams)
+
+
+def stereo_with_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
+                            **options) -> tuple[StereoReconstruction, dict, list]:
+    """:func:`stereo_uncertainty` attached to ``stereo`` (:func:`with_uncertainty`), or the
+    heights without σ and why: the one way the API, ``pmdsim evaluate --stereo`` and the
+    experiments compute a stereo evaluation's σ.
+
+    Returns
+    -------
+    (StereoReconstruction, dict name → SurfaceUncertainty or None, list of str)
+        The result (with σ where computed), each camera's σ, and the warnings (empty, or one
+        line saying why there is no σ; the heights stand).
+    """
+    try:
+        res = stereo_uncertainty(setup, views, decoded, stereo, screen_model=screen_model, **options)
+    except UncertaintyError as exc:
+        return stereo, {c: None for c in views}, [f"stereo: no uncertainty (σ datasets omitted, heights written): {exc}"]
+    return with_uncertainty(stereo, res), {c: u for c, (u, _) in res.items()}, []

@@ -23,8 +23,14 @@ and for each axis k, with the setup moved by ε·δ_k (ε = 0.01 σ, forward dif
 4. the slopes δg_k: the bisector slopes of the moved rays and screen points at z + εδz_k minus
    the evaluation's, over ε.
 
-Var z = Σ_k δz_k², Var g = Σ_k δg_k² at every pixel (no subgrid: the anchors' and the
-integration's couplings are global). The heights are absolute, as the stereo heights: nothing
+Var z = Σ_k δz_k², Var g = Σ_k δg_k². Optionally (``stride``; default every pixel), as for mono,
+steps 1–4 run on a pixel subgrid of stride s (every camera as the camera of focal length f/s),
+each anchor moved to its nearest subgrid pixel with its anchor weight (w² times the anchors
+there, so that the anchors keep their total weight; the slope equations' stiffness of a smooth
+field does not depend on the grid spacing), and each axis's changes are interpolated bilinearly
+to every pixel before squaring (:mod:`pmdsim.evaluation.uncertainty_calibration`'s kernel).
+The subgrid underestimates σ by more than mono's (5–6 % at stride 2, 15 % at stride 4 on
+120 × 75 px; not understood), so every pixel is the default. The heights are absolute, as the stereo heights: nothing
 is held. What it does not cover: parameters the calibration held (k3, the screen pose: the
 gauge), the images' noise (:mod:`pmdsim.evaluation.uncertainty_stereo`), model errors.
 """
@@ -33,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,7 +50,8 @@ from .multigrid import _CGWork, _Multigrid, _pcg
 from .stereo import ANCHOR_WEIGHT, StereoReconstruction, _view_arrays, refine_anchors, stereo_views
 from .surface_fit import sample_slopes
 from .uncertainty_calibration import (DEFAULT_STEP, CalibrationContribution, CalibrationUncertaintyError,
-                                      calibration_parameters, principal_axes)
+                                      _interpolated_squares, _strided, calibration_parameters,
+                                      principal_axes)
 
 __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calibration_contribution",
            "stereo_calibration_parameters"]
@@ -61,9 +68,10 @@ class StereoCalibrationContribution:
     ----------
     cameras : dict name → CalibrationContribution
         Per camera ``height_std_um`` (H, W, absolute) and ``slope_std_urad`` (H, W, 2); NaN
-        where not reconstructed; ``stride_px`` 1 (every pixel).
+        where not reconstructed; ``stride_px`` the subgrid's stride.
     anchor_height_std_um : dict name → ndarray (n,)
-        The calibration's standard uncertainty of each anchor height, µm.
+        The calibration's standard uncertainty of each anchor height, µm (its subgrid
+        anchor's; NaN for an anchor off the reconstruction).
     parameters : tuple of str
         The calibrated parameters propagated.
     n_axes : int
@@ -92,25 +100,30 @@ def stereo_calibration_parameters(setup, cameras, *, screen_model=None) -> tuple
     return tuple(n for n in setup.calibration_covariance.parameters if n in used)
 
 
-class _Camera:
-    """One camera's linearised anchored integration (module docstring, step 3)."""
+@dataclass(frozen=True, eq=False)
+class _Sampled:
+    """A camera's decoded coordinates on the subgrid (what :func:`stereo_views` reads)."""
 
-    def __init__(self, view, sc, a_base):
+    screen_xy_mm: np.ndarray
+    valid: np.ndarray
+
+
+class _Camera:
+    """One camera's linearised anchored integration (module docstring, step 3) on its (sub)grid:
+    reconstructed pixels S, heights z, anchors at the pixels ``nodes`` (m, 2) of weight² ``w2``
+    (m,) with heights ``a_base``."""
+
+    def __init__(self, view, S, z, nodes, w2, a_base):
         o, d, q, _ = _view_arrays(view)
-        rec = sc.reconstruction
-        self.S = S = np.ascontiguousarray(rec.reconstructed)
-        self.z = np.ascontiguousarray(np.where(S, rec.height_mm, 0.0))
-        vu = np.asarray(sc.anchor_pixels, dtype=np.int64).reshape(-1, 2)
-        self.keep = S[vu[:, 0], vu[:, 1]]
-        if not self.keep.any():
-            raise CalibrationUncertaintyError("no anchor lies on the reconstructed pixels")
-        self.vu = vu
-        self.av, self.au = vu[self.keep, 0] + 1, vu[self.keep, 1] + 1
+        self.S = S = np.ascontiguousarray(S)
+        self.z = np.ascontiguousarray(np.where(S, z, 0.0))
+        self.nodes, self.w2 = nodes, w2
+        self.av, self.au = nodes[:, 0] + 1, nodes[:, 1] + 1
         H, W = S.shape
         shape = (H + 2, W + 2)
         self.D, self.iD, self.Ex, self.Ey = (np.zeros(shape) for _ in range(4))
         self.rhs0 = self._rhs(o, d, q, a_base, self.D, self.iD, self.Ex, self.Ey)
-        self.D[self.av, self.au] += ANCHOR_WEIGHT ** 2
+        self.D[self.av, self.au] += w2
         self.iD[self.av, self.au] = 1.0 / self.D[self.av, self.au]
         self.mg = _Multigrid(self.D, self.iD, self.Ex, self.Ey)
         self.work = _CGWork(shape)
@@ -121,8 +134,7 @@ class _Camera:
     def _rhs(self, o, d, q, a, D, iD, Ex, Ey) -> np.ndarray:
         rhs = np.zeros_like(D)
         _assemble_gauss_newton(o, d, q, self.S, self.z, -1, -1, D, iD, Ex, Ey, rhs)
-        k = self.keep
-        np.add.at(rhs, (self.av, self.au), ANCHOR_WEIGHT ** 2 * (a[k] - self.z[self.vu[k, 0], self.vu[k, 1]]))
+        rhs[self.av, self.au] += self.w2 * (a - self.z[self.nodes[:, 0], self.nodes[:, 1]])
         return rhs
 
     def _slopes(self, o, d, q, z) -> np.ndarray:
@@ -152,7 +164,7 @@ class _Camera:
 
 class StereoLinearisation:
     """A stereo evaluation's heights, slopes and anchors linearised in the calibrated
-    parameters ``names`` (module docstring, steps 1–4).
+    parameters ``names`` (module docstring, steps 1–4), on every ``stride``-th pixel.
 
     Parameters
     ----------
@@ -160,37 +172,79 @@ class StereoLinearisation:
         As :func:`stereo_calibration_contribution`.
     names : sequence of str
         The parameters of the steps given to :meth:`change`.
+    stride : int
+        Subgrid stride s: every camera is taken as the camera of focal length f/s whose pixel
+        (v', u') is pixel (o + s·v', o + s·u'), o = (the search's stride // 2) mod s (so that the
+        anchors lie on the subgrid when s divides the search's stride); each anchor moves to its
+        nearest subgrid pixel, whose anchor weight² is w² times the anchors there. 1: every pixel.
+
+    Attributes
+    ----------
+    offset : int
+        o above (the subgrid's first row and column).
+    cameras : dict name → _Camera
+    anchor_node : dict name → ndarray (n,) of int
+        Each anchor's subgrid anchor (index into that camera's subgrid anchors; −1: not on the
+        reconstruction).
     """
 
-    def __init__(self, setup, decoded: dict, stereo: StereoReconstruction, names, *, screen_model=None):
+    def __init__(self, setup, decoded: dict, stereo: StereoReconstruction, names, *, screen_model=None,
+                 stride: int = 1):
         cams = list(stereo.cameras)
         missing = [c for c in cams if c not in decoded]
         if missing:
             raise CalibrationUncertaintyError(f"camera(s) {missing} have a stereo reconstruction but no decoded images")
-        self.setup, self.stereo, self.names = setup, stereo, tuple(names)
-        self.decoded = {c: decoded[c] for c in cams}
+        s = int(stride)
+        if s < 1:
+            raise CalibrationUncertaintyError(f"stride must be ≥ 1, got {stride!r}")
+        self.setup, self.stereo, self.names, self.stride = setup, stereo, tuple(names), s
+        self.offset = o = (int(stereo.stride_px) // 2) % s
+        self.decoded = {c: _Sampled(np.ascontiguousarray(np.asarray(decoded[c].screen_xy_mm, dtype=float)[o::s, o::s]),
+                                    np.ascontiguousarray(np.asarray(decoded[c].valid, dtype=bool)[o::s, o::s]))
+                        for c in cams}
         self.screen_model = screen_model
-        views = stereo_views(setup, self.decoded, screen_model=screen_model)
-        self.cameras, self.partners, self.a_base = {}, {}, {}
+        views = stereo_views(self._sampled(setup), self.decoded, screen_model=screen_model)
+        self.cameras, self.partners, self.a_base, self.anchor_node = {}, {}, {}, {}
         for c in cams:
             sc = stereo.cameras[c]
-            a, _, self.partners[c] = refine_anchors(views, c, sc.anchor_pixels, sc.anchor_height_mm)
-            self.a_base[c] = np.where(np.isfinite(a), a, sc.anchor_height_mm)  # the search's roots, re-solved
-            try:
-                self.cameras[c] = _Camera(views[c], sc, self.a_base[c])
-            except CalibrationUncertaintyError as exc:
-                raise CalibrationUncertaintyError(f"camera {c!r}: {exc}") from None
+            S = np.asarray(sc.reconstructed)[o::s, o::s]
+            z = np.asarray(sc.height_mm)[o::s, o::s]
+            h, w = S.shape
+            vu = np.asarray(sc.anchor_pixels, dtype=np.int64).reshape(-1, 2)
+            nv = np.clip(np.rint((vu[:, 0] - o) / s), 0, h - 1).astype(np.int64)
+            nu = np.clip(np.rint((vu[:, 1] - o) / s), 0, w - 1).astype(np.int64)
+            on = S[nv, nu]
+            if not on.any():
+                raise CalibrationUncertaintyError(f"camera {c!r}: no anchor lies on the reconstructed pixels")
+            nodes, inv, counts = np.unique(np.stack([nv[on], nu[on]], axis=-1), axis=0, return_inverse=True,
+                                           return_counts=True)
+            node = np.full(vu.shape[0], -1, dtype=np.int64)
+            node[on] = inv.reshape(-1)
+            self.anchor_node[c] = node
+            start = z[nodes[:, 0], nodes[:, 1]]
+            a, _, self.partners[c] = refine_anchors(views, c, nodes, start)
+            self.a_base[c] = np.where(np.isfinite(a), a, start)  # the search's roots, re-solved on the subgrid
+            self.cameras[c] = _Camera(views[c], S, z, nodes, ANCHOR_WEIGHT ** 2 * counts.astype(float), self.a_base[c])
         self.lost_px = 0
         self.lost_anchors = 0
+
+    def _sampled(self, setup):
+        """``setup`` with its cameras on the subgrid."""
+        if self.stride == 1:
+            return setup
+        cams = dict(setup.cameras)
+        for c, dec in self.decoded.items():
+            cams[c] = replace(cams[c], camera=_strided(setup, c, self.stride, self.offset, self.offset,
+                                                        dec.valid.shape))
+        return setup.with_cameras(cams)
 
     def _moved(self, delta) -> dict:
         m = perturbed_setup(self.setup, delta, self.names)
         sm = None if self.screen_model is None else m.screen.surface
-        v = stereo_views(m, self.decoded, screen_model=sm)
+        v = stereo_views(self._sampled(m), self.decoded, screen_model=sm)
         out = {}
         for c, lin in self.cameras.items():
-            sc = self.stereo.cameras[c]
-            a, _, _ = refine_anchors(v, c, sc.anchor_pixels, self.a_base[c], partners=self.partners[c])
+            a, _, _ = refine_anchors(v, c, lin.nodes, self.a_base[c], partners=self.partners[c])
             bad = ~np.isfinite(a)
             a = np.where(bad, self.a_base[c], a)  # an anchor lost by the move: taken as unmoved
             dz, dg, lost = lin.change(v[c], a)
@@ -199,10 +253,10 @@ class StereoLinearisation:
         return out
 
     def change(self, delta, *, central: bool = False) -> dict:
-        """The first-order change of every camera's (heights (H, W) mm, slopes (H, W, 2), anchor
-        heights (n,) mm) for the parameter step ``delta`` (natural units, in ``names``' order):
-        the moved setup's (forward), or half the difference of the setups moved by ±delta
-        (``central``)."""
+        """The first-order change of every camera's (heights (h, w) mm, slopes (h, w, 2) on the
+        subgrid, subgrid anchor heights (m,) mm) for the parameter step ``delta`` (natural units,
+        in ``names``' order): the moved setup's (forward), or half the difference of the setups
+        moved by ±delta (``central``)."""
         delta = np.asarray(delta, dtype=float)
         fwd = self._moved(delta)
         if not central:
@@ -212,7 +266,8 @@ class StereoLinearisation:
 
 
 def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
-                                    step: float = DEFAULT_STEP, central: bool = False) -> StereoCalibrationContribution:
+                                    stride: int | None = None, step: float = DEFAULT_STEP,
+                                    central: bool = False) -> StereoCalibrationContribution:
     """Per-pixel standard uncertainty of a stereo evaluation's heights and slopes from the
     calibration covariance ``setup`` carries (module docstring).
 
@@ -228,6 +283,10 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     screen_model : surface, optional
         The evaluation's screen model: None for the plane, else the setup's screen surface (then
         the moved setups' surfaces are used, and the screen heights' covariance acts).
+    stride : int, optional
+        Subgrid stride of the linearisation (:class:`StereoLinearisation`); default 1 (every
+        pixel): a subgrid underestimates σ (measured: 5–6 % at stride 2 and 15 % at stride 4 on
+        120 × 75 px, docs/benchmarks.md), so it is not the default.
     step : float
         Finite-difference step along each principal axis, in standard deviations.
     central : bool
@@ -249,30 +308,37 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
                                           "`pmdsim calibrate`, or give [calibration_report] covariance)")
     if not (step > 0 and math.isfinite(step)):
         raise CalibrationUncertaintyError(f"step must be positive and finite, got {step!r}")
-    names = stereo_calibration_parameters(setup, list(stereo.cameras), screen_model=screen_model)
-    axes = principal_axes(cov.subset(names))
-    lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model)
     cams = list(stereo.cameras)
-    var_h = {c: np.zeros(lin.cameras[c].S.shape) for c in cams}
-    var_g = {c: np.zeros(lin.cameras[c].S.shape + (2,)) for c in cams}
+    s = 1 if stride is None else int(stride)
+    names = stereo_calibration_parameters(setup, cams, screen_model=screen_model)
+    axes = principal_axes(cov.subset(names))
+    lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model, stride=s)
+    fields = {c: [] for c in cams}
     var_a = {c: np.zeros(lin.a_base[c].size) for c in cams}
     for delta in axes:
         ch = lin.change(step * delta, central=central)
         for c in cams:
             dz, dg, da = (x / step for x in ch[c])
-            var_h[c] += dz * dz
-            var_g[c] += dg * dg
+            fields[c].append(np.concatenate([dz[..., None], dg], axis=-1))
             var_a[c] += da * da
     notes = []
     if lin.lost_px:
         notes.append(f"calibration part: up to {lin.lost_px} pixel(s) lost their screen point in a moved setup (taken as "
                      f"unmoved)")
     if lin.lost_anchors:
-        notes.append(f"calibration part: up to {lin.lost_anchors} anchor(s) not re-solved in a moved setup (taken as unmoved)")
-    out = {}
+        notes.append(f"calibration part: up to {lin.lost_anchors} anchor(s) not re-solved in a moved setup (taken as "
+                     f"unmoved)")
+    out, anchors = {}, {}
+    o = lin.offset
     for c in cams:
-        S = lin.cameras[c].S
-        out[c] = CalibrationContribution(np.where(S, np.sqrt(var_h[c]) * 1e3, np.nan),
-                                         np.where(S[..., None], np.sqrt(var_g[c]) * 1e6, np.nan), names, len(axes), 1)
-    return StereoCalibrationContribution(out, {c: np.sqrt(var_a[c]) * 1e3 for c in cams}, names, len(axes),
-                                         tuple(notes), time.perf_counter() - t0)
+        S = np.asarray(stereo.cameras[c].reconstructed)
+        H, W = S.shape
+        if axes:
+            var = _interpolated_squares(np.stack(fields[c]), o, o, s, H, W)
+        else:
+            var = np.zeros((H, W, 3))
+        var[~S] = np.nan
+        out[c] = CalibrationContribution(np.sqrt(var[..., 0]) * 1e3, np.sqrt(var[..., 1:]) * 1e6, names, len(axes), s)
+        node = lin.anchor_node[c]
+        anchors[c] = np.where(node >= 0, np.sqrt(var_a[c][np.maximum(node, 0)]) * 1e3, np.nan)
+    return StereoCalibrationContribution(out, anchors, names, len(axes), tuple(notes), time.perf_counter() - t0)
