@@ -22,6 +22,8 @@ reported covariance describes the N calibrations' scatter.
 
     python benchmarks/mc_uncertainty_calibration_stereo.py [--downsample 16] [--calibrations 60]
         [--models planar,5x5] [--noise 2] [--stride 8] [--predict-every 10] [--json]
+
+``--subgrid 1,2,4``: instead, the error of the calibration part's subgrid option (planar).
 """
 
 from __future__ import annotations
@@ -163,6 +165,38 @@ def _linear_check(first, results, decoded, obs_f) -> dict:
     return out
 
 
+def subgrid(args) -> dict:
+    """The subgrid option's error: one calibration (seed ``--seed0``), its stereo evaluation and
+    the contribution at each of ``--subgrid`` strides against the first (1: every pixel)."""
+    truth = default_setup().binned(args.downsample)
+    nominal = nominal_setup(truth)
+    poses = [T for _, T in truth.calibration.mirror_poses(truth.sample)]
+    traced = trace_calibration_poses(truth, args.stride)
+    res = calibrate(observe_calibration_poses(truth.with_patterns(noise_std=args.noise, seed=args.seed0), traced,
+                                              args.stride), nominal_state(nominal, poses))
+    model = calibrated_setup(nominal, res)
+    meas = truth.with_patterns(noise_std=args.noise, seed=MEASUREMENT_SEED)
+    dec = {c: simulate_decoded(meas, c, trace_setup_camera(truth, c)) for c in truth.cameras}
+    t = time.perf_counter()
+    _, st = evaluate_stereo_decoded(model, dec)
+    out = {"evaluation_s": time.perf_counter() - t, "strides": {}}
+    ref = None
+    for s in args.subgrid:
+        t = time.perf_counter()
+        c = stereo_calibration_contribution(model, dec, st, stride=s)
+        row = {"seconds": time.perf_counter() - t}
+        ref = ref or c
+        for cam, cc in c.cameras.items():
+            S = st.cameras[cam].reconstructed
+            f = np.concatenate([cc.height_std_um[S][:, None], cc.slope_std_urad[S]], axis=-1)
+            r = np.concatenate([ref.cameras[cam].height_std_um[S][:, None], ref.cameras[cam].slope_std_urad[S]], axis=-1)
+            rms = np.sqrt(np.mean(r ** 2, axis=0))
+            row[cam] = {"rms": np.sqrt(np.mean(f ** 2, axis=0)).tolist(),
+                        "max_error_of_rms": (np.max(np.abs(f - r), axis=0) / rms).tolist()}
+        out["strides"][s] = row
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--downsample", type=int, default=16)
@@ -173,8 +207,21 @@ def main():
     ap.add_argument("--stride", type=int, default=8)
     ap.add_argument("--seed0", type=int, default=100)
     ap.add_argument("--predict-every", type=int, default=10)
+    ap.add_argument("--subgrid", type=lambda v: [int(x) for x in v.split(",")], default=None,
+                    help="instead: the subgrid option's error at these strides (the first the reference)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if args.subgrid:
+        res = subgrid(args)
+        if args.json:
+            dump_json(res)
+        else:
+            print(f"stereo evaluation {res['evaluation_s']:.1f} s")
+            for s, row in res["strides"].items():
+                print(f"stride {s}: {row['seconds']:.1f} s; " + "; ".join(
+                    f"{c}: RMS σ (height µm, slope x, y µrad) {np.round(v['rms'], 4).tolist()}, largest error / RMS "
+                    f"{np.round(v['max_error_of_rms'], 4).tolist()}" for c, v in row.items() if c != "seconds"))
+        return
     res = {"pmdsim": __version__, "downsample": args.downsample, "noise_grey": args.noise, "stride": args.stride,
            "models": []}
     for label in args.models.split(","):
