@@ -30,8 +30,10 @@ a camera's slopes, its anchors and the partner's data are propagated (an anchor 
 pixel's noise with the slopes there, and the partner's noise with the partner's surface).
 σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K).
 
-Not covered: the calibration covariance (a stereo evaluation gives the noise part only, and
-says so), the cover glass in the Jacobians, model errors (systematic, not in σ).
+The calibration covariance, when the setup carries one, adds its part
+(:mod:`pmdsim.evaluation.uncertainty_stereo_calibration`; without one the noise part only, and
+the notes say so). Not covered: the cover glass in the Jacobians, model errors (systematic, not
+in σ).
 """
 
 from __future__ import annotations

@@ -23,14 +23,16 @@ and for each axis k, with the setup moved by ε·δ_k (ε = 0.01 σ, forward dif
 4. the slopes δg_k: the bisector slopes of the moved rays and screen points at z + εδz_k minus
    the evaluation's, over ε.
 
-Var z = Σ_k δz_k², Var g = Σ_k δg_k². Optionally (``stride``; default every pixel), as for mono,
-steps 1–4 run on a pixel subgrid of stride s (every camera as the camera of focal length f/s),
+Var z = Σ_k δz_k², Var g = Σ_k δg_k². As for mono, on large images steps 1–4 run on a pixel
+subgrid of stride s (default :func:`default_stereo_stride`: a subgrid of at least 150 px on the
+shorter side; every camera as the camera of focal length f/s),
 each anchor moved to its nearest subgrid pixel with its anchor weight (w² times the anchors
 there, so that the anchors keep their total weight; the slope equations' stiffness of a smooth
 field does not depend on the grid spacing), and each axis's changes are interpolated bilinearly
 to every pixel before squaring (:mod:`pmdsim.evaluation.uncertainty_calibration`'s kernel).
-The subgrid underestimates σ by more than mono's (5–6 % at stride 2, 15 % at stride 4 on
-120 × 75 px; not understood), so every pixel is the default. The heights are absolute, as the stereo heights: nothing
+The subgrid underestimates σ, more than mono's, the more the coarser it is (measured: about 2 %
+with a 120 × 75 px subgrid, 5 % with 60 × 38, 15 % with 30 × 19; its cause is not identified),
+hence the default's minimum subgrid of 150 px. The heights are absolute, as the stereo heights: nothing
 is held. What it does not cover: parameters the calibration held (k3, the screen pose: the
 gauge), the images' noise (:mod:`pmdsim.evaluation.uncertainty_stereo`), model errors.
 """
@@ -54,7 +56,7 @@ from .uncertainty_calibration import (DEFAULT_STEP, CalibrationContribution, Cal
                                       principal_axes)
 
 __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calibration_contribution",
-           "stereo_calibration_parameters"]
+           "stereo_calibration_parameters", "default_stereo_stride", "MIN_SUBGRID_PX"]
 
 #: Relative tolerance of each axis's solve (a few dozen solves: tight).
 _RTOL = 1e-6
@@ -88,6 +90,17 @@ class StereoCalibrationContribution:
     n_axes: int
     notes: tuple = ()
     seconds: float = 0.0
+
+
+#: The shortest subgrid side the default stride keeps (pixels): the subgrid underestimates σ
+#: by about 2 % at 75 px, 5 % at 38 px (docs/benchmarks.md).
+MIN_SUBGRID_PX = 150
+
+
+def default_stereo_stride(shape) -> int:
+    """The calibration part's default subgrid stride: min(H, W) // :data:`MIN_SUBGRID_PX`, at
+    least 1 (every pixel below 300 px; 8 at 1920 × 1200, a 240 × 150 subgrid)."""
+    return max(1, min(int(shape[0]), int(shape[1])) // MIN_SUBGRID_PX)
 
 
 def stereo_calibration_parameters(setup, cameras, *, screen_model=None) -> tuple:
@@ -284,9 +297,8 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
         The evaluation's screen model: None for the plane, else the setup's screen surface (then
         the moved setups' surfaces are used, and the screen heights' covariance acts).
     stride : int, optional
-        Subgrid stride of the linearisation (:class:`StereoLinearisation`); default 1 (every
-        pixel): a subgrid underestimates σ (measured: 5–6 % at stride 2 and 15 % at stride 4 on
-        120 × 75 px, docs/benchmarks.md), so it is not the default.
+        Subgrid stride of the linearisation (:class:`StereoLinearisation`); default
+        :func:`default_stereo_stride` (every pixel up to 299 px in the shorter image side).
     step : float
         Finite-difference step along each principal axis, in standard deviations.
     central : bool
@@ -309,7 +321,7 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     if not (step > 0 and math.isfinite(step)):
         raise CalibrationUncertaintyError(f"step must be positive and finite, got {step!r}")
     cams = list(stereo.cameras)
-    s = 1 if stride is None else int(stride)
+    s = default_stereo_stride(stereo.cameras[cams[0]].reconstructed.shape) if stride is None else int(stride)
     names = stereo_calibration_parameters(setup, cams, screen_model=screen_model)
     axes = principal_axes(cov.subset(names))
     lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model, stride=s)
