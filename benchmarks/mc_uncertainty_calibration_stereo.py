@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 from _common import dump_json, peak_rss_mb
+from mc_uncertainty_calibration import print_ratios, ratio_table
 from pmdsim import __version__
 from pmdsim.calibration import calibrate, calibrated_setup, free_screen_model, nominal_setup, nominal_state
 from pmdsim.evaluation.stereo import evaluate_stereo_decoded
@@ -109,19 +110,7 @@ def run_model(label, args):
         n_ok = np.isfinite(f).all(axis=-1).sum(axis=0)
         pred = np.sqrt(np.mean(np.stack(pred_v[c]), axis=0))
         ok = (n_ok == f.shape[0]) & np.isfinite(pred).all(axis=-1) & (pred[..., 0] > 0)
-        vv, uu = np.nonzero(ok)
-        r = np.hypot(vv - centroid[c][0], uu - centroid[c][1])
-        edges = np.quantile(r, np.linspace(0, 1, 6))
-        cam = {"pixels": int(ok.sum()), "bin_edges_px": edges.tolist()}
-        for k, name in enumerate(("height", "slope_x", "slope_y")):
-            o, p = obs[..., k][ok], pred[..., k][ok]
-            bins = []
-            for b in range(5):
-                m = (r >= edges[b]) & (r <= edges[b + 1])
-                bins.append(float(np.sqrt(np.mean(o[m] ** 2) / np.mean(p[m] ** 2))))
-            cam[name] = {"ratio_rms": float(np.sqrt(np.mean(o ** 2) / np.mean(p ** 2))),
-                         "ratio_median": float(np.median(o / p)), "ratio_bins": bins,
-                         "predicted_rms": float(np.sqrt(np.mean(p ** 2))), "observed_rms": float(np.sqrt(np.mean(o ** 2)))}
+        cam = ratio_table(obs, pred, ok, centroid[c])
         a = np.stack(obs_a[c])
         a_obs = np.nanstd(a, axis=0, ddof=1)
         cam["anchors"] = {"observed_rms_um": float(np.sqrt(np.nanmean(a_obs ** 2))),
@@ -233,11 +222,7 @@ def main():
                   f"{out['seconds_evaluate']:.1f} s evaluating, {out['seconds_predict']:.1f} s predicting); observed / "
                   f"predicted σ (± {1 / np.sqrt(2 * (args.calibrations - 1)):.2f} sampling error):")
             for c, cam in out["cameras"].items():
-                for name in ("height", "slope_x", "slope_y"):
-                    q = cam[name]
-                    print(f"  {c} {name:8s} RMS pred {q['predicted_rms']:.4g} obs {q['observed_rms']:.4g}  ratio "
-                          f"{q['ratio_rms']:.3f} (median per pixel {q['ratio_median']:.3f}); by distance from the "
-                          f"anchors' centroid: " + " ".join(f"{b:.3f}" for b in q["ratio_bins"]))
+                print_ratios(c, cam, "anchors' centroid")
                 a = cam["anchors"]
                 print(f"  {c} anchors' heights: RMS pred {a['predicted_rms_um']:.4g} obs {a['observed_rms_um']:.4g} µm")
                 lc = out["linear_check"][c]
