@@ -99,21 +99,36 @@ def run_model(label, args):
         obs = np.nanstd(f, axis=0, ddof=1)
         pred = np.sqrt(np.mean(np.stack(pred_v[c]), axis=0))
         ok = np.isfinite(obs).all(axis=-1) & np.isfinite(pred).all(axis=-1) & (pred[..., 0] > 0)
-        vv, uu = np.nonzero(ok)
-        r = np.hypot(vv - seeds[c][0], uu - seeds[c][1])
-        edges = np.quantile(r, np.linspace(0, 1, 6))
-        cam = {"pixels": int(ok.sum())}
-        for k, name in enumerate(("height", "slope_x", "slope_y")):
-            o, p = obs[..., k][ok], pred[..., k][ok]
-            bins = []
-            for b in range(5):
-                m = (r >= edges[b]) & (r <= edges[b + 1])
-                bins.append(float(np.sqrt(np.mean(o[m] ** 2) / np.mean(p[m] ** 2))))
-            cam[name] = {"ratio_rms": float(np.sqrt(np.mean(o ** 2) / np.mean(p ** 2))),
-                         "ratio_median": float(np.median(o / p)), "ratio_bins": bins,
-                         "predicted_rms": float(np.sqrt(np.mean(p ** 2))), "observed_rms": float(np.sqrt(np.mean(o ** 2)))}
-        out["cameras"][c] = cam
+        out["cameras"][c] = ratio_table(obs, pred, ok, seeds[c])
     return out
+
+
+def ratio_table(obs, pred, ok, centre) -> dict:
+    """Observed / predicted σ of height, slope x and slope y (obs, pred (H, W, 3)) over the pixels
+    ``ok``: the ratio of RMS, overall and in 5 bins (quantiles) of distance from ``centre`` (v, u)."""
+    vv, uu = np.nonzero(ok)
+    r = np.hypot(vv - centre[0], uu - centre[1])
+    edges = np.quantile(r, np.linspace(0, 1, 6))
+    cam = {"pixels": int(ok.sum()), "bin_edges_px": edges.tolist()}
+    for k, name in enumerate(("height", "slope_x", "slope_y")):
+        o, p = obs[..., k][ok], pred[..., k][ok]
+        bins = []
+        for b in range(5):
+            m = (r >= edges[b]) & (r <= edges[b + 1])
+            bins.append(float(np.sqrt(np.mean(o[m] ** 2) / np.mean(p[m] ** 2))))
+        cam[name] = {"ratio_rms": float(np.sqrt(np.mean(o ** 2) / np.mean(p ** 2))),
+                     "ratio_median": float(np.median(o / p)), "ratio_bins": bins,
+                     "predicted_rms": float(np.sqrt(np.mean(p ** 2))), "observed_rms": float(np.sqrt(np.mean(o ** 2)))}
+    return cam
+
+
+def print_ratios(c: str, cam: dict, centre: str) -> None:
+    """The lines of :func:`ratio_table`'s result for camera ``c``."""
+    for name in ("height", "slope_x", "slope_y"):
+        q = cam[name]
+        print(f"  {c} {name:8s} RMS pred {q['predicted_rms']:.4g} obs {q['observed_rms']:.4g}  ratio "
+              f"{q['ratio_rms']:.3f} (median per pixel {q['ratio_median']:.3f}); by distance from the "
+              f"{centre}: " + " ".join(f"{b:.3f}" for b in q["ratio_bins"]))
 
 
 def speed(args):
@@ -190,11 +205,7 @@ def main():
                   f"{out['seconds_predict']:.1f} s predicting); observed / predicted σ (± "
                   f"{1 / np.sqrt(2 * (args.calibrations - 1)):.2f} sampling error):")
             for c, cam in out["cameras"].items():
-                for name in ("height", "slope_x", "slope_y"):
-                    q = cam[name]
-                    print(f"  {c} {name:8s} RMS pred {q['predicted_rms']:.4g} obs {q['observed_rms']:.4g}  ratio "
-                          f"{q['ratio_rms']:.3f} (median per pixel {q['ratio_median']:.3f}); by distance from the "
-                          f"seed: " + " ".join(f"{b:.3f}" for b in q["ratio_bins"]))
+                print_ratios(c, cam, "seed")
     res["peak_rss_mb"] = peak_rss_mb()
     if args.json:
         dump_json(res)

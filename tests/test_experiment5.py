@@ -98,9 +98,9 @@ def test_physics(run):
 
 
 def test_height_std_keys(run):
-    """Issue 22: mono and stereo cases carry σ statistics and coverage_k2 (stereo: the noise part, labelled);
-    the planar model under the 3 mm bulge and the foil's lateral term are labelled."""
-    from pmdsim.evaluation.uncertainty_stereo import STEREO_CALIBRATION_NOTE
+    """Issue 22: mono and stereo cases carry σ statistics and coverage_k2 (stereo: noise and the
+    calibration's part, through the anchors); the planar model under the 3 mm bulge and the
+    foil's lateral term are labelled."""
     from pmdsim.studies.experiment_uncertainty import (IGNORES_LATERAL, IGNORES_PLANAR_BULGE, IGNORES_STEREO_CALIBRATION,
                                                       STEREO_NO_SIGMA_NOTE)
 
@@ -110,12 +110,13 @@ def test_height_std_keys(run):
         assert (IGNORES_PLANAR_BULGE in x["height_std_ignores"]) == (x["method"].endswith("planar")
                                                                      and x["bulge_mm"] == 3.0)
         if x["method"].startswith("stereo"):
-            # σ of the absolute stereo heights: the images' noise only (the calibration's
-            # covariance is not propagated through the stereo anchors), and it says so
-            assert x["height_std_um"]["pixels"] > 0 and x["height_std_um"]["noise_rms"] > 0
-            assert x["height_std_um"]["calibration_rms"] == 0 and 0 <= x["coverage_k2"] <= 1
-            assert STEREO_CALIBRATION_NOTE in x["height_std_notes"]
-            assert IGNORES_STEREO_CALIBRATION in x["height_std_ignores"]
+            # σ of the absolute stereo heights: the images' noise and the calibration's covariance
+            # (the cameras' poses fix the absolute level: that part dominates)
+            h = x["height_std_um"]
+            assert h["pixels"] > 0 and h["noise_rms"] > 0 and h["calibration_rms"] > h["noise_rms"]
+            assert 0 <= x["coverage_k2"] <= 1
+            assert "calibration covariance propagated" in x["height_std_notes"]
+            assert IGNORES_STEREO_CALIBRATION not in x["height_std_ignores"]
             assert STEREO_NO_SIGMA_NOTE not in x["height_std_notes"]
         else:
             assert x["height_std_um"]["pixels"] > 0 and x["height_std_um"]["noise_rms"] > 0

@@ -489,13 +489,11 @@ def evaluate_stereo(decoded: dict, setup: Setup, *, screen: str = "planar",
     views, result = evaluate_stereo_decoded(setup, decoded, screen_model=model, search_range_mm=search_range_mm,
                                             **options)
     if uncertainty:
-        from .evaluation.uncertainty import UncertaintyError
-        from .evaluation.uncertainty_stereo import stereo_uncertainty, with_uncertainty
+        from .evaluation.uncertainty_stereo import stereo_with_uncertainty
 
-        try:
-            result = with_uncertainty(result, stereo_uncertainty(setup, views, decoded, result, screen_model=model))
-        except UncertaintyError as exc:
-            warnings.warn(f"stereo: no uncertainty (heights stand): {exc}", ConsistencyWarning, stacklevel=2)
+        result, _, why = stereo_with_uncertainty(setup, views, decoded, result, screen_model=model)
+        for w in why:
+            warnings.warn(w, ConsistencyWarning, stacklevel=2)
     for cam in result.cameras.values():  # read-only results, as evaluate's (issue 23)
         _frozen(cam)
         _frozen(cam.reconstruction)

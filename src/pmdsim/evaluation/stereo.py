@@ -62,6 +62,7 @@ from .registration import Registration
 from ..geometry.compact import compact_repr
 
 __all__ = ["StereoView", "StereoCamera", "StereoReconstruction", "reconstruct_stereo", "evaluate_stereo_decoded",
+           "stereo_views", "refine_anchors",
            "stereo_residual",
            "ANCHOR_WEIGHT", "DEFAULT_SEARCH_RANGE_MM", "DEFAULT_SEARCH_STEP_MM"]
 
@@ -168,19 +169,27 @@ def _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, out
     return np.isfinite(out[0]) and np.isfinite(out[1])
 
 
+@numba.njit(cache=True, inline="always")
+def _residual_jacobian(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2):
+    """r(z) into r0 (as :func:`_residual`; ``buf`` then holds the partner's q_B at z) and
+    J = ∂r/∂z by a central difference of step :data:`_FD_STEP_MM` (r1, r2: work). Returns
+    (ok, J_x, J_y). The one derivative of the search's Gauss–Newton and of the anchors' σ."""
+    h = _FD_STEP_MM
+    if not (_residual(oA, dx, dy, dz, qx, qy, qz, z + h, oB, qB, okB, RB, tB, camB, buf, r1)
+            and _residual(oA, dx, dy, dz, qx, qy, qz, z - h, oB, qB, okB, RB, tB, camB, buf, r2)
+            and _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0)):
+        return False, 0.0, 0.0
+    return True, (r1[0] - r2[0]) / (2.0 * h), (r1[1] - r2[1]) / (2.0 * h)
+
+
 @numba.njit(cache=True)
 def _refine(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2, step_max):
     """Gauss–Newton on the 2-vector r(z) from z (central-difference derivative). Returns
     (ok, z, |r|)."""
     for _ in range(_GN_MAX_ITER):
-        if not _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0):
+        ok, jx, jy = _residual_jacobian(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2)
+        if not ok:
             return False, z, np.inf
-        h = _FD_STEP_MM
-        if not (_residual(oA, dx, dy, dz, qx, qy, qz, z + h, oB, qB, okB, RB, tB, camB, buf, r1)
-                and _residual(oA, dx, dy, dz, qx, qy, qz, z - h, oB, qB, okB, RB, tB, camB, buf, r2)):
-            return False, z, np.inf
-        jx = (r1[0] - r2[0]) / (2.0 * h)
-        jy = (r1[1] - r2[1]) / (2.0 * h)
         jj = jx * jx + jy * jy
         if not jj > 0.0:
             return False, z, np.inf
@@ -262,6 +271,23 @@ def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, 
             if j != best and rs[j] <= lim and abs(zs[j] - zs[best]) > 10.0 * step:
                 cnt += 1
         out_n[k] = cnt
+
+
+@numba.njit(cache=True, parallel=True)
+def _refine_kernel(oA, d, q, rows, cols, z0, oB, qB, okB, RB, tB, camB, step_max, out_z, out_r):
+    """Gauss–Newton (:func:`_refine`) of the heights on A's rays through the pixels (rows[k],
+    cols[k]) from z0[k] with partner B; out_z NaN and out_r inf where it fails."""
+    for k in numba.prange(0, rows.size):
+        v = rows[k]
+        u = cols[k]
+        buf = np.empty(3)
+        r0 = np.empty(6)
+        r1 = np.empty(6)
+        r2 = np.empty(6)
+        ok, z, r = _refine(oA, d[v, u, 0], d[v, u, 1], d[v, u, 2], q[v, u, 0], q[v, u, 1], q[v, u, 2], z0[k], oB,
+                           qB, okB, RB, tB, camB, buf, r0, r1, r2, step_max)
+        out_z[k] = z if ok else np.nan
+        out_r[k] = r if ok else np.inf
 
 
 @numba.njit(cache=True, parallel=True)
@@ -440,6 +466,56 @@ def stereo_residual(views: dict, camera: str, partner: str, pixel, z_mm):
                                      float(zz), oB, qB, okB, RB, tB, camB, buf, r):
             out.reshape(-1, 2)[i] = r[:2]
     return out
+
+
+def refine_anchors(views: dict, camera: str, pixels_vu, z_mm, partners=None):
+    """The normal-consistency heights on ``camera``'s rays through ``pixels_vu`` (n, 2) refined
+    by the search's Gauss–Newton from ``z_mm`` (n,) (step at most :data:`DEFAULT_SEARCH_STEP_MM`).
+
+    ``partners`` (n,) of int, optional: each pixel's partner (index into ``views``); default the
+    partner whose refined root has the smallest |r|. Returns (z (n,) NaN where it fails, |r|
+    (n,) rad, partners (n,) int, −1 where none)."""
+    names = list(views)
+    o, d, q, _ = _view_arrays(views[camera])
+    px = np.asarray(pixels_vu, dtype=np.int64).reshape(-1, 2)
+    rows, cols = np.ascontiguousarray(px[:, 0]), np.ascontiguousarray(px[:, 1])
+    z0 = np.ascontiguousarray(z_mm, dtype=np.float64)
+    best_z, best_r = np.full(rows.size, np.nan), np.full(rows.size, np.inf)
+    best_p = np.full(rows.size, -1, dtype=np.int64)
+    for j, partner in enumerate(names):
+        if partner == camera or (partners is not None and not np.any(np.asarray(partners) == j)):
+            continue
+        oB, _, qB, okB = _view_arrays(views[partner])
+        RB, tB, camB = _camera_arrays(views[partner])
+        z, r = np.empty(rows.size), np.empty(rows.size)
+        _refine_kernel(o, d, q, rows, cols, z0, oB, qB, okB, RB, tB, camB, DEFAULT_SEARCH_STEP_MM, z, r)
+        take = (r < best_r) if partners is None else (np.asarray(partners) == j)
+        best_z[take], best_r[take], best_p[take] = z[take], r[take], j
+    return best_z, best_r, np.where(np.isfinite(best_z), best_p, -1)
+
+
+def stereo_views(model, decoded: dict, *, screen_model=None) -> dict:
+    """Every camera's :class:`StereoView`: its decoded screen coordinates registered with
+    ``model`` (cameras, screen pose) in the model's sample frame, as :func:`evaluate_stereo_decoded`
+    does (``screen_model`` None: the plane z = 0 of the screen frame over its grid)."""
+    from ..geometry.surface import SplineSurface
+    from .registration import register
+
+    if screen_model is None:
+        scr = model.screen
+        screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
+    unknown = [c for c in decoded if c not in model.cameras]
+    if unknown:
+        raise ReconstructionError(f"camera(s) {unknown} are not in the setup (cameras: {list(model.cameras)})")
+    T_world_ref = model.sample.T_world_sample
+    T_ref_world = T_world_ref.inv()
+    views = {}
+    for cam, dec in decoded.items():
+        cs = model.cameras[cam]
+        reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen, dec.screen_xy_mm,
+                       dec.valid, T_world_ref)
+        views[cam] = StereoView(cs.camera, T_ref_world @ cs.T_world_cam, reg)
+    return views
 
 
 # ============================================================================ integration
@@ -622,21 +698,5 @@ def evaluate_stereo_decoded(model, decoded: dict, *, screen_model=None, **option
     :func:`reconstruct_stereo`. ``screen_model`` defaults to the plane z = 0 of the screen frame
     over the model's screen grid (the paper's planar-screen assumption); pass
     ``model.screen.surface`` for a calibrated free-form screen. Returns (views, result)."""
-    from ..geometry.surface import SplineSurface
-    from .registration import register
-
-    if screen_model is None:
-        scr = model.screen
-        screen_model = SplineSurface(scr.grid_x_mm, scr.grid_y_mm, np.zeros((len(scr.grid_y_mm), len(scr.grid_x_mm))))
-    unknown = [c for c in decoded if c not in model.cameras]
-    if unknown:
-        raise ReconstructionError(f"camera(s) {unknown} are not in the setup (cameras: {list(model.cameras)})")
-    T_world_ref = model.sample.T_world_sample
-    T_ref_world = T_world_ref.inv()
-    views = {}
-    for cam, dec in decoded.items():
-        cs = model.cameras[cam]
-        reg = register(cs.camera, cs.T_world_cam, screen_model, model.screen.T_world_screen, dec.screen_xy_mm,
-                       dec.valid, T_world_ref)
-        views[cam] = StereoView(cs.camera, T_ref_world @ cs.T_world_cam, reg)
+    views = stereo_views(model, decoded, screen_model=screen_model)
     return views, reconstruct_stereo(views, **options)

@@ -47,7 +47,7 @@ from .registration import register
 from .surface_fit import sample_slopes
 
 __all__ = ["CalibrationContribution", "CalibrationUncertaintyError", "calibration_contribution",
-           "calibration_parameters", "DEFAULT_STEP", "default_stride"]
+           "calibration_parameters", "principal_axes", "DEFAULT_STEP", "default_stride"]
 
 #: Finite-difference step along each principal axis, in standard deviations.
 DEFAULT_STEP = 0.01
@@ -106,6 +106,24 @@ def calibration_parameters(setup, camera: str, *, screen_model=None) -> tuple:
                 screen_model is not None and n.startswith("screen.h[")):
             out.append(n)
     return tuple(out)
+
+
+def principal_axes(sub) -> list:
+    """The 1σ steps δ_k = √λ_k·D·u_k (natural units, in ``sub.parameters``' order) along the
+    principal axes of a :class:`~pmdsim.setup.covariance.CalibrationCovariance` in correlation
+    units (C = D U Λ Uᵀ D), those with λ_k > 1e-12·λ_max; Σ_k δ_k δ_kᵀ = C."""
+    sd = sub.std
+    used = sd > 0
+    axes = []
+    if used.any():
+        sdu = sd[used]
+        r = sub.matrix[np.ix_(used, used)] / np.outer(sdu, sdu)
+        lam, u = np.linalg.eigh(0.5 * (r + r.T))
+        for k in np.nonzero(lam > _NEGLIGIBLE * lam.max())[0]:
+            delta = np.zeros(len(sd))
+            delta[used] = math.sqrt(lam[k]) * sdu * u[:, k]
+            axes.append(delta)
+    return axes
 
 
 def _strided(setup, camera: str, s: int, ov: int, ou: int, shape):
@@ -225,18 +243,7 @@ def calibration_contribution(setup, camera: str, decoded, *, anchor=None, method
     s = int(default_stride((H, W)) if stride is None else stride)
     if s < 1:
         raise CalibrationUncertaintyError(f"stride must be ≥ 1, got {stride!r}")
-    sub = cov.subset(names)
-    sd = sub.std
-    used = sd > 0
-    axes = []
-    if used.any():
-        sdu = sd[used]
-        r = sub.matrix[np.ix_(used, used)] / np.outer(sdu, sdu)
-        lam, u = np.linalg.eigh(0.5 * (r + r.T))
-        for k in np.nonzero(lam > _NEGLIGIBLE * lam.max())[0]:
-            delta = np.zeros(len(names))
-            delta[used] = math.sqrt(lam[k]) * sdu * u[:, k]
-            axes.append(delta)
+    axes = principal_axes(cov.subset(names))
     h_out = np.where(mask, 0.0, np.nan)
     g_out = np.where(mask[..., None], 0.0, np.nan)
     if not axes:

@@ -30,8 +30,10 @@ a camera's slopes, its anchors and the partner's data are propagated (an anchor 
 pixel's noise with the slopes there, and the partner's noise with the partner's surface).
 σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K).
 
-Not covered: the calibration covariance (a stereo evaluation gives the noise part only, and
-says so), the cover glass in the Jacobians, model errors (systematic, not in σ).
+The calibration covariance, when the setup carries one, adds its part
+(:mod:`pmdsim.evaluation.uncertainty_stereo_calibration`; without one the noise part only, and
+the notes say so). Not covered: the cover glass in the Jacobians, model errors (systematic, not
+in σ).
 """
 
 from __future__ import annotations
@@ -43,17 +45,14 @@ import numpy as np
 
 from .least_squares import _assemble_gauss_newton
 from .multigrid import _CGWork, _Multigrid, _pcg
-from .stereo import (ANCHOR_WEIGHT, _FD_STEP_MM, StereoReconstruction, _camera_arrays, _keys, _project, _residual,
+from .stereo import (ANCHOR_WEIGHT, StereoReconstruction, _camera_arrays, _keys, _project, _residual_jacobian,
                      _view_arrays)
 from .uncertainty import (DEFAULT_RNG_SEED, DEFAULT_SAMPLES, NO_COVARIANCE_NOTE, SurfaceUncertainty,
                           UncertaintyError, _geometry, _jacobian_scaled, _ls_rhs, _sample_dg, _screen_tangents,
                           _word, _xi, combine, slope_jacobian)
 
 __all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty",
-           "STEREO_CALIBRATION_NOTE"]
-
-#: Note of a stereo σ when the setup carries a calibration covariance (not propagated here).
-STEREO_CALIBRATION_NOTE = "stereo: the calibration covariance is not propagated (noise part only)"
+           "stereo_with_uncertainty"]
 
 _SEED_STRIDE = 0x9E3779B9  # per-camera offset of the estimator's seed
 _RTOL = 1e-4  # relative tolerance of each sample's multigrid-CG solve (docs/benchmarks.md, "Uncertainty: stereo")
@@ -64,7 +63,7 @@ _RTOL = 1e-4  # relative tolerance of each sample's multigrid-CG solve (docs/ben
 def _anchor_kernel(oA, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, p_out, qB_out, J_out, r_out, idx_out,
                    w_out, ok_out):
     """Per anchor k of A (pixel rows[k], cols[k], height za[k]) with partner B: the point p on
-    A's ray, the interpolated q_B, J = ∂r/∂a (central difference, the solver's step), |r|, and
+    A's ray, the interpolated q_B, J = ∂r/∂a (the search's own derivative, :func:`~pmdsim.evaluation.stereo._residual_jacobian`), |r|, and
     the 16 flat pixel indices of B and their cubic-convolution weights. ok_out[k] False where B
     does not see the point."""
     n = rows.size
@@ -84,13 +83,11 @@ def _anchor_kernel(oA, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, p_out, q
         qx = q[v, u, 0]
         qy = q[v, u, 1]
         qz = q[v, u, 2]
-        h = _FD_STEP_MM
-        if not (_residual(oA, dx, dy, dz, qx, qy, qz, z + h, oB, qB, okB, RB, tB, camB, buf, r1)
-                and _residual(oA, dx, dy, dz, qx, qy, qz, z - h, oB, qB, okB, RB, tB, camB, buf, r2)
-                and _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0)):
+        ok, jx, jy = _residual_jacobian(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2)
+        if not ok:
             continue
-        J_out[k, 0] = (r1[0] - r2[0]) / (2.0 * h)
-        J_out[k, 1] = (r1[1] - r2[1]) / (2.0 * h)
+        J_out[k, 0] = jx
+        J_out[k, 1] = jy
         r_out[k] = np.sqrt(r0[0] * r0[0] + r0[1] * r0[1])
         t = (z - oA[2]) / dz
         px = oA[0] + t * dx
@@ -366,6 +363,15 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         lins[c] = _AnchoredLinear(view, rec, sc.anchor_pixels)
     h = stereo_height_std(lins, A, noise, samples=samples, rng_seed=rng_seed)
     cov = getattr(setup, "calibration_covariance", None)
+    cal = None
+    if cov is not None:
+        from .uncertainty_calibration import CalibrationUncertaintyError
+        from .uncertainty_stereo_calibration import stereo_calibration_contribution
+
+        try:
+            cal = stereo_calibration_contribution(setup, decoded, stereo, screen_model=screen_model)
+        except CalibrationUncertaintyError as exc:
+            raise UncertaintyError(f"stereo: the calibration's contribution cannot be computed: {exc}") from None
     out = {}
     for c in views:
         S = lins[c].S
@@ -379,17 +385,29 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         if fin.size < a_std.size:
             notes.append(f"{a_std.size - fin.size} anchors without σ (the partner does not see them at the height "
                          f"found): their own noise is not included")
-        notes.append(STEREO_CALIBRATION_NOTE if cov is not None else NO_COVARIANCE_NOTE)
+        if cal is None:
+            notes.append(NO_COVARIANCE_NOTE)
+        else:
+            notes.append(f"stereo: calibration covariance propagated through the anchors and the anchored integration "
+                         f"({len(cal.parameters)} parameters, {cal.n_axes} principal axes)")
+            notes.extend(cal.notes)
         if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
             notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
-        zero_g = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
+        if cal is None:
+            g_cal = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
+            h_cal = np.where(S, 0.0, np.nan)
+            a_cal = np.zeros(a_std.size)
+        else:
+            g_cal = np.where(S[..., None], cal.cameras[c].slope_std_urad, np.nan)
+            h_cal = np.where(S, cal.cameras[c].height_std_um, np.nan)
+            a_cal = cal.anchor_height_std_um[c]
         h_um = h[c] * 1e3
         g_urad = g_noise[c] * 1e6
-        unc = SurfaceUncertainty(slope_std_urad=combine(g_urad, zero_g), height_std_um=h_um.copy(),
+        unc = SurfaceUncertainty(slope_std_urad=combine(g_urad, g_cal), height_std_um=combine(h_um, h_cal),
                                  slope_std_noise_urad=g_urad, height_std_noise_um=h_um,
-                                 slope_std_calibration_urad=zero_g, height_std_calibration_um=np.where(S, 0.0, np.nan),
+                                 slope_std_calibration_urad=g_cal, height_std_calibration_um=h_cal,
                                  samples=int(samples), notes=tuple(notes))
-        out[c] = (unc, a_std * 1e3)
+        out[c] = (unc, combine(a_std * 1e3, a_cal))
     return out
 
 
@@ -399,3 +417,22 @@ def with_uncertainty(stereo: StereoReconstruction, uncs: dict) -> StereoReconstr
     cams = {c: (replace(sc, uncertainty=uncs[c][0], anchor_height_std_um=uncs[c][1]) if c in uncs else sc)
             for c, sc in stereo.cameras.items()}
     return replace(stereo, cameras=cams)
+
+
+def stereo_with_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
+                            **options) -> tuple[StereoReconstruction, dict, list]:
+    """:func:`stereo_uncertainty` attached to ``stereo`` (:func:`with_uncertainty`), or the
+    heights without σ and why: the one way the API, ``pmdsim evaluate --stereo`` and the
+    experiments compute a stereo evaluation's σ.
+
+    Returns
+    -------
+    (StereoReconstruction, dict name → SurfaceUncertainty or None, list of str)
+        The result (with σ where computed), each camera's σ, and the warnings (empty, or one
+        line saying why there is no σ; the heights stand).
+    """
+    try:
+        res = stereo_uncertainty(setup, views, decoded, stereo, screen_model=screen_model, **options)
+    except UncertaintyError as exc:
+        return stereo, {c: None for c in views}, [f"stereo: no uncertainty (σ datasets omitted, heights written): {exc}"]
+    return with_uncertainty(stereo, res), {c: u for c, (u, _) in res.items()}, []

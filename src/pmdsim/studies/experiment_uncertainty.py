@@ -28,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import PmdsimError
-from ..evaluation.uncertainty_stereo import STEREO_CALIBRATION_NOTE
+from ..evaluation.uncertainty import NO_COVARIANCE_NOTE
 
 __all__ = ["COVERAGE_GAUSSIAN_K2", "coverage_k2", "case_uncertainty", "case_uncertainty_record", "height_std_summary", "uncertainty_record",
            "reconstruction_uncertainty", "model_error_labels", "screen_representation_error_mm",
@@ -45,6 +45,8 @@ IGNORES_IDEAL_IMAGES = "ideal images: σ covers quantisation only"
 IGNORES_MIRROR_SAG = "mirror sag"
 IGNORES_COVER_GLASS = "unmodelled cover glass"
 IGNORES_LATERAL = "lateral error × sample slope"
+#: A stereo σ without the calibration's part (the setup carries no covariance): the absolute
+#: level rests on the calibrated cameras' poses, whose uncertainty σ then ignores.
 IGNORES_STEREO_CALIBRATION = "the calibration's uncertainty (stereo σ: the images' noise only)"
 
 #: A screen model whose best representation of the true screen misses it by more than this
@@ -116,7 +118,7 @@ def stereo_uncertainty_record(truth, camera_result, error_mm, *, screen_grid: in
         return uncertainty_record(None, None, notes=(STEREO_NO_SIGMA_NOTE, *label_notes), ignores=ignores)
     maps = {n: np.asarray(getattr(u, n), dtype=float) for n in names}
     u_notes = tuple(getattr(u, "notes", ()) or ())
-    if STEREO_CALIBRATION_NOTE in u_notes:  # the absolute level rests on the calibrated poses
+    if NO_COVARIANCE_NOTE in u_notes:  # the absolute level rests on the calibrated poses, σ without them
         ignores = (*ignores, IGNORES_STEREO_CALIBRATION)
     return uncertainty_record(maps, error_mm, notes=(*u_notes, *label_notes), ignores=ignores)
 

@@ -85,21 +85,18 @@ def height_std_figure(rec, unc: SurfaceUncertainty, cam: str, path: str | Path, 
 
 
 def stereo_uncertainty(setup, views: dict, decoded: dict, st, *, screen: str = "planar", enabled: bool = True):
-    """The σ of a stereo evaluation (:func:`pmdsim.evaluation.uncertainty_stereo.stereo_uncertainty`).
+    """The σ of a stereo evaluation (:func:`pmdsim.evaluation.uncertainty_stereo.stereo_with_uncertainty`).
 
     ``screen``: the evaluation's screen model, "planar" or "setup" (the setup's surface).
     Returns (the StereoReconstruction with each camera's ``uncertainty`` and
     ``anchor_height_std_um``, {camera: SurfaceUncertainty or None}, warnings); on
     :class:`UncertaintyError` the heights stand, σ is None and a warning says why."""
-    from ..evaluation.uncertainty_stereo import stereo_uncertainty as _stereo, with_uncertainty
+    from ..evaluation.uncertainty_stereo import stereo_with_uncertainty
 
     if not enabled:
         return st, {}, []
-    try:
-        res = _stereo(setup, views, decoded, st, screen_model=None if screen == "planar" else setup.screen.surface)
-    except UncertaintyError as exc:
-        return st, {c: None for c in views}, [f"stereo: no uncertainty (σ datasets omitted, heights written): {exc}"]
-    return with_uncertainty(st, res), {c: u for c, (u, _) in res.items()}, []
+    return stereo_with_uncertainty(setup, views, decoded, st,
+                                   screen_model=None if screen == "planar" else setup.screen.surface)
 
 
 def stereo_figures(tmp: Path, results: dict, uncs: dict) -> None:
