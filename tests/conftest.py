@@ -1,5 +1,9 @@
 """Shared fixtures: the built-in setup as TOML text and a small, fast variant of it.
 
+Also the expensive results that several test files only read (session-scoped, computed once on
+first use): the calibration observations of the Table 1 setup binned 8×8 with a 3 mm screen
+bulge and Experiment 2 run on them.
+
 The small setup is made by editing the default TOML text (not by pmdsim's own writer), so that
 tests of the writer/reader do not depend on what they test: both cameras shrink from 1920×1200
 to 96×60 px with the focal length and principal point scaled by the same factor 1/20 (the same
@@ -66,3 +70,23 @@ def small_setup_file(tmp_path_factory, small_toml):
     p = tmp_path_factory.mktemp("setup") / "small.toml"
     p.write_text(small_toml, encoding="utf-8")
     return p
+
+
+@pytest.fixture(scope="session")
+def binned8_bulge3_observations():
+    """Calibration observations (16 mirror poses × 2 cameras, 8-bit images, decoded) of the Table 1
+    setup binned 8×8 with a 3 mm central screen bulge. Read-only: shared by several files."""
+    from pmdsim.studies import simulate_calibration_observations
+
+    return simulate_calibration_observations(default_setup().binned(8).with_bulge(3.0))
+
+
+@pytest.fixture(scope="session")
+def binned8_bulge3_experiment2(binned8_bulge3_observations):
+    """Experiment 2 at Δh = 3 mm, downsample 8, on :func:`binned8_bulge3_observations`, keyed by
+    the screen grid: None (planar screen model) and 3 (3 × 3 free-form screen, one free height).
+    Read-only: shared by tests/test_experiment3.py and tests/test_experiment_uncertainty.py."""
+    from pmdsim.studies import run_experiment2_bulge
+
+    return {g: run_experiment2_bulge(3.0, downsample=8, screen_grid=g, observations=binned8_bulge3_observations)
+            for g in (None, 3)}
