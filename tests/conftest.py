@@ -2,7 +2,8 @@
 
 Also the expensive results that several test files only read (session-scoped, computed once on
 first use): the calibration observations of the Table 1 setup binned 8×8 with a 3 mm screen
-bulge and Experiment 2 run on them.
+bulge and Experiment 2 run on them; an image set of the Table 1 setup binned 12×12 and its stereo
+evaluation through the CLI.
 
 The small setup is made by editing the default TOML text (not by pmdsim's own writer), so that
 tests of the writer/reader do not depend on what they test: both cameras shrink from 1920×1200
@@ -90,3 +91,29 @@ def binned8_bulge3_experiment2(binned8_bulge3_observations):
 
     return {g: run_experiment2_bulge(3.0, downsample=8, screen_grid=g, observations=binned8_bulge3_observations)
             for g in (None, 3)}
+
+
+@pytest.fixture(scope="session")
+def binned12_stereo(tmp_path_factory):
+    """The Table 1 setup binned 12×12 (160 × 100 px per camera, flat sample, ideal 8-bit images):
+    ``setup`` (the Setup), ``setup_file`` (its TOML), ``images`` (``pmdsim simulate`` output) and
+    ``stereo`` (``pmdsim evaluate --stereo`` of it; ``stereo_stdout`` what it printed). Both
+    commands run in process and must exit 0. Read-only: tests that edit images copy them first
+    (tests/test_stereo.py, tests/test_reliability_paths.py)."""
+    from types import SimpleNamespace
+
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
+    d = tmp_path_factory.mktemp("binned12")
+    setup = default_setup().binned(12)
+    setup_file = d / "setup.toml"
+    setup_file.write_text(setup.to_toml(), encoding="utf-8")
+    r = CliRunner().invoke(main, ["simulate", "--setup", str(setup_file), "--out", str(d / "img"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["evaluate", str(d / "img"), "--setup", str(setup_file), "--out", str(d / "stereo"),
+                                  "--stereo", "--quiet"])
+    assert r.exit_code == 0, r.output
+    return SimpleNamespace(setup=setup, setup_file=setup_file, images=d / "img", stereo=d / "stereo",
+                           stereo_stdout=r.stdout)
