@@ -10,7 +10,6 @@ from click.testing import CliRunner
 
 from pmdsim.cli import main
 from pmdsim.setup import default_setup
-from pmdsim.studies.experiment2 import calibrate_and_reconstruct
 from pmdsim.studies.experiment4 import EFFECTS, slope_error_metrics
 
 EFFECTS_RUN = "ideal,gamma_uncorrected,gamma_corrected"
@@ -42,12 +41,12 @@ def test_results_one_object_per_effect_and_camera_with_experiment1_keys(run4):
     assert "dominant single effect" in r.output and "what to do" in r.output
 
 
-def test_ideal_case_is_experiment2_with_the_3x3_screen_model(run4):
-    """The budget's reference row against Experiment 2's chain run directly."""
+def test_ideal_case_is_experiment2_with_the_3x3_screen_model(run4, binned8_bulge3_experiment2):
+    """The budget's reference row against Experiment 2's chain run directly (Δh = 3 mm,
+    downsample 8, 3 × 3 screen, start seed [0, 3000]: run once per session, tests/conftest.py)."""
     out, _ = run4
     recs = {(x["effect"], x["camera"]): x for x in json.loads((out / "results.json").read_text())}
-    e2 = calibrate_and_reconstruct(default_setup().binned(8).with_bulge(3.0), bulge_mm=3.0, start_seed=[0, 3000],
-                                   screen_grid=3)
+    e2 = binned8_bulge3_experiment2[3]
     for c in e2.cases:
         assert recs[("ideal", c.camera)]["max_height_diff_um"] == c.metrics["max_height_diff_um"]
         assert recs[("ideal", c.camera)]["rms_um"] == c.metrics["rms_um"]
