@@ -1,7 +1,8 @@
 """Shared fixtures: the built-in setup as TOML text and a small, fast variant of it.
 
 Also the expensive results that several test files only read (session-scoped, computed once on
-first use): the calibration observations of the Table 1 setup binned 8×8 with a 3 mm screen
+first use): Experiment 1 at downsample 4; the calibration observations of the Table 1 setup
+binned 8×8 with a 3 mm screen
 bulge and Experiment 2 run on them; an image set of the Table 1 setup binned 12×12 and its stereo
 evaluation through the CLI.
 
@@ -117,3 +118,13 @@ def binned12_stereo(tmp_path_factory):
     assert r.exit_code == 0, r.output
     return SimpleNamespace(setup=setup, setup_file=setup_file, images=d / "img", stereo=d / "stereo",
                            stereo_stdout=r.stdout)
+
+
+@pytest.fixture(scope="session")
+def experiment1_ds4():
+    """Experiment 1 at downsample 4 (480 × 300 px), Δh ∈ {0, 1, 2, 3} mm × both cameras, keyed by
+    (Δh, camera). Read-only: tests/test_experiment1.py checks it, tests/test_experiment2.py
+    compares with it."""
+    from pmdsim.studies import experiment1
+
+    return {(r.bulge_mm, r.camera): r for r in experiment1(downsample=4)}
