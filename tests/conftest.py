@@ -1,7 +1,8 @@
 """Shared fixtures: the built-in setup as TOML text and a small, fast variant of it.
 
 Also the expensive results that several test files only read (session-scoped, computed once on
-first use): Experiment 1 at downsample 4; the calibration observations of the Table 1 setup
+first use): the small setup simulated with a 3 mm screen bulge and evaluated through the CLI;
+Experiment 1 at downsample 4; the calibration observations of the Table 1 setup
 binned 8×8 with a 3 mm screen
 bulge and Experiment 2 run on them; an image set of the Table 1 setup binned 12×12 and its stereo
 evaluation through the CLI.
@@ -128,3 +129,22 @@ def experiment1_ds4():
     from pmdsim.studies import experiment1
 
     return {(r.bulge_mm, r.camera): r for r in experiment1(downsample=4)}
+
+
+@pytest.fixture(scope="session")
+def small_bulge3_evaluated(tmp_path_factory, small_setup_file):
+    """``(sim, ev)``: ``pmdsim simulate --setup small.toml --bulge-mm 3`` and ``pmdsim evaluate``
+    of it with the small setup (planar screen model), in process, both exit 0. Read-only:
+    tests/test_evaluate.py and tests/test_hdf5_layout.py read the files."""
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
+    d = tmp_path_factory.mktemp("small_bulge3")
+    r = CliRunner().invoke(main, ["simulate", "--setup", str(small_setup_file), "--bulge-mm", "3", "--out",
+                                  str(d / "sim"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["evaluate", str(d / "sim"), "--setup", str(small_setup_file), "--out", str(d / "ev"),
+                                  "--quiet"])
+    assert r.exit_code == 0, r.output
+    return d / "sim", d / "ev"
