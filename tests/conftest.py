@@ -1,5 +1,12 @@
 """Shared fixtures: the built-in setup as TOML text and a small, fast variant of it.
 
+Also the expensive results that several test files only read (session-scoped, computed once on
+first use): the small setup simulated with a 3 mm screen bulge and evaluated through the CLI;
+Experiment 1 at downsample 4; the calibration observations of the Table 1 setup
+binned 8×8 with a 3 mm screen
+bulge and Experiment 2 run on them; an image set of the Table 1 setup binned 12×12 and its stereo
+evaluation through the CLI.
+
 The small setup is made by editing the default TOML text (not by pmdsim's own writer), so that
 tests of the writer/reader do not depend on what they test: both cameras shrink from 1920×1200
 to 96×60 px with the focal length and principal point scaled by the same factor 1/20 (the same
@@ -66,3 +73,78 @@ def small_setup_file(tmp_path_factory, small_toml):
     p = tmp_path_factory.mktemp("setup") / "small.toml"
     p.write_text(small_toml, encoding="utf-8")
     return p
+
+
+@pytest.fixture(scope="session")
+def binned8_bulge3_observations():
+    """Calibration observations (16 mirror poses × 2 cameras, 8-bit images, decoded) of the Table 1
+    setup binned 8×8 with a 3 mm central screen bulge. Read-only: shared by several files."""
+    from pmdsim.studies import simulate_calibration_observations
+
+    return simulate_calibration_observations(default_setup().binned(8).with_bulge(3.0))
+
+
+@pytest.fixture(scope="session")
+def binned8_bulge3_experiment2(binned8_bulge3_observations):
+    """Experiment 2 at Δh = 3 mm, downsample 8, on :func:`binned8_bulge3_observations`, keyed by
+    the screen grid: None (planar screen model) and 3 (3 × 3 free-form screen, one free height).
+    Read-only: shared by tests/test_experiment3.py and tests/test_experiment_uncertainty.py."""
+    from pmdsim.studies import run_experiment2_bulge
+
+    return {g: run_experiment2_bulge(3.0, downsample=8, screen_grid=g, observations=binned8_bulge3_observations)
+            for g in (None, 3)}
+
+
+@pytest.fixture(scope="session")
+def binned12_stereo(tmp_path_factory):
+    """The Table 1 setup binned 12×12 (160 × 100 px per camera, flat sample, ideal 8-bit images):
+    ``setup`` (the Setup), ``setup_file`` (its TOML), ``images`` (``pmdsim simulate`` output) and
+    ``stereo`` (``pmdsim evaluate --stereo`` of it; ``stereo_stdout`` what it printed). Both
+    commands run in process and must exit 0. Read-only: tests that edit images copy them first
+    (tests/test_stereo.py, tests/test_reliability_paths.py)."""
+    from types import SimpleNamespace
+
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
+    d = tmp_path_factory.mktemp("binned12")
+    setup = default_setup().binned(12)
+    setup_file = d / "setup.toml"
+    setup_file.write_text(setup.to_toml(), encoding="utf-8")
+    r = CliRunner().invoke(main, ["simulate", "--setup", str(setup_file), "--out", str(d / "img"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["evaluate", str(d / "img"), "--setup", str(setup_file), "--out", str(d / "stereo"),
+                                  "--stereo", "--quiet"])
+    assert r.exit_code == 0, r.output
+    return SimpleNamespace(setup=setup, setup_file=setup_file, images=d / "img", stereo=d / "stereo",
+                           stereo_stdout=r.stdout)
+
+
+@pytest.fixture(scope="session")
+def experiment1_ds4():
+    """Experiment 1 at downsample 4 (480 × 300 px), Δh ∈ {0, 1, 2, 3} mm × both cameras, keyed by
+    (Δh, camera). Read-only: tests/test_experiment1.py checks it, tests/test_experiment2.py
+    compares with it."""
+    from pmdsim.studies import experiment1
+
+    return {(r.bulge_mm, r.camera): r for r in experiment1(downsample=4)}
+
+
+@pytest.fixture(scope="session")
+def small_bulge3_evaluated(tmp_path_factory, small_setup_file):
+    """``(sim, ev)``: ``pmdsim simulate --setup small.toml --bulge-mm 3`` and ``pmdsim evaluate``
+    of it with the small setup (planar screen model), in process, both exit 0. Read-only:
+    tests/test_evaluate.py and tests/test_hdf5_layout.py read the files."""
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
+    d = tmp_path_factory.mktemp("small_bulge3")
+    r = CliRunner().invoke(main, ["simulate", "--setup", str(small_setup_file), "--bulge-mm", "3", "--out",
+                                  str(d / "sim"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["evaluate", str(d / "sim"), "--setup", str(small_setup_file), "--out", str(d / "ev"),
+                                  "--quiet"])
+    assert r.exit_code == 0, r.output
+    return d / "sim", d / "ev"

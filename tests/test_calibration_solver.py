@@ -55,16 +55,24 @@ def _units(state):
 
 def _numpy_residuals(obs, state):
     """Independent forward model: mirror the screen point, transform, project with
-    :meth:`Camera.project` (predicted − observed, px), in the order of ``obs``."""
-    out = []
+    :meth:`Camera.project` (predicted − observed, px), in the order of ``obs``. The points of
+    all poses of one camera are projected in one call (the same per-point arithmetic; scipy's
+    finite differences call this thousands of times)."""
+    p_cam = []
     for o in obs:
         cp = state.cameras[o.camera]
         mp = state.mirrors[o.pose_index]
         q = o.q_screen_mm
         q_virtual = q - 2.0 * (q @ mp.normal - mp.d_mm)[:, None] * mp.normal
         R, c = cp.T_screen_cam.rotation, cp.T_screen_cam.translation
-        p_cam = (q_virtual - c) @ R
-        out.append((cp.camera.project(p_cam) - o.uv_px).ravel())
+        p_cam.append((q_virtual - c) @ R)
+    out = [None] * len(obs)
+    for name in dict.fromkeys(o.camera for o in obs):
+        idx = [i for i, o in enumerate(obs) if o.camera == name]
+        uv = state.cameras[name].camera.project(np.concatenate([p_cam[i] for i in idx]))
+        ends = np.cumsum([len(p_cam[i]) for i in idx])
+        for i, part in zip(idx, np.split(uv, ends[:-1])):
+            out[i] = (part - obs[i].uv_px).ravel()
     return np.concatenate(out)
 
 

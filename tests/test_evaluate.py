@@ -15,14 +15,10 @@ def _run(args):
     return r
 
 
-def test_evaluate_simulated_images(tmp_path, small_setup_file):
-    sim = tmp_path / "sim"
-    r = _run(["simulate", "--setup", str(small_setup_file), "--bulge-mm", "3", "--out", str(sim), "--quiet"])
-    assert r.exit_code == 0, r.output
-    # Planar screen model (the paper's assumption): a tilted plane of the Experiment 1 magnitude.
-    out = tmp_path / "ev"
-    r = _run(["evaluate", str(sim), "--setup", str(small_setup_file), "--out", str(out), "--quiet"])
-    assert r.exit_code == 0, r.output
+def test_evaluate_simulated_images(tmp_path, small_setup_file, small_bulge3_evaluated):
+    # `simulate --bulge-mm 3`, then `evaluate` with the planar screen model (the paper's
+    # assumption; tests/conftest.py, both exit 0): a tilted plane of the Experiment 1 magnitude.
+    sim, out = small_bulge3_evaluated
     with h5py.File(out / "evaluation.h5") as f, h5py.File(sim / "mapping.h5") as m:
         assert set(f) == {"left", "right"}
         for cam in ("left", "right"):

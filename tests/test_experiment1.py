@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from pmdsim.cli import main
-from pmdsim.studies import PAPER_TABLE2, experiment1
+from pmdsim.studies import PAPER_TABLE2
 from pmdsim.evaluation import decode_images, evaluate_decoded
 from pmdsim.evaluation.metrics import surface_error_metrics
 from pmdsim.setup import default_setup
@@ -23,8 +23,9 @@ KEYS = ("max_height_diff_um", "max_dev_plane_um", "tilt_urad")
 
 
 @pytest.fixture(scope="module")
-def results():
-    return {(r.bulge_mm, r.camera): r for r in experiment1(downsample=DOWNSAMPLE)}
+def results(experiment1_ds4):
+    """Experiment 1 at downsample 4 = DOWNSAMPLE (tests/conftest.py: shared with test_experiment2)."""
+    return experiment1_ds4
 
 
 def test_planar_screen_reaches_the_8bit_floor(results):

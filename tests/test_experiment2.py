@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from pmdsim.cli import main
-from pmdsim.studies import PAPER_TABLE3, run_experiment1_case, run_experiment2_bulge
+from pmdsim.studies import PAPER_TABLE3, run_experiment2_bulge
 
 DOWNSAMPLE = 4
 
@@ -36,18 +36,19 @@ def test_planar_screen_calibration_recovers_the_truth(exp2):
     assert e.deviation["table_turn_deg"] < 1e-3
 
 
-def test_planar_screen_reconstruction_matches_experiment1(exp2):
+def test_planar_screen_reconstruction_matches_experiment1(exp2, experiment1_ds4):
+    assert DOWNSAMPLE == 4  # experiment1_ds4: Experiment 1 at downsample 4 (tests/conftest.py)
     for c in exp2[0.0].cases:
-        e1 = run_experiment1_case(0.0, c.camera, downsample=DOWNSAMPLE)
+        e1 = experiment1_ds4[(0.0, c.camera)]
         assert c.metrics["max_height_diff_um"] < 0.1
         assert abs(c.metrics["max_height_diff_um"] - e1.metrics["max_height_diff_um"]) < 0.1
 
 
-def test_bulge_is_absorbed_by_the_calibration(exp2):
+def test_bulge_is_absorbed_by_the_calibration(exp2, experiment1_ds4):
     e = exp2[3.0]
     assert e.result.converged, e.result.reason
     for c in e.cases:
-        e1 = run_experiment1_case(3.0, c.camera, downsample=DOWNSAMPLE)
+        e1 = experiment1_ds4[(3.0, c.camera)]
         # Far below Experiment 1's errors (≈ 200 µm and ≈ 1100 µrad there) …
         assert c.metrics["max_height_diff_um"] < 0.1 * e1.metrics["max_height_diff_um"]
         assert c.metrics["tilt_urad"] < 0.1 * e1.metrics["tilt_urad"]

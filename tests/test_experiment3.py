@@ -18,12 +18,15 @@ DS = 8
 
 
 @pytest.fixture(scope="module")
-def obs3():
-    return simulate_calibration_observations(default_setup().binned(DS).with_bulge(3.0))
+def exp2_3mm(binned8_bulge3_experiment2):
+    """Experiment 2 at Δh = 3 mm, downsample 8 (= DS), planar (None) and 3 × 3 screen models on
+    the same calibration observations (tests/conftest.py: shared with
+    tests/test_experiment_uncertainty.py)."""
+    return binned8_bulge3_experiment2
 
 
-def test_free_screen_3x3_reaches_the_8bit_floor(obs3):
-    e = run_experiment2_bulge(3.0, downsample=DS, screen_grid=3, observations=obs3)
+def test_free_screen_3x3_reaches_the_8bit_floor(exp2_3mm):
+    e = exp2_3mm[3]
     assert e.result.converged, e.result.reason
     sm = e.result.screen_model
     assert sm.n_free == 1
@@ -37,9 +40,8 @@ def test_free_screen_3x3_reaches_the_8bit_floor(obs3):
     assert e.deviation["table_turn_deg"] < 0.01
 
 
-def test_planar_model_on_the_same_data_is_far_worse(obs3):
-    planar = run_experiment2_bulge(3.0, downsample=DS, observations=obs3)
-    free = run_experiment2_bulge(3.0, downsample=DS, screen_grid=3, observations=obs3)
+def test_planar_model_on_the_same_data_is_far_worse(exp2_3mm):
+    planar, free = exp2_3mm[None], exp2_3mm[3]
     assert free.result.rms_px < 0.1 * planar.result.rms_px
     for p, f in zip(planar.cases, free.cases):
         assert f.metrics["max_height_diff_um"] < 0.05 * p.metrics["max_height_diff_um"]

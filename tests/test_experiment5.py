@@ -6,8 +6,6 @@ flagging the wrong screen model."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import h5py
 import numpy as np
@@ -21,10 +19,15 @@ DS = 32  # 60 × 37 px per camera
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
+    """`pmdsim experiment 5` in process (the same command as a subprocess without the interpreter's
+    start-up and the kernels loaded again from the cache)."""
+    from click.testing import CliRunner
+
+    from pmdsim.cli import main
+
     out = tmp_path_factory.mktemp("e5") / "out"
-    r = subprocess.run([sys.executable, "-m", "pmdsim.cli", "experiment", "5", "--out", str(out), "--downsample",
-                        str(DS), "--quiet"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    r = CliRunner().invoke(main, ["experiment", "5", "--out", str(out), "--downsample", str(DS), "--quiet"])
+    assert r.exit_code == 0, (r.output, r.exception)
     return out, r
 
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pmdsim.setup import default_setup
-from pmdsim.studies import run_experiment2_bulge, screen_deformation, simulate_calibration_observations
+from pmdsim.studies import run_experiment2_bulge, screen_deformation
 from pmdsim.studies.experiment_uncertainty import (
     COVERAGE_GAUSSIAN_K2, IGNORES_COVER_GLASS, IGNORES_IDEAL_IMAGES, IGNORES_LATERAL, IGNORES_MIRROR_SAG, IGNORES_PLANAR_BULGE,
     IGNORES_SCREEN_SHAPE, STEREO_NO_SIGMA_NOTE, coverage_k2, height_std_summary, model_error_labels,
@@ -82,10 +82,10 @@ def test_stereo_without_sigma_is_null_with_a_note():
 
 
 @pytest.fixture(scope="module")
-def exp2_3mm():
-    truth = default_setup().binned(8).with_bulge(3.0)
-    obs = simulate_calibration_observations(truth)
-    return {g: run_experiment2_bulge(3.0, downsample=8, screen_grid=g, observations=obs) for g in (None, 3)}
+def exp2_3mm(binned8_bulge3_experiment2):
+    """Experiment 2 at Δh = 3 mm, downsample 8, planar (None) and 3 × 3 screen models on the same
+    calibration observations (tests/conftest.py: shared with tests/test_experiment3.py)."""
+    return binned8_bulge3_experiment2
 
 
 def test_experiment2_cases_carry_sigma_keys(exp2_3mm):

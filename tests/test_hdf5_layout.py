@@ -13,13 +13,11 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("h5netcdf")
 
 import pmdsim  # noqa: E402
-from pmdsim.cli import main  # noqa: E402
 from pmdsim.io import hdf5  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,15 +61,10 @@ def check_file(path, units=None) -> dict:
 
 
 @pytest.fixture(scope="module")
-def sim_eval(tmp_path_factory, small_setup_file):
-    d = tmp_path_factory.mktemp("h5")
-    r = CliRunner().invoke(main, ["simulate", "--setup", str(small_setup_file), "--bulge-mm", "3",
-                                  "--out", str(d / "sim")])
-    assert r.exit_code == 0, r.output
-    r = CliRunner().invoke(main, ["evaluate", str(d / "sim"), "--setup", str(small_setup_file), "--out",
-                                  str(d / "ev")])
-    assert r.exit_code in (0, 1), r.output
-    return d / "sim", d / "ev"
+def sim_eval(small_bulge3_evaluated):
+    """The small setup simulated with Δh = 3 mm and evaluated (tests/conftest.py: shared with
+    tests/test_evaluate.py)."""
+    return small_bulge3_evaluated
 
 
 def test_mapping_h5_opens_with_named_dims(sim_eval):

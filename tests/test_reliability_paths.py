@@ -137,19 +137,13 @@ def test_output_containing_or_through_a_link_to_an_input(tmp_path, pose_dirs):
 
 # ----------------------------------------------------------------------------- item 2: stereo
 @pytest.fixture(scope="module")
-def stereo_set(tmp_path_factory):
-    """A simulated two-camera image set of the Table 1 setup binned 12× (160 × 100 px)."""
-    from pmdsim.setup import default_setup
-
-    d = tmp_path_factory.mktemp("stereo")
-    setup_file = d / "setup.toml"
-    setup_file.write_text(default_setup().binned(12).to_toml(), encoding="utf-8")
-    r = run("simulate", "--setup", setup_file, "--out", d / "img", "--quiet")
-    assert r.returncode == 0, r.stderr
-    return d, setup_file
+def stereo_set(binned12_stereo):
+    """A simulated two-camera image set (``<dir>/img``) of the Table 1 setup binned 12× (160 × 100
+    px) and its setup file (tests/conftest.py: simulated once per session, never written to)."""
+    return binned12_stereo.images.parent, binned12_stereo.setup_file
 
 
-def test_stereo_runs_the_consistency_checks(tmp_path, stereo_set):
+def test_stereo_runs_the_consistency_checks(tmp_path, stereo_set, binned12_stereo):
     """Issue 24: with one black frame mono exited 1, stereo exited 0 with heights off by up to
     1236 µm. Now stereo checks each camera like mono: the frame is named, exit 1, nothing
     written; the clean set still passes (its flat sample's heights within 1 µm: the truth is
@@ -173,9 +167,8 @@ def test_stereo_runs_the_consistency_checks(tmp_path, stereo_set):
         line = one_error_line(r.stderr)
         assert r.returncode == 1 and victim.rsplit("_s", 1)[0] in line, r.stderr
         assert not (tmp_path / f"ev{len(extra)}").exists()
-    r = run("evaluate", d / "img", "--setup", setup_file, "--out", tmp_path / "ok", "--stereo", "--quiet")
-    assert r.returncode == 0, r.stderr
-    with h5py.File(tmp_path / "ok" / "evaluation.h5") as f:
+    # The clean set (`evaluate --stereo` exited 0: tests/conftest.py, binned12_stereo).
+    with h5py.File(binned12_stereo.stereo / "evaluation.h5") as f:
         for cam in f.attrs.get("cameras", []) or [k for k in f if isinstance(f[k], h5py.Group) and "overlap" in f[k]]:
             assert "consistency_flags" in f[cam]
             ov = f[cam]["overlap"][()]

@@ -291,19 +291,17 @@ def test_screen_grid_centred_warns(tmp_path):
     assert "grid is centred on the screen" in r.stderr and "start screen.grid_x_mm and grid_y_mm at 0" in r.stderr
 
 
-def test_display_y_flipped_warns(tmp_path):
+def test_display_y_flipped_warns(tmp_path, imported):
     imp = tmp_path / "imp"
-    do_import(imp)
+    shutil.copytree(imported[0] / "imp", imp)  # the CLI's import of the fixture (module fixture)
     smap = json.loads((imp / "images" / "screen_map.json").read_text())
     H = load_setup(imp / "setup.toml").screen.size_mm[1]
     smap["screen_xy_mm"] = [[x, H - y] for x, y in smap["screen_xy_mm"]]  # y counted from the other edge
     (imp / "images" / "screen_map.json").write_text(json.dumps(smap))
     r = cli("evaluate", imp / "images", "--setup", imp / "setup.toml", "--out", tmp_path / "ev", "--quiet")
     assert "display's y axis is likely flipped" in r.stderr, r.stderr
-    # The correct import gives no such warning.
-    imp2 = tmp_path / "imp2"
-    do_import(imp2)
-    r2 = cli("evaluate", imp2 / "images", "--setup", imp2 / "setup.toml", "--out", tmp_path / "ev2", "--quiet")
+    # The correct import gives no such warning (its evaluation: the module fixture's, the same command).
+    _, r2 = imported
     assert "likely flipped" not in r2.stderr, r2.stderr
     # The only warning left is the consistency checks' (issue 24): the facet's edge pixels whose
     # mapping is not a mirror's (see test_consistency_checks_run_on_the_real_measurement).

@@ -261,22 +261,18 @@ def test_api_evaluate_stereo_matches_the_evaluation_layer(base, flat_decoded):
         np.testing.assert_array_equal(res.cameras[cam].height_mm, ref.cameras[cam].height_mm)
 
 
-def test_cli_evaluate_stereo_writes_the_report(tmp_path, base):
-    import subprocess
-    import sys
-
+def test_cli_evaluate_stereo_writes_the_report(tmp_path, base, binned12_stereo):
+    """`pmdsim simulate` then `pmdsim evaluate --stereo` of the binned setup (run once per session
+    in tests/conftest.py, in process): the report and the file; a seed pixel is refused."""
     import h5py
+    from click.testing import CliRunner
 
-    setup_file = tmp_path / "setup.toml"
-    setup_file.write_text(base.to_toml(), encoding="utf-8")
-    run = lambda *a: subprocess.run([sys.executable, "-m", "pmdsim.cli", *a], capture_output=True, text=True)
-    r = run("simulate", "--setup", str(setup_file), "--out", str(tmp_path / "img"), "--quiet")
-    assert r.returncode == 0, r.stderr
-    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev"), "--stereo",
-            "--quiet")
-    assert r.returncode == 0, r.stderr
-    assert "normal disagreement median" in r.stdout
-    with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
+    from pmdsim.cli import main
+
+    run = binned12_stereo
+    assert run.setup == base
+    assert "normal disagreement median" in run.stereo_stdout
+    with h5py.File(run.stereo / "evaluation.h5") as f:
         assert f.attrs["stereo"] and f.attrs["method"] == "stereo"
         for cam in base.cameras:
             g = f[cam]
@@ -287,9 +283,10 @@ def test_cli_evaluate_stereo_writes_the_report(tmp_path, base):
             assert np.nanmax(np.abs(h[ov])) * 1e3 <= 1.0
             assert np.isfinite(g["normal_disagreement_urad"][()][ov]).all()
             assert g["anchor_pixels"].shape[1] == 2
-    r = run("evaluate", str(tmp_path / "img"), "--setup", str(setup_file), "--out", str(tmp_path / "ev2"), "--stereo",
-            "--seed-pixel", "5", "5", "--quiet")
-    assert r.returncode == 2 and "pmdsim: error: --stereo needs no seed" in r.stderr
+    r = CliRunner().invoke(main, ["evaluate", str(run.images), "--setup", str(run.setup_file), "--out",
+                                  str(tmp_path / "ev2"), "--stereo", "--seed-pixel", "5", "5", "--quiet"])
+    assert r.exit_code == 2 and "pmdsim: error: --stereo needs no seed" in r.stderr
+    assert not (tmp_path / "ev2").exists()
 
 
 # ----------------------------------------------------------------------------- kernels
