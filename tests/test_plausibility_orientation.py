@@ -27,12 +27,13 @@ def test_subgrid_medians_match_every_pixel_and_flag_the_same_flips():
         m = xy.copy()
         if flip is not None:
             m[..., flip] = -m[..., flip]  # a display axis flipped
-        Jd8, Jp8 = _orientation_jacobians(setup, "left", m, ok, 8)
-        Jd1, Jp1 = _orientation_jacobians(setup, "left", m, ok, 1)
-        np.testing.assert_allclose(Jp8, Jp1, rtol=0, atol=1e-3 * np.abs(Jp1).max())  # relative to |J|
-        np.testing.assert_allclose(Jd8, Jd1, rtol=0, atol=1e-3 * np.abs(Jd1).max())
-        M8, M1 = Jd8 @ np.linalg.inv(Jp8), Jd1 @ np.linalg.inv(Jp1)
-        np.testing.assert_allclose(np.diag(M8), np.diag(M1), rtol=1e-3)
+        if flip is None:  # the sub-grid medians against every pixel's (the full grid: ~1 s)
+            Jd8, Jp8 = _orientation_jacobians(setup, "left", m, ok, 8)
+            Jd1, Jp1 = _orientation_jacobians(setup, "left", m, ok, 1)
+            np.testing.assert_allclose(Jp8, Jp1, rtol=0, atol=1e-3 * np.abs(Jp1).max())  # relative to |J|
+            np.testing.assert_allclose(Jd8, Jd1, rtol=0, atol=1e-3 * np.abs(Jd1).max())
+            M8, M1 = Jd8 @ np.linalg.inv(Jp8), Jd1 @ np.linalg.inv(Jp1)
+            np.testing.assert_allclose(np.diag(M8), np.diag(M1), rtol=1e-3)
         warn = check_orientation(setup, "left", m, ok)
         if flip is None:
             assert warn == []

@@ -487,6 +487,24 @@ def _solve_normal(s) -> np.ndarray:
     return np.linalg.solve(M / dg[:, None] / dg[None, :], v / dg) / dg
 
 
+@numba.njit(cache=True, fastmath=False)
+def _residual_kernel(x, y, gx, gy, a2, b, c2, d, e, rx, ry):
+    for i in range(0, x.size):
+        rx[i] = gx[i] - (a2 * x[i] + b * y[i] + d)
+        ry[i] = gy[i] - (b * x[i] + c2 * y[i] + e)
+
+
+def _residuals(x, y, gx, gy, a, b, c, d, e):
+    """(g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e)) per point: numpy's expression of the
+    same operations in the same order (bit-identical; no FMA without fastmath), in one pass."""
+    from ..geometry.kernel_args import readonly
+
+    rx, ry = np.empty(x.size), np.empty(x.size)
+    _residual_kernel(readonly(x), readonly(y), readonly(gx), readonly(gy), float(2.0 * a), float(b), float(2.0 * c),
+                     float(d), float(e), rx, ry)
+    return rx, ry
+
+
 def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, robust: bool = True,
                           max_iter: int = 100) -> ParaboloidFit:
     """Least-squares paraboloid over slopes (module docstring).
@@ -558,8 +576,8 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
     e0 = e - b * xc - 2 * c * yc
-    rx = gx - (2.0 * a * x + b * y + d)
-    ry = gy - (b * x + 2.0 * c * y + e)
+    rx, ry = _residuals(x, y, gx, gy, a, b, c, d, e)  # g − A·c, no full-size temporaries
+    del x, y
     if n == ok.size:
         res = np.stack([rx, ry], axis=-1).reshape(g.shape)
     else:

@@ -125,13 +125,17 @@ def _draw_panel(img, draw, cell, panel: MapPanel, dpi: float):
     title = panel.title + (" (no data)" if pts.n < 6 else "")
     lines = title.split("\n")
     title_h = sum(_text_size(f9, s or " ")[1] + 3 for s in lines)
-    y = ct + int(0.04 * ch)
-    for s in lines:
-        tw, th = _text_size(f9, s or " ")
-        draw.text((cl + cw // 2 - tw // 2, y), s, font=f9, fill=(0, 0, 0), anchor="lt")
-        y += th + 3
+
+    def put_title(bottom: int, centre: int) -> None:
+        y = bottom - title_h
+        for s in lines:
+            tw, th = _text_size(f9, s or " ")
+            draw.text((centre - tw // 2, y), s, font=f9, fill=(0, 0, 0), anchor="lt")
+            y += th + 3
+
     top = ct + int(0.04 * ch) + title_h + pad
     if pts.n < 6:
+        put_title(top - pad, cl + cw // 2)
         return None
     norm, cmap_name = _norm(pts, panel.signed)
     cmap = colormaps[cmap_name]
@@ -165,6 +169,7 @@ def _draw_panel(img, draw, cell, panel: MapPanel, dpi: float):
     if tile.size != (bw, bh):  # fewer cells than pixels (sparse points): nearest-neighbour upscale
         tile = tile.resize((bw, bh), Image.NEAREST)
     img.paste(tile, (bl, bt))
+    put_title(bt - 1 - int(round(6 * px)), bl + bw // 2)  # 6 pt above the axes, centred on them
     black = (0, 0, 0)
     draw.rectangle((bl - 1, bt - 1, bl + bw, bt + bh), outline=black, width=1)
     for t, s in zip(xt, xlab):
