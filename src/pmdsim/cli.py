@@ -134,10 +134,18 @@ class _Group(click.Group):
             click.echo(f"pmdsim: error: {e}", err=True)
             ctx.exit(2)
         except KeyboardInterrupt:  # SIGINT or SIGTERM (pmdsim.interrupts): nothing was committed
-            signum = interrupts.received() or signal.SIGINT
-            click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}): no output written, an existing "
-                       "output is unchanged", err=True)
-            ctx.exit(interrupts.exit_code(signum))
+            _interrupted(ctx, interrupts.received() or signal.SIGINT)
+        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            raise  # click's own control flow
+        except Exception:
+            # C code that ran the signal's handler can turn the Interrupted raised there into an
+            # error of its own: an extension module interrupted in its initialisation gives
+            # "ImportError: initialization failed" (seen with scipy's while a command imports it).
+            # With a signal recorded and nothing committed, the signal is what ended the run.
+            signum = interrupts.received()
+            if signum is None or interrupts.committed():
+                raise
+            _interrupted(ctx, signum)
         signum = interrupts.received()
         if signum is not None:  # a signal Python swallowed (in a finaliser), or one after the commit
             if interrupts.committed():
@@ -147,6 +155,13 @@ class _Group(click.Group):
                 click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)})", err=True)
                 ctx.exit(interrupts.exit_code(signum))
         return rv
+
+
+def _interrupted(ctx, signum: int) -> None:
+    """The one line of an interrupted command, and its exit code (128 + signum)."""
+    click.echo(f"pmdsim: interrupted ({interrupts.signal_name(signum)}): no output written, an existing "
+               "output is unchanged", err=True)
+    ctx.exit(interrupts.exit_code(signum))
 
 
 @click.group(cls=_Group)
