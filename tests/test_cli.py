@@ -100,7 +100,20 @@ def run_b(tmp_path_factory, small_setup_file):
     args = ("simulate", "--setup", str(small_setup_file), "--out", str(out))
     r = run_inprocess(*args)
     assert r.exit_code == 0, r.output
-    return {"out": out, "args": args}
+    return {"out": out, "args": args, "output": r.output}
+
+
+def test_progress_without_a_terminal_is_lines(run_a, run_b):
+    """Not a terminal (CliRunner's streams, a log file): click's bar would print its label and then
+    nothing until the end; the command prints ``  LABEL i/n after T s: MESSAGE`` lines instead, the
+    last step always. ``--quiet`` (run_a, a real subprocess with piped stderr) prints none."""
+    import re
+
+    lines = [ln for ln in run_b["output"].splitlines() if ln.startswith("  simulating ")]
+    assert lines, run_b["output"]
+    m = re.fullmatch(r"  simulating (\d+)/(\d+) after \d+ s: (.+)", lines[-1])
+    assert m and m.group(1) == m.group(2) and int(m.group(2)) >= 2, lines
+    assert not any(ln.startswith("  simulating ") for ln in run_a["stderr"].splitlines())
 
 
 # ----------------------------------------------------------------------------- setup --show

@@ -219,8 +219,46 @@ def _command() -> str:
     return click.get_current_context().meta.get("pmdsim.command") or ""
 
 
-def _bar(length: int, label: str, quiet: bool):
-    return click.progressbar(length=length, label=label, file=sys.stderr, hidden=quiet)
+class _Steps:
+    """A command's progress on stderr, one ``step(message)`` per finished step.
+
+    In a terminal: click's progress bar. Otherwise (a log file, a pipe, CI) click's bar prints its
+    label once and then nothing until the end, so a 20-minute experiment looks hung: one line
+    ``  LABEL i/n after T s: MESSAGE`` instead, at most one per ``every_s`` seconds, and always for
+    the last step. ``--quiet`` hides both."""
+
+    def __init__(self, length: int, label: str, quiet: bool, every_s: float = 10.0):
+        import time
+
+        self.length, self.label, self.quiet, self.every_s = length, label, quiet, every_s
+        self.clock, self.done, self.bar = time.monotonic, 0, None
+        self.t0 = self.last = time.monotonic()
+
+    def __enter__(self) -> _Steps:
+        if not self.quiet and sys.stderr.isatty():
+            self.bar = click.progressbar(length=self.length, label=self.label, file=sys.stderr).__enter__()
+        return self
+
+    def step(self, message: str | None = None) -> None:
+        self.done += 1
+        if self.bar is not None:
+            self.bar.update(1)
+            return
+        now = self.clock()
+        if self.quiet or (now - self.last < self.every_s and self.done < self.length):
+            return
+        self.last = now
+        tail = f": {message}" if message else ""
+        click.echo(f"  {self.label} {self.done}/{self.length} after {now - self.t0:.0f} s{tail}", err=True)
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+            self.bar = None
+
+
+def _bar(length: int, label: str, quiet: bool) -> _Steps:
+    return _Steps(length, label, quiet)
 
 
 @main.command("simulate")
@@ -240,7 +278,7 @@ def simulate_cmd(setup_path, bulge_mm, out_dir, calibration_pose, force, quiet) 
     steps = simulation_steps(setup if calibration_pose is None else setup.with_mirror_pose(calibration_pose))
     with _bar(steps, "simulating", quiet) as bar:
         summary = simulate_to_dir(setup, out_dir, force=force, command=_command(), calibration_pose=calibration_pose,
-                                  progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup))
+                                  progress=bar.step, inputs=_inputs(setup_path, setup))
     click.echo(summary.as_text(out_dir), err=True)
 
 
@@ -322,7 +360,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         with _bar(len(setup.cameras), "evaluating (stereo)", quiet) as bar:
             summary = evaluate_image_set_stereo(image_dir, setup, out_dir, screen_model=screen_model,
                                                 search_range_mm=search_range_mm, noise_std=noise_std, force=force,
-                                                command=_command(), progress=lambda msg: bar.update(1),
+                                                command=_command(), progress=bar.step,
                                                 inputs=_inputs(setup_path, setup),
                                                 min_valid_fraction=min_valid_fraction, uncertainty=not no_uncertainty)
         for line in summary.lines():
@@ -342,7 +380,7 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
         summary = evaluate_image_set(image_dir, setup, out_dir, method=method, screen_model=screen_model,
                                      seed_pixel=seed_pixel, seed_height_mm=seed_height_mm, anchor=anchor,
                                      noise_std=noise_std, force=force, command=_command(),
-                                     progress=lambda msg: bar.update(1), inputs=_inputs(setup_path, setup),
+                                     progress=bar.step, inputs=_inputs(setup_path, setup),
                                      min_valid_fraction=min_valid_fraction, setup_source=_setup_source(setup_path),
                                      uncertainty=not no_uncertainty, anchor_std_mm=anchor_distance_std_mm)
     for line in summary.lines():
@@ -414,7 +452,7 @@ def calibrate_cmd(image_dirs, setup_path, out_path, stride, max_iter, force, qui
     nominal = _load(setup_path, None)
     with _bar(len(image_dirs), "decoding", quiet) as bar:
         run = calibrate_image_sets(image_dirs, nominal, out_path, stride=stride, max_iter=max_iter, force=force,
-                                   command=_command(), progress=lambda msg: bar.update(1),
+                                   command=_command(), progress=bar.step,
                                    inputs=_inputs(setup_path, nominal), setup_source=_setup_source(setup_path))
     for name, c in run.summary["cameras"].items():
         click.echo(f"{name}: fx {c['fx_px']:.3f} ± {c['std']['fx_px']:.3f} px, fy {c['fy_px']:.3f} ± "
@@ -483,7 +521,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
         bulges = [0.0, 3.0] if default else _parse_list(bulges_mm, float, "--bulges-mm")
         with _bar(experiment5_steps(bulges), "experiment 5", quiet) as bar:
             out = write_experiment5(out_dir, base, bulges=bulges, downsample=downsample, method=method, seed=seed,
-                                    force=force, command=_command(), progress=lambda msg: bar.update(1))
+                                    force=force, command=_command(), progress=bar.step)
         click.echo(out.table)
         click.echo(out.summary(out_dir), err=True)
         return
@@ -495,7 +533,7 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
 
         with _bar(2 * len(GLASS_THICKNESSES_MM) * (1 + len(GLASS_MODELS)), "experiment 6", quiet) as bar:
             out = write_experiment6(out_dir, base, downsample=downsample, method=method, seed=seed, force=force,
-                                    command=_command(), progress=lambda msg: bar.update(1))
+                                    command=_command(), progress=bar.step)
         click.echo(out.table)
         click.echo(out.summary(out_dir), err=True)
         return
@@ -516,14 +554,14 @@ def experiment_cmd(number, out_dir, setup_path, downsample, method, bulges_mm, s
                   quiet) as bar:
             out = write_experiment3(out_dir, base, bulges=bulges, grids=sizes, deformations=kinds, mirror_sags_um=sags,
                                     sag_bulge_mm=sag_bulge_mm, downsample=downsample, method=method, force=force,
-                                    command=_command(), progress=lambda msg: bar.update(1))
+                                    command=_command(), progress=bar.step)
     else:
         n = int(number)
         bulges = _parse_list(bulges_mm, float, "--bulges-mm")
         with _bar(experiment_steps(n, base, bulges), f"experiment {n}", quiet) as bar:
             out = write_experiment(n, out_dir, base, bulges=bulges, downsample=downsample, method=method, seed=seed,
                                    write_images=write_images, force=force, command=_command(),
-                                   progress=lambda msg: bar.update(1))
+                                   progress=bar.step)
     click.echo(out.table)
     click.echo(out.summary(out_dir), err=True)
 
@@ -655,7 +693,7 @@ def _experiment4(base, out_dir, effects, downsample, method, seed, force, quiet)
                                  else "--effects lists no effect")
     with _bar(experiment4_steps(base, names), "experiment 4", quiet) as bar:
         out = write_experiment4(out_dir, base, effects=names, downsample=downsample, method=method, seed=seed,
-                                force=force, command=_command(), progress=lambda msg: bar.update(1))
+                                force=force, command=_command(), progress=bar.step)
     click.echo(out.table)
     click.echo(out.summary(out_dir), err=True)
 
