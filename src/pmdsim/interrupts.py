@@ -14,6 +14,11 @@ signals are only recorded: the cleanup of the first one is not interrupted by a 
 Where Python reports an exception it cannot raise ("Exception ignored in …", a finaliser or a
 callback of C code, e.g. while numba loads its kernels), :func:`install`'s unraisable hook keeps
 quiet about an :class:`Interrupted` that was recorded: the command ends with its one line.
+C code may also *print* an exception and go on: ``PyErr_Print`` (``PyRun_SimpleString``, and
+Cython's unraisable path with a full traceback, which prints before it reports "Exception
+ignored") calls ``sys.excepthook``; :func:`install`'s excepthook keeps quiet about a recorded
+:class:`Interrupted` too (seen as a bare one-frame traceback of the handler before the command's
+line, about 1 run in 60 with Ctrl-C while a command loads its kernels).
 
 The exit codes are the shell's: 128 + signal number (130 for SIGINT, 143 for SIGTERM, 129 for
 SIGHUP). Once a
@@ -100,6 +105,9 @@ def install() -> None:
     if sys.unraisablehook is not _unraisable:
         _state["unraisablehook"] = sys.unraisablehook
         sys.unraisablehook = _unraisable
+    if sys.excepthook is not _excepthook:
+        _state["excepthook"] = sys.excepthook
+        sys.excepthook = _excepthook
     _state["installed"] = True
 
 
@@ -109,6 +117,15 @@ def _unraisable(info) -> None:
     if isinstance(info.exc_value, Interrupted) and _state["signum"] is not None:
         return
     (_state.get("unraisablehook") or sys.__unraisablehook__)(info)
+
+
+def _excepthook(exc_type, exc_value, tb) -> None:
+    """``sys.excepthook``, also what C code's ``PyErr_Print`` calls: a recorded
+    :class:`Interrupted` is not printed (the command reports it in its one line); anything else
+    goes to the previous hook."""
+    if isinstance(exc_value, Interrupted) and _state["signum"] is not None:
+        return
+    (_state.get("excepthook") or sys.__excepthook__)(exc_type, exc_value, tb)
 
 
 def installed() -> bool:
