@@ -34,6 +34,7 @@ import numpy as np
 
 from .kernel_args import readonly
 from .shape_kernels import quadric_eval2, quadric_height, quadric_intersect
+from .spline_kernels import _interval, _patch, spline_eval2, spline_height  # noqa: F401 (_interval, _patch: re-exported)
 
 __all__ = [
     "cardinal_spline_coefficients",
@@ -172,35 +173,6 @@ class KernelSurface(NamedTuple):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _interval(grid, v):
-    """Index i of the grid interval [grid[i], grid[i+1]] holding v (edge intervals extrapolate)."""
-    n = grid.shape[0]
-    if v <= grid[1]:
-        return 0
-    if v >= grid[n - 2]:
-        return n - 2
-    lo = 1
-    hi = n - 2
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if grid[mid] <= v:
-            lo = mid
-        else:
-            hi = mid
-    return lo
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _patch(gx, gy, x, y):
-    """(offset of the patch's 16 coefficients in the flat array, x − x_i, y − y_j)."""
-    i = _interval(gx, x)
-    j = _interval(gy, y)
-    # Unsigned offsets: numba then skips negative-index wrap-around checks on every load.
-    base = np.uint64((j * (gx.shape[0] - 1) + i) * 16)
-    return base, x - gx[i], y - gy[j]
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
 def height_kernel(kind, gx, gy, coef, x, y):
     """Height h(x, y) only (the inner step of the fixed-point iteration, eq. 13).
 
@@ -210,12 +182,7 @@ def height_kernel(kind, gx, gy, coef, x, y):
         return 0.0
     if kind == _KIND_QUADRIC:
         return quadric_height(coef, x, y)
-    b, sx, sy = _patch(gx, gy, x, y)
-    r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
-    r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
-    r2 = coef[b + 8] + sx * (coef[b + 9] + sx * (coef[b + 10] + sx * coef[b + 11]))
-    r3 = coef[b + 12] + sx * (coef[b + 13] + sx * (coef[b + 14] + sx * coef[b + 15]))
-    return r0 + sy * (r1 + sy * (r2 + sy * r3))
+    return spline_height(gx, gy, coef, x, y)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -225,26 +192,7 @@ def eval2_kernel(kind, gx, gy, coef, x, y):
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     if kind == _KIND_QUADRIC:
         return quadric_eval2(coef, x, y)
-    b, sx, sy = _patch(gx, gy, x, y)
-    r0 = coef[b] + sx * (coef[b + 1] + sx * (coef[b + 2] + sx * coef[b + 3]))
-    r1 = coef[b + 4] + sx * (coef[b + 5] + sx * (coef[b + 6] + sx * coef[b + 7]))
-    r2 = coef[b + 8] + sx * (coef[b + 9] + sx * (coef[b + 10] + sx * coef[b + 11]))
-    r3 = coef[b + 12] + sx * (coef[b + 13] + sx * (coef[b + 14] + sx * coef[b + 15]))
-    d0 = coef[b + 1] + sx * (2.0 * coef[b + 2] + sx * 3.0 * coef[b + 3])
-    d1 = coef[b + 5] + sx * (2.0 * coef[b + 6] + sx * 3.0 * coef[b + 7])
-    d2 = coef[b + 9] + sx * (2.0 * coef[b + 10] + sx * 3.0 * coef[b + 11])
-    d3 = coef[b + 13] + sx * (2.0 * coef[b + 14] + sx * 3.0 * coef[b + 15])
-    e0 = 2.0 * coef[b + 2] + 6.0 * sx * coef[b + 3]
-    e1 = 2.0 * coef[b + 6] + 6.0 * sx * coef[b + 7]
-    e2 = 2.0 * coef[b + 10] + 6.0 * sx * coef[b + 11]
-    e3 = 2.0 * coef[b + 14] + 6.0 * sx * coef[b + 15]
-    h = r0 + sy * (r1 + sy * (r2 + sy * r3))
-    hx = d0 + sy * (d1 + sy * (d2 + sy * d3))
-    hy = r1 + sy * (2.0 * r2 + sy * 3.0 * r3)
-    hxx = e0 + sy * (e1 + sy * (e2 + sy * e3))
-    hxy = d1 + sy * (2.0 * d2 + sy * 3.0 * d3)
-    hyy = 2.0 * r2 + 6.0 * sy * r3
-    return h, hx, hy, hxx, hxy, hyy
+    return spline_eval2(gx, gy, coef, x, y)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -260,7 +208,8 @@ def eval_kernel(kind, gx, gy, coef, x, y):
 
 @numba.njit(cache=True, error_model="numpy")
 def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz, tol):
-    """Fallback of :func:`intersect_kernel` where the fixed point does not converge.
+    """Fallback of :func:`intersect_kernel` where the fixed point does not converge (bicubic
+    patches only: :func:`intersect_solve` returns before for the other kinds, ``kind`` is unused).
 
     The root lies where the ray is both inside the surface's height bounds and above the grid
     rectangle: intersect those parameter intervals, march through them to the first sign
@@ -294,7 +243,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
     ta = max(ta, 0.0)
     if not ta < tb:
         return False, nan, nan, nan, nan, nan, _OUTSIDE
-    fa = oz + ta * dz - height_kernel(kind, gx, gy, coef, ox + ta * dx, oy + ta * dy)
+    fa = oz + ta * dz - spline_height(gx, gy, coef, ox + ta * dx, oy + ta * dy)
     found = fa == 0.0
     tlo = ta
     thi = ta
@@ -304,7 +253,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         if found:
             break
         tm = ta + (tb - ta) * m / n_march
-        fm = oz + tm * dz - height_kernel(kind, gx, gy, coef, ox + tm * dx, oy + tm * dy)
+        fm = oz + tm * dz - spline_height(gx, gy, coef, ox + tm * dx, oy + tm * dy)
         if fm == 0.0 or (fm < 0.0) != (flo < 0.0):
             thi = tm
             found = True
@@ -320,7 +269,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         if not thi > tlo:
             converged = True
             break
-        hv, hx, hy = eval_kernel(kind, gx, gy, coef, ox + t * dx, oy + t * dy)
+        hv, hx, hy, _hxx, _hxy, _hyy = spline_eval2(gx, gy, coef, ox + t * dx, oy + t * dy)
         f = oz + t * dz - hv
         if f == 0.0:
             converged = True
@@ -343,7 +292,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         return False, nan, nan, nan, nan, nan, _NO_CONVERGENCE
     x = ox + t * dx
     y = oy + t * dy
-    z, hx, hy = eval_kernel(kind, gx, gy, coef, x, y)
+    z, hx, hy, _hxx, _hxy, _hyy = spline_eval2(gx, gy, coef, x, y)
     return True, x, y, z, hx, hy, _HIT
 
 
@@ -361,7 +310,8 @@ def _finish(gx, gy, oz, inv_dz, x, y, z, hx, hy):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _newton_step(kind, gx, gy, coef, ax, ay, bx, by, m2, c3, z, tol, gradient):
-    """One Newton step on f(z) = h(a + b·z) − z, the accelerated fixed-point step of eq. (13).
+    """One Newton step on f(z) = h(a + b·z) − z, the accelerated fixed-point step of eq. (13),
+    on the bicubic patches (its callers reach it for no other kind; ``kind`` is unused).
 
     The ray is x = a_x + b_x·z, y = a_y + b_y·z (eqs. 14–16 with t eliminated). With
     h_z = ∇h·b the slope of the surface along the ray per unit height, the step is
@@ -382,7 +332,7 @@ def _newton_step(kind, gx, gy, coef, ax, ay, bx, by, m2, c3, z, tol, gradient):
     -------
     (z, x, y, h_x, h_y, converged)
     """
-    h, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, ax + bx * z, ay + by * z)
+    h, hx, hy, hxx, hxy, hyy = spline_eval2(gx, gy, coef, ax + bx * z, ay + by * z)
     hz = hx * bx + hy * by
     fp = 1.0 - hz
     step = (h - z) / fp
@@ -501,7 +451,7 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
     converged = False
     step_prev = -1.0  # no previous step yet
     for _ in range(max_iter):
-        znew = height_kernel(kind, gx, gy, coef, x, y)  # eq. (13)
+        znew = spline_height(gx, gy, coef, x, y)  # eq. (13)
         x = ax + bx * znew  # eqs. (14)–(16)
         y = ay + by * znew
         step = abs(znew - z)
@@ -522,7 +472,7 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
         # at the point before that step and carried to the returned point to first order
         # with the second derivatives (the remaining gradient error is second order in a
         # height change that is already ≤ step·q).
-        zf, hx, hy, hxx, hxy, hyy = eval2_kernel(kind, gx, gy, coef, x, y)
+        zf, hx, hy, hxx, hxy, hyy = spline_eval2(gx, gy, coef, x, y)
         ddx = bx * (zf - z)
         ddy = by * (zf - z)
         hx += hxx * ddx + hxy * ddy

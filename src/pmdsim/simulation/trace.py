@@ -18,12 +18,10 @@ import numpy as np
 from ..geometry.camera import Camera
 from ..geometry.cover_glass import CoverGlass
 from ..geometry.kernel_args import readonly
-from ..geometry.surface import (
-    _NEEDS_SOLVE, FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM, IntersectStatus, intersect_kernel, intersect_solve,
-)
+from ..geometry.surface import FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM
 from ..geometry.transform import RigidTransform
 from .glass_switch import glass_pixel_if
-from .trace_rows import _BLK, _NF, _NI, trace_row
+from .trace_rows import _BLK, _NF, _NI, intersect_ray, trace_row
 from ..geometry.compact import compact_repr
 
 __all__ = ["Status", "Mapping", "trace_rays", "trace_camera"]
@@ -200,13 +198,10 @@ def _trace_run(
                 vx = a00 * a + a01 * b + a02 * c
                 vy = a10 * a + a11 * b + a12 * c
                 vz = a20 * a + a21 * b + a22 * c
-                t, px, py, pz, hx, hy, st = intersect_kernel(
-                    s_kind, s_gx, s_gy, s_coef, s_dmax, ox, oy, oz, vx, vy, vz, tol, zs_guess, True
+                t, px, py, pz, hx, hy, st = intersect_ray(
+                    s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter,
+                    zs_guess, np.bool_(True)
                 )
-                if st == _NEEDS_SOLVE:
-                    t, px, py, pz, hx, hy, st = intersect_solve(
-                        s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, ox, oy, oz, vx, vy, vz, tol, max_iter, pz
-                    )
                 # Grazing or back-side incidence: |v·n| ≤ cos(MAX_INCIDENCE_DEG)·|v||n|, n = (−h_x, −h_y, 1),
                 # or v·n of the other sign than v_z (the ray meets the side of the height field it did not
                 # start on).
@@ -246,14 +241,10 @@ def _trace_run(
                             qox, qoy, qoz, wx, wy, wz, az_g, mx_g, my_g, zq_guess, tol, max_iter
                         )
                     else:
-                        t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_kernel(
-                            p_kind, p_gx, p_gy, p_coef, p_dmax, qox, qoy, qoz, wx, wy, wz, tol, zq_guess, False
+                        t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_ray(
+                            p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol,
+                            max_iter, zq_guess, np.bool_(False)
                         )
-                        if st2 == _NEEDS_SOLVE:
-                            t2, qx, qy, qz, _sgx, _sgy, st2 = intersect_solve(
-                                p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, qox, qoy, qoz, wx, wy, wz, tol,
-                                max_iter, qz
-                            )
                     if store:
                         p_sample[k, 0] = px
                         p_sample[k, 1] = py

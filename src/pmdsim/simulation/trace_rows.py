@@ -241,25 +241,39 @@ def _intersect_block(n, kind, gx, gy, coef, dmax, tol, gradient, S, P):
 
 
 @numba.njit(**_JIT)
+def intersect_ray(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz, tol, max_iter, z_start, gradient):
+    """One ray's intersection as the pixel-by-pixel tracer computes it: ``intersect_kernel``
+    from the warm start ``z_start``, then ``intersect_solve`` from its result where the fast
+    path did not settle the pixel. Returns ``(t, x, y, z, h_x, h_y, status)``.
+
+    A function of its own, called (not inlined by numba) from the tracer's pixel loop
+    (:func:`pmdsim.simulation.trace._trace_run`, sample and screen) and from :func:`_fixup`,
+    with ``gradient`` a run-time value (``np.bool_``): numba types and lowers the scalar
+    intersection kernels once instead of at three inlined call sites, each with every surface
+    kind's closed form (docs/benchmarks.md, "First run: the tracer's compile cut"). The
+    arithmetic is that of the inlined code, with the same fastmath flags (FMA contraction).
+    """
+    t, x, y, z, hx, hy, st = intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol, z_start,
+                                              gradient)
+    if st == _NEEDS_SOLVE:
+        t, x, y, z, hx, hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz, tol,
+                                                 max_iter, z)
+    return t, x, y, z, hx, hy, st
+
+
+@numba.njit(**_JIT)
 def _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, gradient, fd, S):
     """The scalar kernels for the pixels the vectorised stage left (_C == _NEEDS_SOLVE):
     ``intersect_kernel`` from the warm start (_ZG), then ``intersect_solve`` from its result
-    (the sequence of the pixel-by-pixel tracer). The ray: origin (_QOX, _QOY, _QOZ),
-    direction in the fields fd, fd + 1, fd + 2 (_VX: view ray, _WX: reflected ray)."""
+    (the sequence of the pixel-by-pixel tracer, :func:`intersect_ray`). The ray: origin (_QOX,
+    _QOY, _QOZ), direction in the fields fd, fd + 1, fd + 2 (_VX: view ray, _WX: reflected ray)."""
     B = _BLK
     for i in range(n):
         if S[_C * B + i] == _NEEDS_SOLVE:
-            ox = S[_QOX * B + i]
-            oy = S[_QOY * B + i]
-            oz = S[_QOZ * B + i]
-            dx = S[fd * B + i]
-            dy = S[(fd + 1) * B + i]
-            dz = S[(fd + 2) * B + i]
-            t, x, y, z, hx, hy, st = intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol,
-                                                      S[_ZG * B + i], gradient)
-            if st == _NEEDS_SOLVE:
-                t, x, y, z, hx, hy, st = intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz,
-                                                         tol, max_iter, z)
+            t, x, y, z, hx, hy, st = intersect_ray(kind, gx, gy, coef, z_min, z_max, dmax, S[_QOX * B + i],
+                                                   S[_QOY * B + i], S[_QOZ * B + i], S[fd * B + i],
+                                                   S[(fd + 1) * B + i], S[(fd + 2) * B + i], tol, max_iter,
+                                                   S[_ZG * B + i], gradient)
             S[_X * B + i] = x
             S[_Y * B + i] = y
             S[_Z * B + i] = z
