@@ -67,8 +67,8 @@ def glass_band_rows(n_rows: int, band_rows: int) -> int:
     (``band_rows``: the glass-free tracer's).
 
     The first row of a band has no rows above: its pixels are traced one by one
-    (:func:`glass_pixel`), at ≈ 4× the cost of a row-kernel pixel with glass (≈ 0.29 µs more per
-    pixel, docs/benchmarks.md "Cover glass (issue 21): where the glass trace's time goes"). So
+    (:func:`glass_pixel`), at 0.2–0.3 µs more per pixel than a row-kernel pixel with glass
+    (docs/benchmarks.md "Cover glass (issue 21): where the glass trace's time goes"). So
     with a glass the bands are up to four times as long, as long as the image still gives
     ``_MIN_BANDS`` bands (the threads' tasks). Depends on the image's shape only: the results do
     not depend on the number of threads.
