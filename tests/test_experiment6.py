@@ -43,3 +43,27 @@ def test_modelling_the_glass_removes_its_error(records):
         assert math.isfinite(by[("ignored", cam)])
         assert by[("nominal", cam)] < 0.5 * by[("ignored", cam)], by
         assert by[("calibrated", cam)] < 0.5 * by[("ignored", cam)], by
+
+
+def test_thickness_sigma_labels_the_model_errors_it_ignores():
+    """σ of a fitted thickness is the images' noise: where the calibration's model is known to be
+    wrong (the local-plate glass on a deformed screen, a planar model of a bulged screen) the
+    record lists it; on a flat screen with the glass modelled only the ideal images are listed."""
+    from pmdsim.studies.experiment6 import IGNORES_GLASS_LOCAL_PLATE, thickness_std_ignores
+    from pmdsim.studies.experiment_uncertainty import IGNORES_IDEAL_IMAGES, IGNORES_PLANAR_BULGE
+
+    flat = default_setup().binned(16).with_bulge(0.0).with_cover_glass(3.0, 1.52)
+    bulged = default_setup().binned(16).with_bulge(3.0).with_cover_glass(3.0, 1.52)
+    assert thickness_std_ignores(flat, "nominal") is None
+    assert thickness_std_ignores(flat, "ignored") is None
+    assert thickness_std_ignores(flat, "calibrated") == [IGNORES_IDEAL_IMAGES]
+    assert thickness_std_ignores(flat, "calibrated_free3x3") == [IGNORES_IDEAL_IMAGES]
+    assert thickness_std_ignores(bulged, "calibrated_free3x3") == [IGNORES_IDEAL_IMAGES, IGNORES_GLASS_LOCAL_PLATE]
+    assert thickness_std_ignores(bulged, "calibrated") == [IGNORES_PLANAR_BULGE, IGNORES_IDEAL_IMAGES,
+                                                             IGNORES_GLASS_LOCAL_PLATE]
+
+
+def test_records_label_the_thickness_sigma(records):
+    for r in records:
+        labels = r["calibrated_thickness_std_ignores"]
+        assert (labels is not None) == (r["glass_model"] == "calibrated")

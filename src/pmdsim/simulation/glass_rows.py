@@ -55,7 +55,26 @@ from .trace_rows import (
     _PIY, _QOX, _QOY, _QOZ, _SMALL_GRID, _UX, _UY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG, _fixup, _intersect_block,
 )
 
-__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace"]
+__all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace",
+           "glass_band_rows"]
+
+#: Fewest bands (parallel tasks) :func:`glass_band_rows` leaves an image.
+_MIN_BANDS = 8
+
+
+def glass_band_rows(n_rows: int, band_rows: int) -> int:
+    """Image rows per band of the tracer with a cover glass, for an image of ``n_rows`` rows
+    (``band_rows``: the glass-free tracer's).
+
+    The first row of a band has no rows above: its pixels are traced one by one
+    (:func:`glass_pixel`), at 0.2–0.3 µs more per pixel than a row-kernel pixel with glass
+    (docs/benchmarks.md "Cover glass (issue 21): where the glass trace's time goes"). So
+    with a glass the bands are up to four times as long, as long as the image still gives
+    ``_MIN_BANDS`` bands (the threads' tasks). Depends on the image's shape only: the results do
+    not depend on the number of threads.
+    """
+    return max(band_rows, min(4 * band_rows, n_rows // _MIN_BANDS))
+
 
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0

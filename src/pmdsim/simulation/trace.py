@@ -20,6 +20,7 @@ from ..geometry.cover_glass import CoverGlass
 from ..geometry.kernel_args import readonly
 from ..geometry.surface import FIXED_POINT_MAX_ITER, INTERSECT_TOL_MM
 from ..geometry.transform import RigidTransform
+from .glass_rows import glass_band_rows
 from .glass_switch import glass_pixel_if
 from .trace_rows import _BLK, _NF, _NI, intersect_ray, trace_row
 from ..geometry.compact import compact_repr
@@ -426,6 +427,8 @@ def trace_rays(
     # runs of a flat list of rays are not neighbours: one run per band (left neighbours only).
     band_rows = _BAND_ROWS if len(shape) >= 2 else 1
     n_runs = (n + run_length - 1) // run_length
+    if with_glass and len(shape) >= 2:  # longer bands: fewer first rows, the costly ones with a glass
+        band_rows = glass_band_rows(n_runs, band_rows)
     z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 10 if with_glass else 4, run_length), np.nan)
     scratch = np.empty((z_rows.shape[0], _NF * _BLK))
     pscratch = np.empty((z_rows.shape[0], _NI * _BLK), dtype=np.int64)
