@@ -43,10 +43,10 @@ from .uncertainty_calibration import _accumulate, _fill
 
 __all__ = ["MIN_NOISE_SUBGRID_PX", "default_noise_stride", "subgrid_height_std"]
 
+_RTOL = 1e-4  # relative tolerance of each solve, as the every-pixel σ's (uncertainty_stereo._RTOL)
+
 #: The shortest subgrid side :func:`default_noise_stride` keeps (pixels).
 MIN_NOISE_SUBGRID_PX = 150
-
-_RTOL = 1e-4  # as uncertainty_stereo._RTOL
 
 
 def default_noise_stride(shape) -> int:
@@ -97,6 +97,22 @@ def _block_means(A, S, seed, n_chunks, K, row_block, col_block, hc, wc, out):
                     out[i, j, k, 1] /= cnt[j]
 
 
+@numba.njit(cache=True)
+def _anchor_draws(anchor, cam, pix, coef, seeds, K, n_chunks, out):
+    """out (K, n): δa of every sample k from the linear terms δa_i = Σ_t coef_t·ξ_k(cam_t, pix_t)
+    (what :func:`pmdsim.evaluation.uncertainty_stereo._anchor_draw` gives per sample, in the same
+    order of the terms: bit for bit), each term's random word drawn once per 32 samples."""
+    out[:] = 0.0
+    for t in range(anchor.size):
+        i = anchor[t]
+        c0 = coef[t, 0]
+        c1 = coef[t, 1]
+        for c in range(n_chunks):
+            w = _word(seeds[cam[t]], pix[t], c, n_chunks)
+            for kk in range(min(32, K - 32 * c)):
+                out[32 * c + kk, i] += c0 * _xi(w, kk, 0) + c1 * _xi(w, kk, 1)
+
+
 class _SubgridLinear:
     """One camera's anchored least-squares heights linearised on the subgrid of stride s, offset
     o (module docstring): δz_sub = N_sub⁻¹(−J_subᵀ δr(block means) + Σ w² e δa)."""
@@ -141,24 +157,28 @@ class _SubgridLinear:
         self.S_full = np.ascontiguousarray(S_full)
 
     def block_means(self, A, seed: int, K: int) -> np.ndarray:
-        """(h, w, K, 2) block means of the K samples' slope perturbations (A = J σ, 0 off S)."""
+        """(K, h, w, 2) block means of the K samples' slope perturbations (A = J σ, 0 off S)."""
         h, w = self.S.shape
         out = np.zeros((h, w, K, 2))
         _block_means(A, self.S_full, np.int64(seed), (K + 31) // 32, K, self.row_block, self.col_block, h, w, out)
-        return out
+        return np.ascontiguousarray(out.transpose(2, 0, 1, 3))
 
-    def apply(self, dg, da) -> np.ndarray:
-        """δz (h, w) on the subgrid (0 off its S) for block-mean slope perturbations dg (h, w, 2)
-        and the perturbations da (n,) of all anchors given at construction."""
-        _ls_rhs(self.S, -1, -1, self.geo, dg, self.rhs)
-        np.add.at(self.rhs, (self.av, self.au), self.w2 * np.asarray(da)[self.keep])
-        if float(np.max(np.abs(self.rhs))) == 0.0:
-            return np.zeros(self.S.shape)
-        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, _RTOL, 500, work=self.work, mg=self.mg)
-        if not ok or not np.isfinite(x).all():
-            raise UncertaintyError("the linearised anchored least-squares system did not converge (singular or "
-                                   "ill-conditioned normal equations); no σ")
-        return np.where(self.S, x[1:-1, 1:-1], 0.0)
+    def sum_sq(self, means, da) -> np.ndarray:
+        """Σ_k δz_k² (h, w) on the subgrid (0 off its S) over the samples' block-mean slope
+        perturbations ``means`` (K, h, w, 2) and anchor perturbations ``da`` (K, n) of all
+        anchors given at construction, each solved by the multigrid-preconditioned CG."""
+        acc = np.zeros(self.S.shape)
+        for k in range(means.shape[0]):
+            _ls_rhs(self.S, -1, -1, self.geo, means[k], self.rhs)
+            np.add.at(self.rhs, (self.av, self.au), self.w2 * da[k][self.keep])
+            if float(np.max(np.abs(self.rhs))) == 0.0:
+                continue
+            x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, _RTOL, 500, work=self.work, mg=self.mg)
+            if not ok or not np.isfinite(x).all():
+                raise UncertaintyError("the linearised anchored least-squares system on the σ's subgrid did not "
+                                       "converge (singular or ill-conditioned normal equations); no σ")
+            acc += np.where(self.S, x[1:-1, 1:-1], 0.0) ** 2
+        return acc
 
     def to_pixels(self, var_sub) -> np.ndarray:
         """σ (H, W) at every pixel from the subgrid's variances (h, w) (NaN off S): bilinear
@@ -192,8 +212,6 @@ def subgrid_height_std(views: dict, recs: dict, anchors_vu: dict, A: dict, noise
     samples, stride, offset
         K, s and o.
     """
-    from .uncertainty_stereo import _anchor_draw
-
     names = list(A)
     K = int(samples)
     n_chunks = (K + 31) // 32
@@ -203,10 +221,8 @@ def subgrid_height_std(views: dict, recs: dict, anchors_vu: dict, A: dict, noise
         Az = np.ascontiguousarray(np.where(lin.S_full[..., None, None], np.nan_to_num(A[c]), 0.0))
         means = lin.block_means(Az, int(seeds[names.index(c)]), K)
         an = noise[c]
-        da = np.empty(an.std_mm.size)
-        acc = np.zeros(lin.S.shape)
-        for k in range(K):
-            _anchor_draw(an.anchor, an.camera, an.pixel, an.coef, seeds, k, n_chunks, da)
-            acc += lin.apply(np.ascontiguousarray(means[:, :, k, :]), da) ** 2
-        out[c] = lin.to_pixels(acc / K)
+        da = np.empty((K, an.std_mm.size))
+        _anchor_draws(an.anchor, an.camera, an.pixel, an.coef, np.ascontiguousarray(seeds, dtype=np.int64), K,
+                      n_chunks, da)
+        out[c] = lin.to_pixels(lin.sum_sq(means, da) / K)
     return out
