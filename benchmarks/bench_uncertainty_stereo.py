@@ -1,7 +1,8 @@
 """Monte Carlo check and cost of the per-pixel σ of stereo evaluations (issue 22, ``--stereo``).
 
     python benchmarks/bench_uncertainty_stereo.py --binning 16 --sets 100 [--noise-std 2] [--bins 5]
-    python benchmarks/bench_uncertainty_stereo.py --sets 0 --time-binning 1
+    python benchmarks/bench_uncertainty_stereo.py --sets 0 --time-binning 1 [--compare-strides 8,16]
+    python benchmarks/bench_uncertainty_stereo.py --sets 0 --cli IMAGE_DIR --repeat 2
 
 Monte Carlo (``--sets`` > 0): Table 1, both cameras binned ``--binning``×, the patterns'
 intensity noise ``--noise-std`` grey levels, ``--sets`` seeded noisy image sets of both cameras,
@@ -17,7 +18,10 @@ pixels that are anchors in every set, against the predicted ``anchor_height_std_
 
 Cost (``--time-binning`` B > 0; B = 1 is full resolution, 1920×1200): one noisy set at binning
 B; CPU (process) and wall time of the stereo evaluation (search, integration, report) and of its
-σ (K = ``--samples``), default numba threads, and the σ's stages.
+σ (K = ``--samples``), default numba threads, and the σ's stages; ``--compare-strides``: the
+noise σ on those subgrids against every pixel's (same draws). ``--cli IMAGE_DIR``: ``pmdsim
+evaluate IMAGE_DIR --stereo`` with σ and with ``--no-uncertainty``, subprocesses, A/B
+interleaved, CPU and wall times.
 """
 
 from __future__ import annotations
@@ -202,6 +206,34 @@ def _compare_strides(a, s, views, dec, st, res) -> None:
                   f"range {rel.min():+.2%} … {rel.max():+.2%}; {cpu:.2f} s CPU")
 
 
+def cli(a) -> None:
+    """``pmdsim evaluate IMAGE_DIR --stereo`` as subprocesses, A/B interleaved: with σ (the
+    default), then ``--no-uncertainty``; CPU (the child's user + system) and wall seconds."""
+    import resource
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+
+    times = {"with σ": [], "--no-uncertainty": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(a.repeat):
+            for label, extra in (("with σ", []), ("--no-uncertainty", ["--no-uncertainty"])):
+                out = os.path.join(tmp, f"ev{r}{len(extra)}")
+                ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t = time.perf_counter()
+                subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, "--stereo", "--out", out, "--quiet",
+                                *extra], check=True, capture_output=True)
+                wall = time.perf_counter() - t
+                ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
+                times[label].append(cpu)
+                print(f"run {r}: evaluate --stereo {label}: {cpu:.1f} s CPU, {wall:.1f} s wall (load "
+                      f"{os.getloadavg()[0]:.2f})", flush=True)
+    w, wo = statistics.median(times["with σ"]), statistics.median(times["--no-uncertainty"])
+    print(f"median CPU: with σ {w:.1f} s, without {wo:.1f} s: {100 * (w / wo - 1):+.0f} % (target ≤ +50 %)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--binning", type=int, default=16)
@@ -217,6 +249,8 @@ def main() -> None:
     ap.add_argument("--compare-strides", default="", help="e.g. 2,4: the noise σ on these subgrids against every "
                     "pixel's (after the timing)")
     ap.add_argument("--compare-samples", type=int, default=64, help="K of --compare-strides")
+    ap.add_argument("--cli", default="", metavar="IMAGE_DIR", help="time `pmdsim evaluate IMAGE_DIR --stereo` with σ "
+                    "and with --no-uncertainty (subprocesses, A/B interleaved, --repeat times)")
     a = ap.parse_args()
     print(f"load before: {os.getloadavg()}")
     t0 = time.perf_counter()
@@ -227,6 +261,8 @@ def main() -> None:
         numba.set_num_threads(n)
     if a.time_binning > 0:
         timing(a)
+    if a.cli:
+        cli(a)
     print(f"{time.perf_counter() - t0:.0f} s; load after: {os.getloadavg()}")
 
 

@@ -32,8 +32,9 @@ def evaluated():
 
 
 def test_default_stride_keeps_every_pixel_below_twice_the_minimum_subgrid():
-    assert SG.default_noise_stride((299, 480)) == 1
-    assert SG.default_noise_stride((300, 480)) == 2
+    m = SG.MIN_NOISE_SUBGRID_PX
+    assert SG.default_noise_stride((2 * m - 1, 480)) == 1
+    assert SG.default_noise_stride((2 * m, 480)) == 2
     assert SG.default_noise_stride((1200, 1920)) == 1200 // SG.MIN_NOISE_SUBGRID_PX
 
 

@@ -28,7 +28,10 @@ Rademacher draws ξ (±1) per camera, pixel and axis; the *same* draws give each
 perturbations δg = J σ ξ of every camera and its anchors' δa, so that the correlations between
 a camera's slopes, its anchors and the partner's data are propagated (an anchor shares its
 pixel's noise with the slopes there, and the partner's noise with the partner's surface).
-σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K).
+σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K). On images of at least
+150 px in the shorter side (the default stride) the same estimator runs on a subgrid
+(:mod:`pmdsim.evaluation.uncertainty_stereo_subgrid`: the slopes' draws block-averaged, every
+anchor's δa as here), which is what makes the stereo σ affordable at full resolution.
 
 The calibration covariance, when the setup carries one, adds its part
 (:mod:`pmdsim.evaluation.uncertainty_stereo_calibration`; without one the noise part only, and
@@ -332,7 +335,7 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
     noise_stride : int, optional
         Subgrid stride s of the heights' noise σ (:mod:`pmdsim.evaluation.uncertainty_stereo_subgrid`);
         default :func:`~pmdsim.evaluation.uncertainty_stereo_subgrid.default_noise_stride` (every
-        pixel below 300 px in the shorter image side). 1: every pixel.
+        pixel below 150 px in the shorter image side). 1: every pixel.
 
     Returns
     -------

@@ -20,7 +20,10 @@ the stereo evaluation itself. On large images the same estimator runs on every s
 * **The anchors' noise** is every pixel's: each anchor's δa (its own pixel and its partner's 16,
   :class:`~pmdsim.evaluation.uncertainty_stereo.AnchorNoise`) from the same draws, so the
   correlations between a camera's slopes, its anchors and the partner's data stay propagated.
-* **Back to every pixel**: σ² of the subgrid, bilinearly interpolated (subgrid pixels that are
+* **All K samples' draws at once**: one pass over the pixels draws each pixel's random word once
+  per 32 samples and adds its δg_k to its block's mean; the anchors' δa_k likewise (bit for bit
+  the per-sample draws). Each sample is then one multigrid-CG solve of the subgrid's system.
+* **Back to every pixel**: σ of the subgrid, bilinearly interpolated (subgrid pixels that are
   not reconstructed filled from their neighbours first).
 
 The stereo σ is mostly the anchors' weighted mean (σ_a/√n, uniform); what the subgrid changes is
@@ -46,12 +49,12 @@ __all__ = ["MIN_NOISE_SUBGRID_PX", "default_noise_stride", "subgrid_height_std"]
 _RTOL = 1e-4  # relative tolerance of each solve, as the every-pixel σ's (uncertainty_stereo._RTOL)
 
 #: The shortest subgrid side :func:`default_noise_stride` keeps (pixels).
-MIN_NOISE_SUBGRID_PX = 150
+MIN_NOISE_SUBGRID_PX = 75
 
 
 def default_noise_stride(shape) -> int:
     """The noise σ's default subgrid stride: min(H, W) // :data:`MIN_NOISE_SUBGRID_PX`, at least
-    1 (every pixel below 300 px; 2 at 480 × 300, 8 at 1920 × 1200)."""
+    1 (every pixel below 150 px; 4 at 480 × 300, 16 at 1920 × 1200)."""
     return max(1, min(int(shape[0]), int(shape[1])) // MIN_NOISE_SUBGRID_PX)
 
 
