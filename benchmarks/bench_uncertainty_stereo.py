@@ -163,9 +163,13 @@ def timing(a) -> None:
           f"{time.perf_counter() - t0:.1f} s; numba threads {numba.get_num_threads()}; load {os.getloadavg()}")
     del maps
     st_ = _Stages()
-    for name in ("_tangents", "_jacobian_scaled", "anchor_noise", "stereo_height_std"):
+    from pmdsim.evaluation import uncertainty_stereo_subgrid as sg
+
+    for name in ("_tangents", "_jacobian_scaled", "anchor_noise", "stereo_height_std", "subgrid_height_std"):
         st_.wrap(us, name)
-    st_.wrap(us._AnchoredLinear, "__init__", "linearisation")
+    st_.wrap(us._AnchoredLinear, "__init__", "linearisation (every pixel)")
+    for name in ("block_means", "sum_sq", "to_pixels"):
+        st_.wrap(sg._SubgridLinear, name, "subgrid " + name)
     for rep in range(a.repeat):
         st_.reset()
         c0, t0 = time.process_time(), time.perf_counter()

@@ -65,14 +65,18 @@ def _nearest(x, o: int, s: int, n: int) -> np.ndarray:
 
 @numba.njit(cache=True, parallel=True)
 def _block_means(A, S, seed, n_chunks, K, row_block, col_block, hc, wc, out):
-    """out (hc, wc, K, 2) = the mean of δg_k = A ξ_k over each subgrid pixel's block of
+    """out (K, hc, wc, 2) = the mean of δg_k = A ξ_k over each subgrid pixel's block of
     reconstructed pixels (row_block[v], col_block[u]: the block of pixel (v, u)), for the K
     samples (ξ of :func:`pmdsim.evaluation.uncertainty._sample_dg`, bit for bit). Blocks are
-    disjoint row bands per subgrid row, so threads own their rows."""
+    disjoint row bands per subgrid row, so threads own their rows. Per pixel the four values
+    ±A₀₀ ± A₀₁ (and ±A₁₀ ± A₁₁) are tabulated and each sample adds the one its two bits select
+    (exactly A ξ_k: the same products and sum)."""
     H, W = S.shape
-    out[:] = 0.0
     for i in numba.prange(0, hc):
         cnt = np.zeros(wc)
+        acc = np.zeros((wc, 2 * K))
+        t0 = np.empty(4)
+        t1 = np.empty(4)
         for v in range(H):
             if row_block[v] != i:
                 continue
@@ -81,23 +85,23 @@ def _block_means(A, S, seed, n_chunks, K, row_block, col_block, hc, wc, out):
                     continue
                 j = col_block[u]
                 cnt[j] += 1.0
-                a00 = A[v, u, 0, 0]
-                a01 = A[v, u, 0, 1]
-                a10 = A[v, u, 1, 0]
-                a11 = A[v, u, 1, 1]
+                for b in range(4):
+                    x = 1.0 - 2.0 * (b & 1)
+                    y = 1.0 - 2.0 * (b >> 1)
+                    t0[b] = A[v, u, 0, 0] * x + A[v, u, 0, 1] * y
+                    t1[b] = A[v, u, 1, 0] * x + A[v, u, 1, 1] * y
+                row = acc[j]
                 for c in range(n_chunks):
                     w = _word(seed, v * W + u, c, n_chunks)
                     for kk in range(min(32, K - 32 * c)):
-                        x = _xi(w, kk, 0)
-                        y = _xi(w, kk, 1)
-                        k = 32 * c + kk
-                        out[i, j, k, 0] += a00 * x + a01 * y
-                        out[i, j, k, 1] += a10 * x + a11 * y
+                        b = (w >> np.uint64(2 * kk)) & np.uint64(3)
+                        row[32 * c + kk] += t0[b]
+                        row[K + 32 * c + kk] += t1[b]
         for j in range(wc):
-            if cnt[j] > 0.0:
-                for k in range(K):
-                    out[i, j, k, 0] /= cnt[j]
-                    out[i, j, k, 1] /= cnt[j]
+            n = max(cnt[j], 1.0)
+            for k in range(K):
+                out[k, i, j, 0] = acc[j, k] / n
+                out[k, i, j, 1] = acc[j, K + k] / n
 
 
 @numba.njit(cache=True)
@@ -162,9 +166,9 @@ class _SubgridLinear:
     def block_means(self, A, seed: int, K: int) -> np.ndarray:
         """(K, h, w, 2) block means of the K samples' slope perturbations (A = J σ, 0 off S)."""
         h, w = self.S.shape
-        out = np.zeros((h, w, K, 2))
+        out = np.empty((K, h, w, 2))
         _block_means(A, self.S_full, np.int64(seed), (K + 31) // 32, K, self.row_block, self.col_block, h, w, out)
-        return np.ascontiguousarray(out.transpose(2, 0, 1, 3))
+        return out
 
     def sum_sq(self, means, da) -> np.ndarray:
         """Σ_k δz_k² (h, w) on the subgrid (0 off its S) over the samples' block-mean slope
