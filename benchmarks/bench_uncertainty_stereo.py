@@ -226,13 +226,14 @@ def cli(a) -> None:
                 out = os.path.join(tmp, f"ev{r}{len(extra)}")
                 ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t = time.perf_counter()
-                subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, "--stereo", "--out", out, "--quiet",
+                mode = [] if a.mono else ["--stereo"]
+                subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, *mode, "--out", out, "--quiet",
                                 *extra], check=True, capture_output=True)
                 wall = time.perf_counter() - t
                 ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
                 times[label].append(cpu)
-                print(f"run {r}: evaluate --stereo {label}: {cpu:.1f} s CPU, {wall:.1f} s wall (load "
+                print(f"run {r}: evaluate{'' if a.mono else ' --stereo'} {label}: {cpu:.1f} s CPU, {wall:.1f} s wall (load "
                       f"{os.getloadavg()[0]:.2f})", flush=True)
     w, wo = statistics.median(times["with σ"]), statistics.median(times["--no-uncertainty"])
     print(f"median CPU: with σ {w:.1f} s, without {wo:.1f} s: {100 * (w / wo - 1):+.0f} % (target ≤ +50 %)")
@@ -253,6 +254,7 @@ def main() -> None:
     ap.add_argument("--compare-strides", default="", help="e.g. 2,4: the noise σ on these subgrids against every "
                     "pixel's (after the timing)")
     ap.add_argument("--compare-samples", type=int, default=64, help="K of --compare-strides")
+    ap.add_argument("--mono", action="store_true", help="--cli: the mono evaluation (no --stereo)")
     ap.add_argument("--cli", default="", metavar="IMAGE_DIR", help="time `pmdsim evaluate IMAGE_DIR --stereo` with σ "
                     "and with --no-uncertainty (subprocesses, A/B interleaved, --repeat times)")
     a = ap.parse_args()
