@@ -1,6 +1,6 @@
 """Where the stereo σ's calibration part spends its time (issue 22 "Speed", ``--stereo``).
 
-    python benchmarks/profile_uncertainty_stereo_calibration.py [--binning 4]
+    python benchmarks/profile_uncertainty_stereo_calibration.py [--binning 4] [--stride S]
 
 Table 1 binned ``--binning``×, one noisy decode of both cameras, a diagonal calibration
 covariance of both cameras' 14 parameters and the table's 3 (the values do not change the
@@ -31,6 +31,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--binning", type=int, default=4)
     ap.add_argument("--top", type=int, default=16)
+    ap.add_argument("--stride", type=int, default=None, help="the calibration part's subgrid stride (default: its own)")
     a = ap.parse_args()
     s = default_setup().binned(a.binning).with_patterns(noise_std=2.0)
     names = [f"{c}.{n}" for c in s.cameras for n in CAMERA_PARAMETER_NAMES] + list(TABLE_PARAMETER_NAMES)
@@ -42,11 +43,11 @@ def main() -> None:
     c0 = time.process_time()
     _, st = evaluate_stereo_decoded(s, dec)
     t_eval = time.process_time() - c0
-    stereo_calibration_contribution(s, dec, st)
+    stereo_calibration_contribution(s, dec, st, stride=a.stride)
     pr = cProfile.Profile()
     c0 = time.process_time()
     pr.enable()
-    r = stereo_calibration_contribution(s, dec, st)
+    r = stereo_calibration_contribution(s, dec, st, stride=a.stride)
     pr.disable()
     t_cal = time.process_time() - c0
     shape = st.cameras[next(iter(st.cameras))].reconstructed.shape
