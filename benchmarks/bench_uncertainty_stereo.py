@@ -1,7 +1,8 @@
 """Monte Carlo check and cost of the per-pixel σ of stereo evaluations (issue 22, ``--stereo``).
 
     python benchmarks/bench_uncertainty_stereo.py --binning 16 --sets 100 [--noise-std 2] [--bins 5]
-    python benchmarks/bench_uncertainty_stereo.py --sets 0 --time-binning 1
+    python benchmarks/bench_uncertainty_stereo.py --sets 0 --time-binning 1 [--compare-strides 8,16]
+    python benchmarks/bench_uncertainty_stereo.py --sets 0 --cli IMAGE_DIR --repeat 2
 
 Monte Carlo (``--sets`` > 0): Table 1, both cameras binned ``--binning``×, the patterns'
 intensity noise ``--noise-std`` grey levels, ``--sets`` seeded noisy image sets of both cameras,
@@ -15,8 +16,12 @@ per camera in bins of distance from the centroid of the anchors: ratio = sqrt(me
 variance / mean predicted variance). The anchors' own σ: the scatter of the anchor height at
 pixels that are anchors in every set, against the predicted ``anchor_height_std_um``.
 
-Cost (``--time-binning`` B > 0): one noisy set at binning B; wall time of the stereo evaluation
-(search, integration, report) and of its σ (K = 64), default numba threads.
+Cost (``--time-binning`` B > 0; B = 1 is full resolution, 1920×1200): one noisy set at binning
+B; CPU (process) and wall time of the stereo evaluation (search, integration, report) and of its
+σ (K = ``--samples``), default numba threads, and the σ's stages; ``--compare-strides``: the
+noise σ on those subgrids against every pixel's (same draws). ``--cli IMAGE_DIR``: ``pmdsim
+evaluate IMAGE_DIR --stereo`` with σ and with ``--no-uncertainty``, subprocesses, A/B
+interleaved, CPU and wall times.
 """
 
 from __future__ import annotations
@@ -115,22 +120,123 @@ def monte_carlo(a) -> None:
     print(f"largest |ratio − 1| over the bins: {worst:.3f}")
 
 
+class _Stages:
+    """CPU (process) and wall seconds spent in named functions of the σ's modules (wrapped)."""
+
+    def __init__(self):
+        self.cpu = {}
+        self.wall = {}
+        self._undo = []
+
+    def wrap(self, module, name, label=None):
+        f = getattr(module, name)
+        label = label or name
+
+        def timed(*args, **kw):
+            c0, w0 = time.process_time(), time.perf_counter()
+            try:
+                return f(*args, **kw)
+            finally:
+                self.cpu[label] = self.cpu.get(label, 0.0) + time.process_time() - c0
+                self.wall[label] = self.wall.get(label, 0.0) + time.perf_counter() - w0
+
+        setattr(module, name, timed)
+        self._undo.append((module, name, f))
+
+    def reset(self):
+        self.cpu.clear()
+        self.wall.clear()
+
+    def line(self):
+        return "; ".join(f"{k} {self.cpu[k]:.2f} s CPU ({self.wall[k]:.2f} s wall)" for k in self.cpu)
+
+
 def timing(a) -> None:
+    from pmdsim.evaluation import uncertainty_stereo as us
+
     s = default_setup().binned(a.time_binning).with_patterns(noise_std=a.noise_std)
     t0 = time.perf_counter()
     maps = {c: trace_setup_camera(s, c) for c in s.cameras}
     dec = _decode(s, maps, 0)
     shape = next(iter(dec.values())).valid.shape
     print(f"binning {a.time_binning}: {shape[1]}×{shape[0]} px per camera; trace + decode "
-          f"{time.perf_counter() - t0:.1f} s; load {os.getloadavg()}")
+          f"{time.perf_counter() - t0:.1f} s; numba threads {numba.get_num_threads()}; load {os.getloadavg()}")
+    del maps
+    st_ = _Stages()
+    from pmdsim.evaluation import uncertainty_stereo_subgrid as sg
+
+    for name in ("_tangents", "_jacobian_scaled", "anchor_noise", "stereo_height_std", "subgrid_height_std"):
+        st_.wrap(us, name)
+    st_.wrap(us._AnchoredLinear, "__init__", "linearisation (every pixel)")
+    for name in ("block_means", "sum_sq", "to_pixels"):
+        st_.wrap(sg._SubgridLinear, name, "subgrid " + name)
     for rep in range(a.repeat):
-        t0 = time.perf_counter()
+        st_.reset()
+        c0, t0 = time.process_time(), time.perf_counter()
         views, st = evaluate_stereo_decoded(s, dec)
-        t1 = time.perf_counter()
-        stereo_uncertainty(s, views, dec, st)
-        t2 = time.perf_counter()
-        print(f"run {rep}: stereo evaluation (registration, search, integration, report) {t1 - t0:.1f} s; σ (K = 64, "
-              f"both cameras) {t2 - t1:.1f} s = +{(t2 - t1) / (t1 - t0):.0%}; load {os.getloadavg()}")
+        c1, t1 = time.process_time(), time.perf_counter()
+        res = stereo_uncertainty(s, views, dec, st, samples=a.samples, noise_stride=a.noise_stride)
+        c2, t2 = time.process_time(), time.perf_counter()
+        print(f"run {rep}: stereo evaluation (registration, search, integration, report) {c1 - c0:.2f} s CPU "
+              f"({t1 - t0:.2f} s wall); σ (K = {a.samples}, both cameras) {c2 - c1:.2f} s CPU ({t2 - t1:.2f} s wall) "
+              f"= +{(c2 - c1) / (c1 - c0):.0%} CPU (+{(t2 - t1) / (t1 - t0):.0%} wall); load {os.getloadavg()}")
+        print(f"  σ stages: {st_.line()}")
+    if a.compare_strides:
+        _compare_strides(a, s, views, dec, st, res)
+
+
+def _compare_strides(a, s, views, dec, st, res) -> None:
+    """The noise σ of the subgrid strides against every pixel's (same draws), per camera: RMS and
+    largest relative difference of σ, and of its RMS over the field."""
+    from pmdsim.evaluation.uncertainty_stereo import stereo_uncertainty as su
+
+    ref = {}
+    for stride in [1] + [int(x) for x in a.compare_strides.split(",") if int(x) != 1]:
+        c0 = time.process_time()
+        r = su(s, views, dec, st, samples=a.compare_samples, noise_stride=stride)
+        cpu = time.process_time() - c0
+        for c, (u, _) in r.items():
+            h = u.height_std_noise_um
+            m = np.isfinite(h)
+            if stride == 1:
+                ref[c] = h
+                print(f"stride 1 (every pixel), K = {a.compare_samples}: camera {c}: σ RMS {np.sqrt(np.mean(h[m] ** 2)):.4g} µm, "
+                      f"min {h[m].min():.4g}, max {h[m].max():.4g}; {cpu:.2f} s CPU")
+                continue
+            rel = h[m] / ref[c][m] - 1
+            rms = np.sqrt(np.mean(h[m] ** 2)) / np.sqrt(np.mean(ref[c][m] ** 2)) - 1
+            print(f"stride {stride}, K = {a.compare_samples}: camera {c}: σ RMS {np.sqrt(np.mean(h[m] ** 2)):.4g} µm "
+                  f"({rms:+.2%} against every pixel); per pixel: RMS rel. diff. {np.sqrt(np.mean(rel ** 2)):.2%}, "
+                  f"range {rel.min():+.2%} … {rel.max():+.2%}; {cpu:.2f} s CPU")
+
+
+def cli(a) -> None:
+    """``pmdsim evaluate IMAGE_DIR --stereo`` as subprocesses, A/B interleaved: with σ (the
+    default), then ``--no-uncertainty``; CPU (the child's user + system) and wall seconds."""
+    import resource
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+
+    times = {"with σ": [], "--no-uncertainty": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(a.repeat):
+            for label, extra in (("with σ", []), ("--no-uncertainty", ["--no-uncertainty"])):
+                out = os.path.join(tmp, f"ev{r}{len(extra)}")
+                ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t = time.perf_counter()
+                mode = [] if a.mono else ["--stereo"]
+                subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, *mode, "--out", out, "--quiet",
+                                *extra], check=True, capture_output=True)
+                wall = time.perf_counter() - t
+                ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
+                times[label].append(cpu)
+                print(f"run {r}: evaluate{'' if a.mono else ' --stereo'} {label}: {cpu:.1f} s CPU, {wall:.1f} s wall (load "
+                      f"{os.getloadavg()[0]:.2f})", flush=True)
+    w, wo = statistics.median(times["with σ"]), statistics.median(times["--no-uncertainty"])
+    print(f"median CPU: with σ {w:.1f} s, without {wo:.1f} s: {100 * (w / wo - 1):+.0f} % (target ≤ +50 %)")
 
 
 def main() -> None:
@@ -142,6 +248,15 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="numba threads of the Monte Carlo loop")
     ap.add_argument("--time-binning", type=int, default=0, help="> 0: time the stereo σ at this binning")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--samples", type=int, default=64, help="K of the timed σ")
+    ap.add_argument("--noise-stride", type=int, default=None, help="subgrid stride of the timed noise σ (default: "
+                    "the library's)")
+    ap.add_argument("--compare-strides", default="", help="e.g. 2,4: the noise σ on these subgrids against every "
+                    "pixel's (after the timing)")
+    ap.add_argument("--compare-samples", type=int, default=64, help="K of --compare-strides")
+    ap.add_argument("--mono", action="store_true", help="--cli: the mono evaluation (no --stereo)")
+    ap.add_argument("--cli", default="", metavar="IMAGE_DIR", help="time `pmdsim evaluate IMAGE_DIR --stereo` with σ "
+                    "and with --no-uncertainty (subprocesses, A/B interleaved, --repeat times)")
     a = ap.parse_args()
     print(f"load before: {os.getloadavg()}")
     t0 = time.perf_counter()
@@ -152,6 +267,8 @@ def main() -> None:
         numba.set_num_threads(n)
     if a.time_binning > 0:
         timing(a)
+    if a.cli:
+        cli(a)
     print(f"{time.perf_counter() - t0:.0f} s; load after: {os.getloadavg()}")
 
 

@@ -28,7 +28,10 @@ Rademacher draws ξ (±1) per camera, pixel and axis; the *same* draws give each
 perturbations δg = J σ ξ of every camera and its anchors' δa, so that the correlations between
 a camera's slopes, its anchors and the partner's data are propagated (an anchor shares its
 pixel's noise with the slopes there, and the partner's noise with the partner's surface).
-σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K).
+σ_z² = mean_k δz_k²; relative standard error of σ at most about 1/√(2K). On images of at least
+150 px in the shorter side (the default stride) the same estimator runs on a subgrid
+(:mod:`pmdsim.evaluation.uncertainty_stereo_subgrid`: the slopes' draws block-averaged, every
+anchor's δa as here), which is what makes the stereo σ affordable at full resolution.
 
 The calibration covariance, when the setup carries one, adds its part
 (:mod:`pmdsim.evaluation.uncertainty_stereo_calibration`; without one the noise part only, and
@@ -50,6 +53,7 @@ from .stereo import (ANCHOR_WEIGHT, StereoReconstruction, _camera_arrays, _keys,
 from .uncertainty import (DEFAULT_RNG_SEED, DEFAULT_SAMPLES, NO_COVARIANCE_NOTE, SurfaceUncertainty,
                           UncertaintyError, _geometry, _jacobian_scaled, _ls_rhs, _sample_dg, _screen_tangents,
                           _word, _xi, combine, slope_jacobian)
+from .uncertainty_stereo_subgrid import default_noise_stride, subgrid_height_std
 
 __all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty",
            "stereo_with_uncertainty"]
@@ -310,7 +314,8 @@ def stereo_height_std(lins: dict, A: dict, noise: dict, *, samples: int = DEFAUL
 
 
 def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
-                       samples: int = DEFAULT_SAMPLES, rng_seed: int = DEFAULT_RNG_SEED) -> dict:
+                       samples: int = DEFAULT_SAMPLES, rng_seed: int = DEFAULT_RNG_SEED,
+                       noise_stride: int | None = None) -> dict:
     """Per camera the :class:`~pmdsim.evaluation.uncertainty.SurfaceUncertainty` of a stereo
     evaluation and its anchors' σ (module docstring).
 
@@ -327,6 +332,10 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         The evaluation's screen model (None: the plane).
     samples, rng_seed
         K and the seed of the height σ estimator.
+    noise_stride : int, optional
+        Subgrid stride s of the heights' noise σ (:mod:`pmdsim.evaluation.uncertainty_stereo_subgrid`);
+        default :func:`~pmdsim.evaluation.uncertainty_stereo_subgrid.default_noise_stride` (every
+        pixel below 150 px in the shorter image side). 1: every pixel.
 
     Returns
     -------
@@ -360,8 +369,19 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
                                             rec.reconstructed, std)
         sc = stereo.cameras[c]
         noise[c] = anchor_noise(views, decoded, tangents, c, sc.anchor_pixels, sc.anchor_height_mm)
-        lins[c] = _AnchoredLinear(view, rec, sc.anchor_pixels)
-    h = stereo_height_std(lins, A, noise, samples=samples, rng_seed=rng_seed)
+    first = stereo.cameras[next(iter(views))].reconstruction.reconstructed.shape
+    s = default_noise_stride(first) if noise_stride is None else int(noise_stride)
+    if s < 1:
+        raise UncertaintyError(f"noise_stride must be ≥ 1, got {noise_stride!r}")
+    if s == 1:
+        for c, view in views.items():
+            lins[c] = _AnchoredLinear(view, stereo.cameras[c].reconstruction, stereo.cameras[c].anchor_pixels)
+        h = stereo_height_std(lins, A, noise, samples=samples, rng_seed=rng_seed)
+    else:
+        h = subgrid_height_std(views, {c: stereo.cameras[c].reconstruction for c in views},
+                               {c: stereo.cameras[c].anchor_pixels for c in views}, A, noise,
+                               _seeds(rng_seed, len(A)), samples=int(samples), stride=s,
+                               offset=(int(stereo.stride_px) // 2) % s)
     cov = getattr(setup, "calibration_covariance", None)
     cal = None
     if cov is not None:
@@ -374,7 +394,7 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
             raise UncertaintyError(f"stereo: the calibration's contribution cannot be computed: {exc}") from None
     out = {}
     for c in views:
-        S = lins[c].S
+        S = np.asarray(stereo.cameras[c].reconstruction.reconstructed, dtype=bool)
         if not np.isfinite(h[c][S]).all():
             raise UncertaintyError(f"camera {c!r}: the height σ is not finite at some reconstructed pixel")
         a_std = noise[c].std_mm

@@ -1,0 +1,93 @@
+"""The stereo heights' noise σ on a subgrid (issue 22 "Speed", ``--stereo``): its draws against
+the every-pixel estimator's (the same Rademacher draws, block-averaged by numpy; the anchors'
+perturbations sample by sample), and the subgrid's σ against every pixel's σ."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pmdsim.evaluation import uncertainty_stereo as US
+from pmdsim.evaluation import uncertainty_stereo_subgrid as SG
+from pmdsim.evaluation.pipeline import decode_simulated
+from pmdsim.evaluation.stereo import evaluate_stereo_decoded
+from pmdsim.evaluation.uncertainty import _sample_dg
+from pmdsim.setup import default_setup
+from pmdsim.simulation.render import noise_generator, trace_setup_camera
+
+DS = 16  # 120 × 75 px per camera
+
+
+@pytest.fixture(scope="module")
+def evaluated():
+    """Table 1 binned 16×, 2 grey levels of noise: one noisy decode of both cameras and its
+    stereo evaluation (as ``pmdsim evaluate --stereo``)."""
+    s = default_setup().binned(DS).with_patterns(noise_std=2.0)
+    dec = {}
+    for c in s.cameras:
+        m = trace_setup_camera(s, c)
+        dec[c] = decode_simulated(s, m.screen_xy_mm, m.valid, rng=noise_generator(s, c, stream=1000))
+    views, st = evaluate_stereo_decoded(s, dec)
+    return s, dec, views, st
+
+
+def test_default_stride_keeps_every_pixel_below_twice_the_minimum_subgrid():
+    m = SG.MIN_NOISE_SUBGRID_PX
+    assert SG.default_noise_stride((2 * m - 1, 480)) == 1
+    assert SG.default_noise_stride((2 * m, 480)) == 2
+    assert SG.default_noise_stride((1200, 1920)) == 1200 // SG.MIN_NOISE_SUBGRID_PX
+
+
+def test_draws_are_the_every_pixel_estimators_block_averaged(evaluated):
+    s, dec, views, st = evaluated
+    cam = "left"
+    rec = st.cameras[cam].reconstruction
+    S = np.ascontiguousarray(rec.reconstructed)
+    rng = np.random.default_rng(5)
+    A = np.ascontiguousarray(np.where(S[..., None, None], rng.normal(size=S.shape + (2, 2)), 0.0))
+    stride, off, K, seed = 3, 1, 40, 12345
+    lin = SG._SubgridLinear(views[cam], rec, st.cameras[cam].anchor_pixels, stride, off)
+    got = lin.block_means(A, seed, K)
+    h, w = lin.S.shape
+    # reference: every pixel's δg_k (the every-pixel estimator's kernel), averaged per nearest subgrid pixel
+    vv, uu = np.indices(S.shape)
+    bi = np.clip((vv - off + stride // 2) // stride, 0, h - 1)
+    bj = np.clip((uu - off + stride // 2) // stride, 0, w - 1)
+    flat = (bi * w + bj)[S]
+    cnt = np.bincount(flat, minlength=h * w)
+    dg = np.empty(S.shape + (2,))
+    for k in (0, 17, 31, 32, 39):
+        _sample_dg(A, S, seed, k, (K + 31) // 32, dg)
+        for a in range(2):
+            ref = np.bincount(flat, weights=dg[..., a][S], minlength=h * w) / np.maximum(cnt, 1)
+            np.testing.assert_allclose(got[k, ..., a].ravel(), ref, rtol=1e-12, atol=1e-12)
+    # the anchors' perturbations: all samples at once equal the per-sample draws bit for bit
+    tangents = {c: US._tangents(s, None, dec[c]) for c in views}
+    an = US.anchor_noise(views, dec, tangents, cam, st.cameras[cam].anchor_pixels, st.cameras[cam].anchor_height_mm)
+    seeds = US._seeds(7, len(views))
+    all_k = np.empty((K, an.std_mm.size))
+    SG._anchor_draws(an.anchor, an.camera, an.pixel, an.coef, seeds, K, (K + 31) // 32, all_k)
+    one = np.empty(an.std_mm.size)
+    for k in (0, 31, 32, 39):
+        US._anchor_draw(an.anchor, an.camera, an.pixel, an.coef, seeds, k, (K + 31) // 32, one)
+        assert np.array_equal(all_k[k], one)
+
+
+def test_subgrid_sigma_against_every_pixels_sigma(evaluated):
+    """Same seed, so both estimators use the same draws: the difference is the subgrid's (the
+    slopes' scales below s pixels), not the estimators' sampling error."""
+    s, dec, views, st = evaluated
+    every = US.stereo_uncertainty(s, views, dec, st, samples=64, noise_stride=1)
+    for stride in (2, 4):
+        sub = US.stereo_uncertainty(s, views, dec, st, samples=64, noise_stride=stride)
+        for c, (u, a_std) in every.items():
+            v, b_std = sub[c]
+            m = np.asarray(st.cameras[c].reconstructed, dtype=bool)
+            h1, h2 = u.height_std_noise_um[m], v.height_std_noise_um[m]
+            assert np.isfinite(h2).all() and np.isnan(v.height_std_noise_um[~m]).all()
+            rms = np.sqrt(np.mean(h2 ** 2) / np.mean(h1 ** 2))
+            assert abs(rms - 1) < 0.01, (stride, c, rms)
+            assert np.max(np.abs(h2 / h1 - 1)) < 0.05, (stride, c)
+            # the slopes' σ and the anchors' σ are every pixel's in both
+            np.testing.assert_array_equal(v.slope_std_noise_urad, u.slope_std_noise_urad)
+            np.testing.assert_array_equal(b_std, a_std)
