@@ -75,3 +75,18 @@ def test_a_slope_ripple_sampled_coarser_integrates_to_the_aliased_heights(method
     assert pv[1] * 1e6 == pytest.approx(A_RAD * STEP_MM / np.tan(np.pi * 0.2625) * 1e6, rel=0.01)
     assert pv[4] * 1e6 == pytest.approx(A_RAD * 4 * STEP_MM / np.tan(np.pi * 1.05) * 1e6, rel=0.01)
     assert pv[4] / pv[1] > 20
+
+
+def test_plane_removed_rms_of_a_tilted_checkerboard_is_the_checkerboard():
+    """results.json's ``rms_plane_removed_um``: a tilt and an offset (any) plus a ±δ checkerboard
+    on an even grid (orthogonal to every plane over it: each of 1, x, y sums to 0 against it)
+    leaves exactly δ; NaN pixels are ignored."""
+    from pmdsim.studies.experiment4 import _plane_removed_rms_um
+
+    v, u = np.mgrid[0:40, 0:60].astype(float)
+    p = np.stack([0.1 * u + 3.0, 0.13 * v - 2.0, np.zeros_like(u)], axis=-1)
+    delta_mm = 2e-6
+    err = 1e-3 * (0.7 * p[..., 0] - 0.4 * p[..., 1] + 5.0) + delta_mm * (-1.0) ** (u + v)
+    assert _plane_removed_rms_um(p, err) == pytest.approx(delta_mm * 1e3, rel=1e-6)
+    err[:2, :] = np.nan  # two full rows out: the rest is still an even grid
+    assert _plane_removed_rms_um(p, err) == pytest.approx(delta_mm * 1e3, rel=1e-6)

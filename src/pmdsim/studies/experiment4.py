@@ -164,6 +164,17 @@ def slope_error_metrics(normals: np.ndarray, true_normal=(0.0, 0.0, 1.0)) -> dic
     return {"slope_rms_urad": float(np.sqrt(np.mean(ang**2))), "slope_max_urad": float(ang.max())}
 
 
+def _plane_removed_rms_um(p_mm: np.ndarray, err_mm: np.ndarray) -> float:
+    """RMS (µm) of the height error ``err_mm`` (H, W) after its least-squares plane over the
+    points ``p_mm`` (H, W, 3): the part of the error that no tilt or offset (the calibrated table
+    plane's, the seed's) explains (docs/experiments.md, "Experiment 4 at full resolution")."""
+    x, y, e = (np.asarray(a, dtype=float).ravel() for a in (p_mm[..., 0], p_mm[..., 1], err_mm))
+    m = np.isfinite(x) & np.isfinite(y) & np.isfinite(e)
+    A = np.column_stack([x[m], y[m], np.ones(int(m.sum()))])
+    coef, *_ = np.linalg.lstsq(A, e[m], rcond=None)
+    return float(np.sqrt(np.mean((e[m] - A @ coef) ** 2)) * 1e3)
+
+
 def effect_truth(base: Setup, name: str, downsample: int = 1) -> Setup:
     """The true setup of effect ``name`` (Δh = :data:`BULGE_MM`) sampled at every ``downsample``-th
     pixel of the same camera (the real pixel's area, full well and noise: issue 20)."""
@@ -215,6 +226,7 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
             continue
         for c in e2.cases:
             rec = {**c.as_record(), "effect": name, **slope_error_metrics(c.n_sample),
+                   "rms_plane_removed_um": _plane_removed_rms_um(c.p_sample_mm, c.height_error_mm),
                    "calibration_rms_px": float(e2.result.rms_px), "calibration_converged": bool(e2.result.converged),
                    "imaging": eff.imaging}
             records.append(rec)
