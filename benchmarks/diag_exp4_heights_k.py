@@ -175,6 +175,7 @@ def main():
     ap.add_argument("--effect", default="all_systematic")
     ap.add_argument("--ks", default="2,4,8", help="comma-separated K (the first is the fine map)")
     ap.add_argument("--method", default="stepwise")
+    ap.add_argument("--steps", default=None, help="subsampling steps of the fine map (default: K / K_fine)")
     ap.add_argument("--save", default=None, help="npz prefix for the maps")
     a = ap.parse_args()
     ks = [int(v) for v in a.ks.split(",")]
@@ -210,7 +211,7 @@ def main():
         gx, gy = slopes(c.n_sample)
         valid = c.reconstructed & np.isfinite(gx)
         x, y = c.p_sample_mm[..., 0].astype(float), c.p_sample_mm[..., 1].astype(float)
-        steps = [k // kf for k in ks if k % kf == 0]
+        steps = [int(v) for v in a.steps.split(",")] if a.steps else [k // kf for k in ks if k % kf == 0]
         res = {}
         for s in steps:
             per_off = []
