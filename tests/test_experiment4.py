@@ -31,7 +31,7 @@ def test_results_one_object_per_effect_and_camera_with_experiment1_keys(run4):
     assert [(x["effect"], x["camera"]) for x in recs] == [(e, c) for e in EFFECTS_RUN.split(",") for c in cams]
     for x in recs:
         for k in ("bulge_mm", "camera", "max_height_diff_um", "max_dev_plane_um", "tilt_urad", "effect",
-                  "rms_um", "slope_rms_urad"):
+                  "rms_um", "slope_rms_urad", "rms_plane_removed_um"):
             assert k in x
         assert x["bulge_mm"] == 3.0 and x["imaging"] == EFFECTS[x["effect"]].imaging
     for f in ("run.json", "table.txt", "error_budget.png"):

@@ -31,7 +31,7 @@ from ..setup import ImagingSetup, Setup
 from .experiment2 import calibrate_and_reconstruct
 from .report import json_ready
 
-__all__ = ["EFFECTS", "Effect", "slope_error_metrics", "run_experiment4", "write_experiment4", "experiment4_steps",
+__all__ = ["EFFECTS", "Effect", "effect_truth", "slope_error_metrics", "run_experiment4", "write_experiment4", "experiment4_steps",
            "experiment4_table", "experiment4_figure", "BULGE_MM"]
 
 Progress = Callable[[str], None]
@@ -164,6 +164,31 @@ def slope_error_metrics(normals: np.ndarray, true_normal=(0.0, 0.0, 1.0)) -> dic
     return {"slope_rms_urad": float(np.sqrt(np.mean(ang**2))), "slope_max_urad": float(ang.max())}
 
 
+def _plane_removed_rms_um(p_mm: np.ndarray, err_mm: np.ndarray) -> float:
+    """RMS (µm) of the height error ``err_mm`` (H, W) after its least-squares plane over the
+    points ``p_mm`` (H, W, 3): the part of the error that no tilt or offset (the calibrated table
+    plane's, the seed's) explains (docs/experiments.md, "Experiment 4 at full resolution")."""
+    x, y, e = (np.asarray(a, dtype=float).ravel() for a in (p_mm[..., 0], p_mm[..., 1], err_mm))
+    m = np.isfinite(x) & np.isfinite(y) & np.isfinite(e)
+    A = np.column_stack([x[m], y[m], np.ones(int(m.sum()))])
+    coef, *_ = np.linalg.lstsq(A, e[m], rcond=None)
+    return float(np.sqrt(np.mean((e[m] - A @ coef) ** 2)) * 1e3)
+
+
+def effect_truth(base: Setup, name: str, downsample: int = 1) -> Setup:
+    """The true setup of effect ``name`` (Δh = :data:`BULGE_MM`) sampled at every ``downsample``-th
+    pixel of the same camera (the real pixel's area, full well and noise: issue 20)."""
+    eff = EFFECTS[name]
+    truth = base.binned(downsample).with_bulge(BULGE_MM)
+    if eff.imaging:
+        truth = truth.with_imaging(eff.as_imaging().with_(sampling_step_px=downsample))
+    if eff.finest_period_mm is not None:
+        truth = _with_finest_period(truth, eff.finest_period_mm)
+    if eff.glass_mm is not None:
+        truth = truth.with_cover_glass(eff.glass_mm, GLASS_INDEX)
+    return truth
+
+
 def experiment4_steps(base: Setup, effects: Sequence[str]) -> int:
     """How many ``progress`` calls :func:`write_experiment4` makes."""
     n_poses = len(base.calibration.mirror_poses(base.sample))
@@ -185,16 +210,10 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
     bad = [e for e in effects if e not in EFFECTS]
     if bad:
         raise ValueError(f"unknown effect(s) {bad}; expected some of {list(EFFECTS)}")
-    truth0 = base.binned(downsample).with_bulge(BULGE_MM)
     records, cases = [], []
     for name in effects:
         eff = EFFECTS[name]
-        # --downsample K: fewer pixels of the same camera (the real pixel's area, full well, noise).
-        truth = truth0.with_imaging(eff.as_imaging().with_(sampling_step_px=downsample)) if eff.imaging else truth0
-        if eff.finest_period_mm is not None:
-            truth = _with_finest_period(truth, eff.finest_period_mm)
-        if eff.glass_mm is not None:
-            truth = truth.with_cover_glass(eff.glass_mm, GLASS_INDEX)
+        truth = effect_truth(base, name, downsample)
         glass = CoverGlass(GLASS_START_MM, GLASS_INDEX) if eff.model_glass else None
         try:
             e2 = calibrate_and_reconstruct(truth, bulge_mm=BULGE_MM, method=method, start_seed=[seed, 3000],
@@ -207,6 +226,7 @@ def run_experiment4(base: Setup, effects: Sequence[str], *, downsample: int = 1,
             continue
         for c in e2.cases:
             rec = {**c.as_record(), "effect": name, **slope_error_metrics(c.n_sample),
+                   "rms_plane_removed_um": _plane_removed_rms_um(c.p_sample_mm, c.height_error_mm),
                    "calibration_rms_px": float(e2.result.rms_px), "calibration_converged": bool(e2.result.converged),
                    "imaging": eff.imaging}
             records.append(rec)
