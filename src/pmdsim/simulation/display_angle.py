@@ -203,13 +203,10 @@ def angular_basis(im, directions: np.ndarray, *, tolerance: float = BASIS_TOLERA
     """
     from scipy.ndimage import spline_filter
 
-    u = np.asarray(directions, dtype=float)
-    ok = np.all(np.isfinite(u), axis=-1)
-    if ok.any():
-        lo = u[ok].min(axis=0)
-        hi = u[ok].max(axis=0)
-    else:
-        lo = hi = np.zeros(2)
+    u = np.ascontiguousarray(directions, dtype=float)
+    box = np.array([np.inf, np.inf, -np.inf, -np.inf])
+    _bounding_box(u, box)
+    lo, hi = (box[:2], box[2:]) if np.all(np.isfinite(box)) else (np.zeros(2), np.zeros(2))
     span = np.maximum(hi - lo, 1e-6)
     step = span / (grid - 1)
     n_nodes = grid + 2 * _PAD
@@ -237,7 +234,8 @@ def angular_basis(im, directions: np.ndarray, *, tolerance: float = BASIS_TOLERA
     spline = np.stack([spline_filter(node_w[..., m], order=3, mode="mirror") for m in range(rank)], axis=-1)
     weights = np.zeros(u.shape[:2] + (rank,))
     _spline_weights(np.ascontiguousarray(u), np.ascontiguousarray(spline), gx[0], gy[0], step[0], step[1], weights)
-    wmax = np.abs(weights).reshape(-1, rank).max(axis=0) if weights.size else np.zeros(rank)
+    wmax = np.zeros(rank)
+    _abs_max(weights, wmax)
     return AngularBasis(psi, np.ascontiguousarray(functions), weights, im.display_gamma, resid, wmax)
 
 
@@ -276,3 +274,29 @@ def _spline_weights(u, coef, x0, y0, hx, hy, out):
                     acc += by * (bx0 * coef[row, ix - 1, m] + bx1 * coef[row, ix, m] + bx2 * coef[row, ix + 1, m]
                                  + bx3 * coef[row, ix + 2, m])
                 out[v, c, m] = acc
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _bounding_box(u, box):
+    """box = (min u_x, min u_y, max u_x, max u_y) over the pixels whose direction is finite."""
+    h, w = u.shape[0], u.shape[1]
+    for v in range(h):
+        for c in range(w):
+            x, y = u[v, c, 0], u[v, c, 1]
+            if np.isfinite(x) and np.isfinite(y):
+                box[0] = min(box[0], x)
+                box[1] = min(box[1], y)
+                box[2] = max(box[2], x)
+                box[3] = max(box[3], y)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _abs_max(weights, out):
+    """out[m] = max over the pixels of |weights[..., m]|."""
+    h, w, nr = weights.shape
+    for v in range(h):
+        for c in range(w):
+            for m in range(nr):
+                a = abs(weights[v, c, m])
+                if a > out[m]:
+                    out[m] = a
