@@ -103,6 +103,9 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "between crossed polarisers: luminance and gamma change with each pixel's viewing angle",
            "N ≥ 6 shifts (rejects the 3rd and 4th harmonics of every pixel's curve); a normally viewed "
            "grey-level series cannot linearise the oblique curves"),
+    Effect("viewing_angle_corrected", {**_DISPLAY, "lcd_mode": "ips", "linearise": True}, "the same, "
+           "linearised from a normally viewed grey-level series: what linearisation leaves",
+           "N ≥ 6 shifts; view the screen closer to its normal"),
     Effect("glass_ignored", {}, f"{GLASS_MM:g} mm cover glass (n = {GLASS_INDEX:g}) over the screen, not modelled",
            "model the glass: declare [screen] cover_glass_thickness_mm and fit it ([calibration] "
            "fit_glass_thickness = true)", glass_mm=GLASS_MM),
