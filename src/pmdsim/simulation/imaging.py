@@ -19,7 +19,11 @@ truncation tolerance (default 1e-3 grey levels per pixel and image). With screen
 harmonic also carries its aliases (the staircase); :func:`render_direction_imaging` (used by
 ``render_images``) then renders the held pattern in position instead (:mod:`.imaging_held`: the
 exact displayed values weighted by the footprint kernel's integral over each screen pixel, the
-same model summed to infinity), once per direction for all its periods and shifts.
+same model summed to infinity), once per direction for all its periods and shifts. Display levels
+seen by a sharp camera (no defocus, pixel area or screen pixels) are the displayed staircase
+sampled at each pixel's point (:mod:`.imaging_point`, exact). With the LCD's viewing-angle model
+(``lcd_mode``, :mod:`.display_angle`) every pixel has its own response, R functions of the level
+mixed with the pixel's weights in each of these paths.
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
