@@ -19,8 +19,11 @@ direction (u_x, u_y, u_z) keeps its transverse wave vector k₀·(u_x, u_y) in e
 
   its displacement D ∝ (k_e × c) × k_e, field E = ε⁻¹D (ε = n_o² I + (n_e² − n_o²) c cᵀ).
 * **The extended Jones matrix** (A. Lien, Appl. Phys. Lett. 57, 2767 (1990); P. Yeh & C. Gu,
-  *Optics of Liquid Crystal Displays*, 2nd ed., Wiley 2010, ch. 4 and 8), without interface
-  reflections: the polariser's field is split into the cell's two modes by matching the transverse
+  *Optics of Liquid Crystal Displays*, 2nd ed., Wiley 2010; waves in a uniaxial layer and ideal
+  absorptive polarisers: D. A. Yakovlev, V. G. Chigrinov & H.-S. Kwok, *Modeling and
+  Optimization of LCD Optical Performance*, Wiley 2015, §1.3; the formulations' boundary
+  matching compared with the 4 × 4 method: F. H. Yu & H. S. Kwok, J. Opt. Soc. Am. A 16, 2772
+  (1999)), without interface reflections: the polariser's field is split into the cell's two modes by matching the transverse
   (x, y) field components, each mode gains exp(i·k₀·d·k_z), and the field leaving the cell is split
   into the analyser's transmitted and absorbed modes likewise; T = |transmitted amplitude|².
 
