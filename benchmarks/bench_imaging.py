@@ -39,7 +39,10 @@ PER_EFFECT = {
     "screen_pixels": dict(screen_pixel_pitch_mm=0.27, screen_fill_factor=0.8),
     "pixel_area": dict(pixel_area=True),
     "defocus_f8": dict(f_number=8.0, focal_length_mm=25.0),
+    "viewing_angle": dict(display_gamma=2.2, display_black_level=0.001, lcd_mode="ips"),
 }
+#: Every effect and the LCD's viewing-angle response (``--case all_lcd`` of bench_imaging_series).
+ALL_EFFECTS_LCD = dict(ALL_EFFECTS, lcd_mode="ips")
 
 
 def main() -> None:

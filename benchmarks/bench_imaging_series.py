@@ -3,7 +3,8 @@ process of its own — short jobs that interleave runs of two source trees:
 
     PYTHONPATH=/path/to/tree/src python benchmarks/bench_imaging_series.py [--case all] [--downsample 1]
 
-Cases: ``all`` (every effect) or one effect of bench_imaging.PER_EFFECT. Prints the load before and
+Cases: ``all`` (every effect), ``all_lcd`` (every effect and the LCD's viewing-angle response)
+or one effect of bench_imaging.PER_EFFECT. Prints the load before and
 after, wall and CPU seconds (``time.process_time``: both threads' CPU, less sensitive to the other
 jobs on a shared machine) of the maps, of each direction's images (trees with
 ``render_direction_imaging``: a direction's periods rendered together; otherwise period by period),
@@ -18,6 +19,11 @@ import os
 import time
 
 from bench_imaging import ALL_EFFECTS, PER_EFFECT
+
+try:
+    from bench_imaging import ALL_EFFECTS_LCD
+except ImportError:  # a tree without the viewing-angle model
+    ALL_EFFECTS_LCD = None
 from pmdsim.setup import default_setup
 from pmdsim.setup.sensor import SensorModel
 from pmdsim.simulation import imaging
@@ -36,7 +42,7 @@ def _timed(f, repeat):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--case", default="all", choices=["all", *PER_EFFECT])
+    ap.add_argument("--case", default="all", choices=["all", "all_lcd", *PER_EFFECT])
     ap.add_argument("--downsample", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--directions", default="xy", help="the directions to time (e.g. x: half the sequence)")
@@ -48,7 +54,7 @@ def main() -> None:
 
     from pmdsim.setup.fringes import FringeSequence
 
-    kw = ALL_EFFECTS if args.case == "all" else PER_EFFECT[args.case]
+    kw = ALL_EFFECTS if args.case == "all" else (ALL_EFFECTS_LCD if args.case == "all_lcd" else PER_EFFECT[args.case])
     setup = default_setup().with_bulge(3.0).with_imaging(**kw)
     small = setup.binned(8)
     ms = trace_setup_camera(small, "left", store_points=True)

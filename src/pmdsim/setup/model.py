@@ -22,6 +22,7 @@ from ..geometry.cover_glass import DEFAULT_GLASS_INDEX, CoverGlass
 from ..errors import SetupError
 from .covariance import CalibrationCovariance
 from .fringes import FringeSequence
+from .lcd import LCD_DEFAULTS, validate_lcd
 from ..geometry.surface import SplineSurface
 from ..geometry.transform import RigidTransform
 from .sample_shape import HeightMapData, HeightMapSource, InterpolationReport, SampleShape, resample_height_map
@@ -277,6 +278,8 @@ class ImagingSetup:
     display_levels : int or None
         The commanded pattern is rounded to this many display levels (e.g. 256 for an 8-bit
         display) before the response; None: continuous levels (issue 20).
+    lcd_mode, lcd_retardation_nm, lcd_indices, lcd_rubbing_deg, lcd_wavelength_nm
+        The LCD's viewing-angle model (``lcd_mode = "ips"``; None: off): :mod:`pmdsim.setup.lcd`.
     sampling_step_px : int
         The simulated cameras sample every K-th pixel of the real sensor (K × K fewer pixels of the
         same camera, issue 20): pixel-area integration is over the real pixel, 1/K of the sampling
@@ -303,6 +306,11 @@ class ImagingSetup:
     focus_distance_mm: float | None = None
     sampling_step_px: int = 1
     display_levels: int | None = None
+    lcd_mode: str | None = None
+    lcd_retardation_nm: float = LCD_DEFAULTS["lcd_retardation_nm"]
+    lcd_indices: tuple[float, float] = LCD_DEFAULTS["lcd_indices"]
+    lcd_rubbing_deg: float = LCD_DEFAULTS["lcd_rubbing_deg"]
+    lcd_wavelength_nm: float = LCD_DEFAULTS["lcd_wavelength_nm"]
 
     def __post_init__(self) -> None:
         def num(name, lo=None, lo_open=False, hi=None, hi_open=False, optional=False):
@@ -342,13 +350,15 @@ class ImagingSetup:
             raise SetupError(f"imaging.display_levels must be an integer ≥ 2, got {self.display_levels!r}")
         if isinstance(self.grey_levels, bool) or not isinstance(self.grey_levels, int) or self.grey_levels < 3:
             raise SetupError(f"imaging.grey_levels must be an integer ≥ 3, got {self.grey_levels!r}")
+        validate_lcd(self)
 
     @property
     def any_on(self) -> bool:
         """True if any effect changes the images (False: the ideal renderer's images)."""
         return any((self.bit_depth is not None, self.full_well_e is not None, self.display_gamma is not None,
                     self.emission_exponent is not None, self.screen_pixel_pitch_mm is not None,
-                    self.f_number is not None, self.pixel_area, self.display_levels is not None))
+                    self.f_number is not None, self.pixel_area, self.display_levels is not None,
+                    self.lcd_mode is not None))
 
     def with_(self, **changes: Any) -> "ImagingSetup":
         """The same effects with some values changed (validated)."""

@@ -37,6 +37,7 @@ from .model import (
     default_setup,
 )
 from .covariance import CalibrationCovariance
+from .lcd import LCD_KEYS, read_lcd_keys
 from .opencv_file import read_opencv_camera
 
 __all__ = ["parse_setup", "load_setup", "dump_toml"]
@@ -63,7 +64,7 @@ _KNOWN_KEYS = {
     "imaging": ("bit_depth", "full_well_e", "exposure", "read_noise_e", "dark_offset_dn", "gain_dn_per_e",
                 "display_gamma", "display_black_level", "linearise", "grey_levels", "emission_exponent",
                 "screen_pixel_pitch_mm", "screen_fill_factor", "f_number", "focal_length_mm", "pixel_area",
-                "focus_distance_mm", "sampling_step_px", "display_levels"),
+                "focus_distance_mm", "sampling_step_px", "display_levels", *LCD_KEYS),
 }
 
 
@@ -522,6 +523,7 @@ def _imaging(r: _Reader) -> ImagingSetup:
                     ("f_number", "positive"), ("focal_length_mm", "positive"), ("focus_distance_mm", "positive")):
         if r.has(k):
             kw[k] = r.number(k, **{rule: True})
+    read_lcd_keys(r, kw)
     r.finish()
     return ImagingSetup(**kw)  # cross-field bounds (e.g. fill factor ≤ 1) name the key there
 

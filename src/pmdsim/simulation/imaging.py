@@ -19,7 +19,11 @@ truncation tolerance (default 1e-3 grey levels per pixel and image). With screen
 harmonic also carries its aliases (the staircase); :func:`render_direction_imaging` (used by
 ``render_images``) then renders the held pattern in position instead (:mod:`.imaging_held`: the
 exact displayed values weighted by the footprint kernel's integral over each screen pixel, the
-same model summed to infinity), once per direction for all its periods and shifts.
+same model summed to infinity), once per direction for all its periods and shifts. Display levels
+seen by a sharp camera (no defocus, pixel area or screen pixels) are the displayed staircase
+sampled at each pixel's point (:mod:`.imaging_point`, exact). With the LCD's viewing-angle model
+(``lcd_mode``, :mod:`.display_angle`) every pixel has its own response, R functions of the level
+mixed with the pixel's weights in each of these paths.
 
 The noise is drawn from ``numpy.random.default_rng`` seeded by the setup's seed, the camera's
 index and the stream (:func:`pmdsim.simulation.render.render_images`): the same inputs give the
@@ -36,6 +40,7 @@ import numpy as np
 from ..setup import ImagingSetup, Setup
 from ..setup.fringes import DIRECTIONS, FringeSequence
 from .display import black_matrix_factor, display_response, emission_falloff, harmonic_coefficients
+from .display_angle import AngularBasis, angular_basis, view_directions
 from .imaging_series import TRUNCATION_TOLERANCE_DN, series_kernel
 from .optics import JINC_TABLE, default_focus_distance, defocus_moments, focus_path, jinc, pixel_jacobian
 from ..setup.sensor import SensorModel
@@ -55,7 +60,7 @@ __all__ = ["HOLD_ALIASES", "TRUNCATION_TOLERANCE_DN", "ImagingMaps", "needs_poin
 def needs_points(setup: Setup) -> bool:
     """True if the setup's effects need the traced sample and screen points (defocus, emission)."""
     im = setup.imaging
-    return im is not None and (im.f_number is not None or im.emission_exponent is not None)
+    return im is not None and (im.f_number is not None or im.emission_exponent is not None or im.lcd_mode is not None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +89,15 @@ class ImagingMaps:
         ``(response, levels)`` of the display (:func:`.display.display_response`, ``display_levels``):
         with screen pixels the held values are r(Q(A + B·cos θ)) exactly (:mod:`.imaging_held`);
         None: the displayed pattern is the cosine series of ``coefficients``.
+    angular : AngularBasis or None
+        The LCD's viewing-angle response (``lcd_mode``, :mod:`.display_angle`): R response
+        functions of the commanded level and their weights per pixel; None: the same response
+        (``display``) for every pixel.
+    angular_coefficients : ndarray (R, K + 1) or None
+        The cosine coefficients of each of those functions (rows zero-padded to one length).
+    sharp : bool
+        No camera transfer (no defocus, pixel area or screen pixels): with ``display_levels``
+        the images are the displayed pattern sampled at each pixel's point (:mod:`.imaging_point`).
     """
 
     var_xy_mm2: np.ndarray
@@ -94,6 +108,9 @@ class ImagingMaps:
     centroid_xy_mm: np.ndarray | None = None
     focus_distance_mm: float | None = None
     display: tuple | None = None
+    angular: AngularBasis | None = None
+    angular_coefficients: np.ndarray | None = None
+    sharp: bool = False
 
 
 def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=None) -> ImagingMaps:
@@ -143,9 +160,30 @@ def imaging_maps(setup: Setup, camera: str, mapping: Mapping, *, T_world_sample=
     seq = setup.patterns.sequence
     resp = display_response(im.display_gamma, im.display_black_level)
     coef = harmonic_coefficients(resp, seq.mean_level, seq.amplitude, levels=im.display_levels)
+    basis = acoef = None
+    if im.lcd_mode is not None:
+        dirs = view_directions(setup.screen.T_world_screen, T_ws, mapping.p_sample_mm, mapping.q_screen_mm)
+        dirs[~np.asarray(mapping.valid, dtype=bool)] = np.nan
+        basis = angular_basis(im, dirs)
+        rows = [harmonic_coefficients(_Curve(basis, r), seq.mean_level, seq.amplitude, levels=im.display_levels)
+                for r in range(basis.rank)]
+        acoef = np.zeros((len(rows), max(len(c) for c in rows)))
+        for r, c in enumerate(rows):
+            acoef[r, :len(c)] = c
+    sharp = im.f_number is None and not im.pixel_area and im.screen_pixel_pitch_mm is None
     return ImagingMaps(np.ascontiguousarray(var), None if jac is None else np.ascontiguousarray(jac),
                        np.ascontiguousarray(radiance), float(im.screen_pixel_pitch_mm or 0.0), coef, centroid,
-                       None if im.f_number is None else float(focus), (resp, im.display_levels))
+                       None if im.f_number is None else float(focus), (resp, im.display_levels), basis, acoef, sharp)
+
+
+class _Curve:
+    """Basis function ``r`` of an :class:`AngularBasis` as a response (``forward``)."""
+
+    def __init__(self, basis: AngularBasis, r: int):
+        self.basis, self.r = basis, r
+
+    def forward(self, d):
+        return self.basis.at_levels(d)[self.r]
 
 
 def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np.ndarray, direction: str,
@@ -199,10 +237,33 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
         noise = rng.standard_normal(size=(n,) + ok.shape, dtype=np.float32)
     else:
         noise = np.empty((0, 0, 0), dtype=np.float32)
+    if means is not None and (means.shape != (n,) + ok.shape or means.dtype != np.float64):
+        raise ValueError(f"means must be a float64 array of shape {(n,) + ok.shape}")
+    levels = maps.display[1] if maps.display is not None else None
+    if maps.sharp and levels is not None:  # the staircase sampled at each pixel's point, exactly
+        from .imaging_point import render_period_point
+
+        d = np.arange(levels) / (levels - 1)
+        if maps.angular is not None:
+            lut = maps.angular.at_levels(d)
+        else:
+            lut = (d if maps.display[0] is None else np.asarray(maps.display[0].forward(d), dtype=float))[None]
+        out16 = np.empty((n,) + ok.shape, dtype=np.uint16)
+        render_period_point(coord, ok, period_mm, n, sequence.mean_level, sequence.amplitude, lut,
+                            None if maps.angular is None else maps.angular.weights, maps.radiance, sensor,
+                            noise if sensor.noisy else None, out16, means)
+        return out16 if sensor.dtype == np.uint16 else out16.astype(sensor.dtype)
     jac = maps.jacobian[..., axis, :] if maps.jacobian is not None else np.zeros((1, 1, 2))
     out = np.empty((n,) + ok.shape, dtype=sensor.dtype)
-    coef = np.ascontiguousarray(maps.coefficients, dtype=float)
-    mag = np.abs(coef)
+    if maps.angular is not None:
+        coefs = np.ascontiguousarray(maps.angular_coefficients, dtype=float)
+        pw, use_pw = maps.angular.weights, True
+        mag = np.sum(maps.angular.weights_max[:, None] * np.abs(coefs), axis=0)  # ≥ every pixel's |c_n|
+        coef = coefs[0]
+    else:
+        coef = np.ascontiguousarray(maps.coefficients, dtype=float)
+        coefs, pw, use_pw = coef[None], np.zeros((1, 1, 1)), False
+        mag = np.abs(coef)
     suffix = np.concatenate([np.cumsum(mag[::-1])[::-1], [0.0]])  # S_m = Σ_{j ≥ m} |c_j|
     # Alias budget of harmonic m ∝ √(|c_m|·|sin(πmP/p)|) (its aliases' weight), summing to 1.
     m_idx = np.arange(1, coef.size)
@@ -211,11 +272,9 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     share = np.concatenate([[0.0], root / root.sum() if root.sum() > 0 else root])
     m_out = np.empty((0, 0, 0)) if means is None else means
     c_out = np.empty((0, 0), dtype=np.int64) if counts is None else counts
-    if means is not None and (means.shape != out.shape or means.dtype != np.float64):
-        raise ValueError(f"means must be a float64 array of shape {out.shape}")
     if counts is not None and (counts.shape != ok.shape or counts.dtype != np.int64):
         raise ValueError(f"counts must be an int64 array of shape {ok.shape}")
-    series_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), coef, suffix, share,
+    series_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), coefs, pw, use_pw, suffix, share,
                   np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
                   maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
                   sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2, sensor.full_scale,
@@ -266,7 +325,13 @@ def render_direction_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid:
         box_a, box_b = maps.jacobian[..., axis, 0], maps.jacobian[..., axis, 1]
     else:
         box_a = box_b = np.zeros(ok.shape)
-    if maps.display is not None:
+    if maps.angular is not None:  # R functions of the level (the viewing-angle model), mixed per pixel
+        from .display import quantise_levels
+
+        def pattern(theta):
+            d = quantise_levels(sequence.mean_level + sequence.amplitude * np.cos(theta), maps.display[1])
+            return maps.angular.at_levels(d)
+    elif maps.display is not None:
         resp, levels = maps.display
 
         def pattern(theta):
@@ -275,7 +340,8 @@ def render_direction_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid:
         def pattern(theta):
             return held_values(theta, maps.coefficients)
     return render_direction_held(coord, ok, radius, box_a, box_b, maps.hold_pitch_mm, periods, n, pattern,
-                                 maps.radiance, sensor, noise, means=means)
+                                 maps.radiance, sensor, noise, means=means,
+                                 weights=None if maps.angular is None else maps.angular.weights)
 
 
 def grey_level_series(setup: Setup, *, patch_px: int = 32, n_frames: int = 4) -> tuple[np.ndarray, np.ndarray]:

@@ -165,11 +165,13 @@ def _g2_many(xs, m, radius, out):
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _held_rows(v0, v1, coord, valid, radius, box_a, box_b, pitch, j0, levels, dlevels, radiance, scale, dark, clip,
-               shot, const_var, full, noise, use_noise, out, means, fbuf, args, vals, acc):
+def _held_rows(v0, v1, coord, valid, radius, box_a, box_b, pitch, j0, levels, dlevels, pw, use_pw, radiance, scale,
+               dark, clip, shot, const_var, full, noise, use_noise, out, means, fbuf, args, vals, acc):
     w = valid.shape[1]
     n_per, n = out.shape[0], out.shape[1]
-    nc = n_per * n
+    nc = levels.shape[1]  # R·P·N columns: R response functions (1 without the viewing-angle model)
+    nim = n_per * n
+    nr = nc // nim
     keep_means = means.shape[0] > 0
     for v in range(v0, v1):
         for u in range(w):
@@ -215,6 +217,12 @@ def _held_rows(v0, v1, coord, valid, radius, box_a, box_b, pitch, j0, levels, dl
                 for c in range(nc):
                     acc[c] += f * dlevels[jlo + 1 + i, c]
             g = radiance[v, u] * scale
+            if use_pw:  # the pixel's mix of the response functions
+                for c in range(nim):
+                    s = 0.0
+                    for r in range(nr):
+                        s += pw[v, u, r] * acc[r * nim + c]
+                    acc[c] = s
             for p in range(n_per):
                 for k in range(n):
                     mean = g * acc[p * n + k]
@@ -237,11 +245,12 @@ def _held_rows(v0, v1, coord, valid, radius, box_a, box_b, pitch, j0, levels, dl
 
 
 @numba.njit(cache=True, parallel=True)
-def held_kernel(coord, valid, radius, box_a, box_b, pitch, j0, levels, dlevels, radiance, scale, dark, clip, shot,
-                const_var, full, noise, use_noise, n_edges, out, means):
+def held_kernel(coord, valid, radius, box_a, box_b, pitch, j0, levels, dlevels, pw, use_pw, radiance, scale, dark,
+                clip, shot, const_var, full, noise, use_noise, n_edges, out, means):
     """Every image (period p, shift k) of one direction, rows in parallel blocks: ``levels``
-    (M, P·N) the held relative radiance of screen pixel j0 + m in image p·N + k, ``dlevels`` its
-    differences levels[m − 1] − levels[m]; ``out`` (P, N, H, W) uint16, ``means`` (P, N, H, W)
+    (M, R·P·N) the held relative radiance of screen pixel j0 + m in image p·N + k (of response
+    function r, column r·P·N + p·N + k; mixed per pixel with ``pw`` (H, W, R) when ``use_pw``,
+    else R = 1), ``dlevels`` its differences levels[m − 1] − levels[m]; ``out`` (P, N, H, W) uint16, ``means`` (P, N, H, W)
     float64 (or empty) the mean grey levels above the dark offset; ``n_edges`` bounds the edges per
     pixel."""
     h = valid.shape[0]
@@ -252,7 +261,7 @@ def held_kernel(coord, valid, radius, box_a, box_b, pitch, j0, levels, dlevels, 
         vals = np.empty(4 * n_edges)
         acc = np.empty(levels.shape[1])
         _held_rows(blk * rows, min(h, (blk + 1) * rows), coord, valid, radius, box_a, box_b, pitch, j0, levels,
-                   dlevels, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, out, means, fbuf,
+                   dlevels, pw, use_pw, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, out, means, fbuf,
                    args, vals, acc)
 
 
@@ -278,7 +287,8 @@ def held_values(theta: np.ndarray, coefficients: np.ndarray, response=None, leve
 
 def render_direction_held(coord: np.ndarray, valid: np.ndarray, radius_mm: np.ndarray, box_a_mm: np.ndarray,
                           box_b_mm: np.ndarray, pitch_mm: float, periods, n_shifts: int, pattern, radiance: np.ndarray,
-                          sensor, noise: np.ndarray | None, *, means: np.ndarray | None = None) -> np.ndarray:
+                          sensor, noise: np.ndarray | None, *, means: np.ndarray | None = None,
+                          weights: np.ndarray | None = None) -> np.ndarray:
     """All images of one direction through the held-pattern kernel.
 
     Parameters
@@ -292,7 +302,8 @@ def render_direction_held(coord: np.ndarray, valid: np.ndarray, radius_mm: np.nd
         Screen pixel pitch P (> 0).
     periods : sequence of float; n_shifts : int
     pattern : callable
-        θ (radians, any shape) → held relative radiance (:func:`held_values` bound to the display).
+        θ (radians, any shape) → held relative radiance (:func:`held_values` bound to the display);
+        with ``weights``: shape (R,) + θ's, R response functions.
     radiance : ndarray (H, W)
         Per-pixel relative radiance factor (emission × black matrix).
     sensor : SensorModel
@@ -300,6 +311,9 @@ def render_direction_held(coord: np.ndarray, valid: np.ndarray, radius_mm: np.nd
         Standard-normal draws (required when the sensor is noisy).
     means : ndarray (P, N, H, W) float64, optional
         Receives the mean grey levels above the dark offset before clipping, noise and rounding.
+    weights : ndarray (H, W, R), optional
+        Each pixel's weights of the R functions ``pattern`` returns (the LCD's viewing-angle
+        response, :mod:`.display_angle`).
 
     Returns
     -------
@@ -322,11 +336,13 @@ def render_direction_held(coord: np.ndarray, valid: np.ndarray, radius_mm: np.nd
         lo, hi, n_edges = 0, 1, 1
     j = np.arange(lo, hi + 1)
     delta = 2.0 * np.pi * np.arange(n_shifts) / n_shifts
-    levels = np.empty((j.size, n_per, n_shifts))
+    n_fn = 1 if weights is None else int(weights.shape[-1])
+    levels = np.empty((j.size, n_fn, n_per, n_shifts))
     for pi, p in enumerate(periods):
         theta = 2.0 * np.pi * (j + 0.5) * pitch_mm / float(p)
-        levels[:, pi, :] = pattern(theta[:, None] - delta[None, :])
-    levels = levels.reshape(j.size, n_per * n_shifts)
+        vals = pattern(theta[:, None] - delta[None, :])
+        levels[:, :, pi, :] = vals[:, None, :] if weights is None else np.moveaxis(vals, 0, 1)
+    levels = levels.reshape(j.size, n_fn * n_per * n_shifts)
     dlevels = np.zeros_like(levels)
     dlevels[1:] = levels[:-1] - levels[1:]
     out = np.empty((n_per, n_shifts) + shape, dtype=np.uint16)
@@ -336,7 +352,9 @@ def render_direction_held(coord: np.ndarray, valid: np.ndarray, radius_mm: np.nd
     if sensor.noisy and noise is None:
         raise ValueError("a noisy sensor needs the noise draws")
     nz = noise if sensor.noisy else np.empty((0, 0, 0, 0), dtype=np.float32)
-    held_kernel(x, ok, rad, ba, bb, float(pitch_mm), lo, levels, dlevels, np.ascontiguousarray(radiance, dtype=float),
+    pw = np.zeros((1, 1, 1)) if weights is None else np.ascontiguousarray(weights, dtype=float)
+    held_kernel(x, ok, rad, ba, bb, float(pitch_mm), lo, levels, dlevels, pw, weights is not None,
+                np.ascontiguousarray(radiance, dtype=float),
                 sensor.scale_dn, sensor.dark_dn, sensor.clip_dn, sensor.shot_dn, sensor.const_var_dn2,
                 sensor.full_scale, nz, sensor.noisy, n_edges, out, m_out)
     return out if sensor.dtype == np.uint16 else out.astype(sensor.dtype)

@@ -116,12 +116,16 @@ def _alias_reach(cm, sr, hold, sig4pi, ju, jv, tau, zcap):
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, suffix, share, var, jac, use_jac, hold,
-                 radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, tol_dn,
+def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coefs, pw, use_pw, suffix, share, var, jac, use_jac,
+                 hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, tol_dn,
                  out, means, counts):
     w = valid.shape[1]
     n = cos_d.shape[0]
-    kmax = coef.shape[0] - 1
+    kmax = coefs.shape[1] - 1
+    nr = coefs.shape[0]
+    coef = np.empty(kmax + 1)  # this pixel's coefficients Σ_r w_r·c_r,n (the response's basis mixed)
+    for m in range(kmax + 1):
+        coef[m] = coefs[0, m]
     k1 = 2.0 * np.pi / period
     aliasing = hold > 0.0 and n_alias > 0
     na = n_alias if aliasing else 0
@@ -150,6 +154,12 @@ def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, suffix, share
                     if keep_means:
                         means[k, v, u] = 0.0
                 continue
+            if use_pw:
+                for m in range(kmax + 1):
+                    c = 0.0
+                    for r_ in range(nr):
+                        c += pw[v, u, r_] * coefs[r_, m]
+                    coef[m] = c
             g = radiance[v, u] * scale
             tau = tol_dn / g if g > 0.0 else np.inf  # the budget in relative radiance
             phi = k1 * coord[v, u]
@@ -290,15 +300,17 @@ def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coef, suffix, share
 
 
 @numba.njit(cache=True, parallel=True)
-def series_kernel(coord, valid, period, cos_d, sin_d, coef, suffix, share, var, jac, use_jac, hold, radiance,
-                  scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, tol_dn, out, means,
-                  counts):
+def series_kernel(coord, valid, period, cos_d, sin_d, coefs, pw, use_pw, suffix, share, var, jac, use_jac, hold,
+                  radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table, n_alias, tol_dn, out,
+                  means, counts):
     """All N images of one period (:func:`.imaging.render_period_imaging`), rows in parallel
-    blocks; ``means`` (N, H, W) float64 receives g·Σ (the mean before noise and rounding) and
-    ``counts`` (H, W) int64 the number of terms summed per pixel, unless they are empty."""
+    blocks; ``coefs`` (R, K + 1) the cosine coefficients of R response functions, mixed per pixel
+    with the weights ``pw`` (H, W, R) when ``use_pw`` (else row 0 alone; the LCD's viewing-angle
+    response, :mod:`.display_angle`); ``means`` (N, H, W) float64 receives g·Σ (the mean before
+    noise and rounding) and ``counts`` (H, W) int64 the number of terms summed per pixel, unless they are empty."""
     h = valid.shape[0]
     rows = 16
     for b in numba.prange(0, (h + rows - 1) // rows):
-        _series_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coef, suffix, share, var,
-                     jac, use_jac, hold, radiance, scale, dark, clip, shot, const_var, full, noise, use_noise, table,
-                     n_alias, tol_dn, out, means, counts)
+        _series_rows(b * rows, min(h, (b + 1) * rows), coord, valid, period, cos_d, sin_d, coefs, pw, use_pw, suffix,
+                     share, var, jac, use_jac, hold, radiance, scale, dark, clip, shot, const_var, full, noise,
+                     use_noise, table, n_alias, tol_dn, out, means, counts)

@@ -99,6 +99,13 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("display_levels", _LEVELS, "8-bit display: the commanded fringe rounded to 256 levels",
            "more phase shifts (the rounding's harmonics n ≡ ±1 mod N fold into the phase), or a "
            "display with more levels"),
+    Effect("viewing_angle", {**_DISPLAY, "lcd_mode": "ips"}, "gamma 2.2 uncorrected, seen through an IPS cell "
+           "between crossed polarisers: luminance and gamma change with each pixel's viewing angle",
+           "N ≥ 6 shifts (rejects the 3rd and 4th harmonics of every pixel's curve); a normally viewed "
+           "grey-level series cannot linearise the oblique curves"),
+    Effect("viewing_angle_corrected", {**_DISPLAY, "lcd_mode": "ips", "linearise": True}, "the same, "
+           "linearised from a normally viewed grey-level series: what linearisation leaves",
+           "N ≥ 6 shifts; view the screen closer to its normal"),
     Effect("glass_ignored", {}, f"{GLASS_MM:g} mm cover glass (n = {GLASS_INDEX:g}) over the screen, not modelled",
            "model the glass: declare [screen] cover_glass_thickness_mm and fit it ([calibration] "
            "fit_glass_thickness = true)", glass_mm=GLASS_MM),
