@@ -161,3 +161,20 @@ def quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz):
     if status == _PARALLEL and (t1 > 0.0 or (t2 > 0.0 and t2 < np.inf)):
         status = _OUTSIDE  # roots ahead, but only on the far branch of a sphere or cylinder
     return nan, nan, nan, nan, nan, nan, status
+
+
+# Out-of-line entry points (issue 25 item 2, docs/benchmarks.md "First run: the tracer's compile
+# cut"): the surface kernels call the closed form through these instead of inlining it at every
+# call site, so numba types it once per set of flags. Two, because the inlined code took its
+# caller's flags: ``intersect_kernel`` is inlined into kernels that contract a·b + c into FMAs,
+# ``intersect_solve`` is not (the results stay bit-identical to the inlined code's).
+@numba.njit(cache=True, error_model="numpy", _nrt=False, fastmath={"contract"})
+def quadric_intersect_fma(coef, gx, gy, ox, oy, oz, dx, dy, dz):
+    """:func:`quadric_intersect` compiled with FMA contraction (for ``intersect_kernel``)."""
+    return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)
+
+
+@numba.njit(cache=True, error_model="numpy", _nrt=False)
+def quadric_intersect_call(coef, gx, gy, ox, oy, oz, dx, dy, dz):
+    """:func:`quadric_intersect` compiled without fastmath flags (for ``intersect_solve``)."""
+    return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)

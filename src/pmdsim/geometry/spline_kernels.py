@@ -83,3 +83,18 @@ def spline_eval2(gx, gy, coef, x, y):
     hxy = d1 + sy * (2.0 * d2 + sy * 3.0 * d3)
     hyy = 2.0 * r2 + 6.0 * sy * r3
     return h, hx, hy, hxx, hxy, hyy
+
+
+# Out-of-line entry points for the intersection fallbacks (``intersect_solve``'s fixed-point
+# iteration and ``_intersect_fallback``, both compiled without fastmath flags, like these):
+# called, not inlined at each of their call sites.
+@numba.njit(cache=True, error_model="numpy", _nrt=False)
+def spline_height_call(gx, gy, coef, x, y):
+    """:func:`spline_height`, compiled once."""
+    return spline_height(gx, gy, coef, x, y)
+
+
+@numba.njit(cache=True, error_model="numpy", _nrt=False)
+def spline_eval2_call(gx, gy, coef, x, y):
+    """:func:`spline_eval2`, compiled once."""
+    return spline_eval2(gx, gy, coef, x, y)

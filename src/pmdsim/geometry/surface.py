@@ -33,8 +33,8 @@ import numba
 import numpy as np
 
 from .kernel_args import readonly
-from .shape_kernels import quadric_eval2, quadric_height, quadric_intersect
-from .spline_kernels import _interval, _patch, spline_eval2, spline_height  # noqa: F401 (_interval, _patch: re-exported)
+from .shape_kernels import quadric_eval2, quadric_height, quadric_intersect_call, quadric_intersect_fma
+from .spline_kernels import _interval, _patch, spline_eval2, spline_eval2_call, spline_height, spline_height_call  # noqa: F401 (_interval, _patch: re-exported)
 
 __all__ = [
     "cardinal_spline_coefficients",
@@ -243,7 +243,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
     ta = max(ta, 0.0)
     if not ta < tb:
         return False, nan, nan, nan, nan, nan, _OUTSIDE
-    fa = oz + ta * dz - spline_height(gx, gy, coef, ox + ta * dx, oy + ta * dy)
+    fa = oz + ta * dz - spline_height_call(gx, gy, coef, ox + ta * dx, oy + ta * dy)
     found = fa == 0.0
     tlo = ta
     thi = ta
@@ -253,7 +253,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         if found:
             break
         tm = ta + (tb - ta) * m / n_march
-        fm = oz + tm * dz - spline_height(gx, gy, coef, ox + tm * dx, oy + tm * dy)
+        fm = oz + tm * dz - spline_height_call(gx, gy, coef, ox + tm * dx, oy + tm * dy)
         if fm == 0.0 or (fm < 0.0) != (flo < 0.0):
             thi = tm
             found = True
@@ -269,7 +269,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         if not thi > tlo:
             converged = True
             break
-        hv, hx, hy, _hxx, _hxy, _hyy = spline_eval2(gx, gy, coef, ox + t * dx, oy + t * dy)
+        hv, hx, hy, _hxx, _hxy, _hyy = spline_eval2_call(gx, gy, coef, ox + t * dx, oy + t * dy)
         f = oz + t * dz - hv
         if f == 0.0:
             converged = True
@@ -292,7 +292,7 @@ def _intersect_fallback(kind, gx, gy, coef, z_min, z_max, ox, oy, oz, dx, dy, dz
         return False, nan, nan, nan, nan, nan, _NO_CONVERGENCE
     x = ox + t * dx
     y = oy + t * dy
-    z, hx, hy, _hxx, _hxy, _hyy = spline_eval2(gx, gy, coef, x, y)
+    z, hx, hy, _hxx, _hxy, _hyy = spline_eval2_call(gx, gy, coef, x, y)
     return True, x, y, z, hx, hy, _HIT
 
 
@@ -381,7 +381,7 @@ def intersect_kernel(kind, gx, gy, coef, dmax, ox, oy, oz, dx, dy, dz, tol, z_st
     if kind == _KIND_PLANE:
         return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)  # eqs. (9)–(12)
     if kind == _KIND_QUADRIC:  # closed form (ray–quadric quadratic)
-        return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)
+        return quadric_intersect_fma(coef, gx, gy, ox, oy, oz, dx, dy, dz)
     if not np.isfinite(z_start):
         return nan, nan, nan, nan, nan, nan, _NEEDS_SOLVE
     # |h_zz| along the ray: Σ ∂²h/∂x_i∂x_j b_i b_j ≤ D₂ (|b_x| + |b_y|)².
@@ -434,7 +434,7 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
     if kind == _KIND_PLANE:
         return _finish(gx, gy, oz, inv_dz, ax, ay, 0.0, 0.0, 0.0)
     if kind == _KIND_QUADRIC:
-        return quadric_intersect(coef, gx, gy, ox, oy, oz, dx, dy, dz)
+        return quadric_intersect_call(coef, gx, gy, ox, oy, oz, dx, dy, dz)
     if np.isfinite(z_start):
         w2 = (abs(bx) + abs(by)) ** 2
         z = z_start
@@ -451,7 +451,7 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
     converged = False
     step_prev = -1.0  # no previous step yet
     for _ in range(max_iter):
-        znew = spline_height(gx, gy, coef, x, y)  # eq. (13)
+        znew = spline_height_call(gx, gy, coef, x, y)  # eq. (13)
         x = ax + bx * znew  # eqs. (14)–(16)
         y = ay + by * znew
         step = abs(znew - z)
@@ -472,7 +472,7 @@ def intersect_solve(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, 
         # at the point before that step and carried to the returned point to first order
         # with the second derivatives (the remaining gradient error is second order in a
         # height change that is already ≤ step·q).
-        zf, hx, hy, hxx, hxy, hyy = spline_eval2(gx, gy, coef, x, y)
+        zf, hx, hy, hxx, hxy, hyy = spline_eval2_call(gx, gy, coef, x, y)
         ddx = bx * (zf - z)
         ddy = by * (zf - z)
         hx += hxx * ddx + hxy * ddy
