@@ -226,7 +226,7 @@ def cli(a) -> None:
                 out = os.path.join(tmp, f"ev{r}{len(extra)}")
                 ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t = time.perf_counter()
-                mode = [] if a.mono else ["--stereo"]
+                mode = ([] if a.mono else ["--stereo"]) + (["--setup", a.cli_setup] if a.cli_setup else [])
                 subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, *mode, "--out", out, "--quiet",
                                 *extra], check=True, capture_output=True)
                 wall = time.perf_counter() - t
@@ -254,6 +254,8 @@ def main() -> None:
     ap.add_argument("--compare-strides", default="", help="e.g. 2,4: the noise σ on these subgrids against every "
                     "pixel's (after the timing)")
     ap.add_argument("--compare-samples", type=int, default=64, help="K of --compare-strides")
+    ap.add_argument("--cli-setup", default="", metavar="FILE", help="--cli: the evaluation's setup file (default: "
+                    "Table 1)")
     ap.add_argument("--mono", action="store_true", help="--cli: the mono evaluation (no --stereo)")
     ap.add_argument("--cli", default="", metavar="IMAGE_DIR", help="time `pmdsim evaluate IMAGE_DIR --stereo` with σ "
                     "and with --no-uncertainty (subprocesses, A/B interleaved, --repeat times)")

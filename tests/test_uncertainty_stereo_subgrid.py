@@ -91,3 +91,5 @@ def test_subgrid_sigma_against_every_pixels_sigma(evaluated):
             # the slopes' σ and the anchors' σ are every pixel's in both
             np.testing.assert_array_equal(v.slope_std_noise_urad, u.slope_std_noise_urad)
             np.testing.assert_array_equal(b_std, a_std)
+            assert any(f"every {stride}th pixel" in n for n in v.notes)
+            assert not any("subgrid" in n for n in u.notes)

@@ -402,6 +402,9 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         notes = [f"stereo: absolute heights gauged by {a_std.size} normal-consistency anchors (weight "
                  f"{ANCHOR_WEIGHT:g}), their σ included (median {np.median(fin) * 1e3 if fin.size else float('nan'):.3g} "
                  f"µm)"]
+        if s > 1:
+            notes.append(f"stereo: the heights' noise σ estimated on a subgrid of every {s}th pixel (slopes' noise "
+                         f"block-averaged, every anchor's own σ) and interpolated")
         if fin.size < a_std.size:
             notes.append(f"{a_std.size - fin.size} anchors without σ (the partner does not see them at the height "
                          f"found): their own noise is not included")
