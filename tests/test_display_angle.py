@@ -225,6 +225,14 @@ def test_per_pixel_weights_follow_the_model_over_a_camera_and_the_spline_is_scip
     m = trace_setup_camera(s, "left", store_points=True)
     u = view_directions(s.screen.T_world_screen, s.sample.T_world_sample, m.p_sample_mm, m.q_screen_mm)
     u[~m.valid] = np.nan
+    # θ of each direction against the emission's cos θ_v (optics.defocus_moments, its own kernel)
+    from pmdsim.simulation.optics import defocus_moments
+
+    cs = s.cameras["left"]
+    _, _, cos_view = defocus_moments(cs.T_world_cam, s.sample.T_world_sample, s.screen.T_world_screen,
+                                     m.p_sample_mm, m.q_screen_mm, 0.0, s.screen.surface)
+    np.testing.assert_allclose(np.hypot(u[..., 0], u[..., 1])[m.valid],
+                               np.sqrt(1.0 - cos_view[m.valid] ** 2), atol=1e-9)
     basis = angular_basis(IM, u)
     assert 1 <= basis.rank <= 12 and basis.residual <= da.BASIS_TOLERANCE
     v, c = np.nonzero(m.valid)

@@ -58,9 +58,11 @@ __all__ = ["HOLD_ALIASES", "TRUNCATION_TOLERANCE_DN", "ImagingMaps", "needs_poin
 
 
 def needs_points(setup: Setup) -> bool:
-    """True if the setup's effects need the traced sample and screen points (defocus, emission)."""
+    """True if the setup's effects need the traced sample and screen points (defocus, emission, the
+    LCD's viewing angle)."""
     im = setup.imaging
-    return im is not None and (im.f_number is not None or im.emission_exponent is not None or im.lcd_mode is not None)
+    return im is not None and (im.f_number is not None or im.emission_exponent is not None
+                               or im.lcd_mode is not None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,7 +214,8 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     means : ndarray (N, H, W) float64, optional
         Receives the mean grey levels above the dark offset before clipping, noise and rounding.
     counts : ndarray (H, W) int64, optional
-        Receives the number of series terms summed per pixel.
+        Receives the number of series terms summed per pixel (1 where the displayed value is
+        sampled directly, :mod:`.imaging_point`).
 
     Returns
     -------
@@ -239,6 +242,8 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
         noise = np.empty((0, 0, 0), dtype=np.float32)
     if means is not None and (means.shape != (n,) + ok.shape or means.dtype != np.float64):
         raise ValueError(f"means must be a float64 array of shape {(n,) + ok.shape}")
+    if counts is not None and (counts.shape != ok.shape or counts.dtype != np.int64):
+        raise ValueError(f"counts must be an int64 array of shape {ok.shape}")
     levels = maps.display[1] if maps.display is not None else None
     if maps.sharp and levels is not None:  # the staircase sampled at each pixel's point, exactly
         from .imaging_point import render_period_point
@@ -252,6 +257,8 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
         render_period_point(coord, ok, period_mm, n, sequence.mean_level, sequence.amplitude, lut,
                             None if maps.angular is None else maps.angular.weights, maps.radiance, sensor,
                             noise if sensor.noisy else None, out16, means)
+        if counts is not None:
+            counts[...] = 1  # one term per pixel and image: the displayed value
         return out16 if sensor.dtype == np.uint16 else out16.astype(sensor.dtype)
     jac = maps.jacobian[..., axis, :] if maps.jacobian is not None else np.zeros((1, 1, 2))
     out = np.empty((n,) + ok.shape, dtype=sensor.dtype)
@@ -272,8 +279,6 @@ def render_period_imaging(maps: ImagingMaps, screen_xy_mm: np.ndarray, valid: np
     share = np.concatenate([[0.0], root / root.sum() if root.sum() > 0 else root])
     m_out = np.empty((0, 0, 0)) if means is None else means
     c_out = np.empty((0, 0), dtype=np.int64) if counts is None else counts
-    if counts is not None and (counts.shape != ok.shape or counts.dtype != np.int64):
-        raise ValueError(f"counts must be an int64 array of shape {ok.shape}")
     series_kernel(coord, ok, float(period_mm), np.cos(delta), np.sin(delta), coefs, pw, use_pw, suffix, share,
                   np.ascontiguousarray(maps.var_xy_mm2[..., axis]), np.ascontiguousarray(jac),
                   maps.jacobian is not None, maps.hold_pitch_mm, maps.radiance, sensor.scale_dn,
