@@ -176,12 +176,20 @@ def main():
     ap.add_argument("--ks", default="2,4,8", help="comma-separated K (the first is the fine map)")
     ap.add_argument("--method", default="stepwise")
     ap.add_argument("--steps", default=None, help="subsampling steps of the fine map (default: K / K_fine)")
+    ap.add_argument("--maps", default=None, help="npz prefix of saved maps: subsample those (no chain run)")
     ap.add_argument("--save", default=None, help="npz prefix for the maps")
     a = ap.parse_args()
     ks = [int(v) for v in a.ks.split(",")]
+    report = {"effect": a.effect, "ks": ks, "pipeline": {}, "swap": {}, "subsampled": {}, "spectrum": {}}
+    if a.maps:  # only step 3, from the maps a previous run saved (--save): no chain is run
+        maps = []
+        for cam in ("left", "right"):
+            d = np.load(f"{a.maps}_{a.effect}_k{ks[0]}_{cam}.npz")
+            maps.append((cam, d["n"], d["valid"], d["p"]))
+        subsample_and_integrate(a, ks, maps, report)
+        return
     base = default_setup()
     runs = {}
-    report = {"effect": a.effect, "ks": ks, "pipeline": {}, "swap": {}, "subsampled": {}, "spectrum": {}}
     for k in ks:
         truth, e2, sec = run_chain(base, a.effect, k, a.method)
         runs[k] = (truth, e2)
@@ -205,18 +213,24 @@ def main():
         for cam in runs[kc][0].cameras:
             report["swap"][f"meas K{kc}, calib K{k}, {cam}"] = reconstruct_with(model, runs[kc][0], cam, a.method)
     print(json.dumps(report["swap"], indent=1), flush=True)
-    # 3. the finest slope map subsampled and integrated here.
+    subsample_and_integrate(a, ks, [(c.camera, c.n_sample, c.reconstructed, c.p_sample_mm) for c in runs[ks[0]][1].cases],
+                            report)
+
+
+def subsample_and_integrate(a, ks, maps, report):
+    """3. the finest slope map (``maps``: (camera, n, reconstructed, p) of K = ks[0]) subsampled
+    and integrated here, and its spectrum."""
     kf = ks[0]
-    for c in runs[kf][1].cases:
-        gx, gy = slopes(c.n_sample)
-        valid = c.reconstructed & np.isfinite(gx)
-        x, y = c.p_sample_mm[..., 0].astype(float), c.p_sample_mm[..., 1].astype(float)
+    for camera, n_sample, reconstructed, p_sample_mm in maps:
+        gx, gy = slopes(n_sample)
+        valid = reconstructed & np.isfinite(gx)
+        x, y = p_sample_mm[..., 0].astype(float), p_sample_mm[..., 1].astype(float)
         steps = [int(v) for v in a.steps.split(",")] if a.steps else [k // kf for k in ks if k % kf == 0]
         res = {}
         for s in steps:
             per_off = []
             if s == 1 and valid.sum() > MAX_DIRECT:
-                print(f"{c.camera}: step 1 has {int(valid.sum())} pixels, over the direct solve's "
+                print(f"{camera}: step 1 has {int(valid.sum())} pixels, over the direct solve's "
                       f"{MAX_DIRECT}: not integrated here (the pipeline's figure is above)", flush=True)
                 continue
             for off in range(s):  # diagonal offsets (off, off) of the s × s cell
@@ -233,9 +247,9 @@ def main():
             xb, yb = box(np.nan_to_num(x)), box(np.nan_to_num(y))
             zb = integrate_ls(gxb, gyb, xb, yb, vb)
             res[f"step{s}"] = {"sampled_per_offset": per_off, "box_averaged": height_stats(xb, yb, zb)}
-            print(c.camera, s, json.dumps(res[f"step{s}"]), flush=True)
-        report["subsampled"][c.camera] = res
-        report["spectrum"][c.camera] = {"gx": spectrum_shares(gx, valid, steps), "gy": spectrum_shares(gy, valid, steps)}
+            print(camera, s, json.dumps(res[f"step{s}"]), flush=True)
+        report["subsampled"][camera] = res
+        report["spectrum"][camera] = {"gx": spectrum_shares(gx, valid, steps), "gy": spectrum_shares(gy, valid, steps)}
     print(json.dumps({"spectrum": report["spectrum"]}, indent=1))
     if a.save:
         with open(f"{a.save}_{a.effect}_report.json", "w") as f:

@@ -10,8 +10,11 @@ dominant effect and the remedy can be read off.
 
 At ``downsample`` K > 1 the cameras sample every K-th pixel of the same sensor (issue 20): the
 pixel area, full well and noise are the real pixel's (``imaging.sampling_step_px`` = K), so the
-systematic rows do not change with K and the noise rows change as the σ model predicts for the
-coarser sampling.
+slope figures of every row do not change with K and the noise rows change as the σ model predicts
+for the coarser sampling. The heights of the systematic rows do change where the fringe-locked
+slope ripple lies above the coarser sampling's Nyquist frequency: it aliases into long waves that
+integrate to larger heights (``rms_plane_removed_um`` shows it; docs/experiments.md, "Experiment 4
+at full resolution (K = 1)", says how to choose K).
 """
 
 from __future__ import annotations
