@@ -61,7 +61,7 @@ def _inputs(setup_path: str | None, setup: Setup | None = None) -> list[str]:
 #: The kernel subpackages each command compiles on first use, and the cold time measured for it
 #: (docs/benchmarks.md, "First run"); the first-run note (:class:`_Command`) names them.
 _KERNELS = {
-    "simulate": (("geometry", "simulation"), "about 65 s"),
+    "simulate": (("geometry", "simulation"), "about 45 s"),
     "evaluate": (("geometry", "evaluation"), None),
     "calibrate": (("geometry", "evaluation", "calibration"), None),
     "experiment": (("geometry", "simulation", "evaluation"), None),
