@@ -309,6 +309,9 @@ def _trace_kernel(
         )
 
 
+# The same band loop as _trace_kernel, on purpose: the glass flag must be a literal constant at
+# the call of _trace_run (simulation/glass_switch.py), so that the glass-free kernel neither types
+# nor compiles the glass stage (docs/benchmarks.md, "The glass stage compiled only where used").
 @numba.njit(cache=True, parallel=True)
 def _trace_kernel_glass(
     d_cam, ok, run_length, band_rows, z_rows, scratch, pscratch, r_sc, t_sc, r_ps, t_ps,
