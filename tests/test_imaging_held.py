@@ -11,11 +11,12 @@ import pytest
 from scipy import integrate
 
 from pmdsim.setup import default_setup
+from pmdsim.geometry.fast_trig import fast_asin
 from pmdsim.setup.fringes import FringeSequence
 from pmdsim.setup.sensor import SensorModel
 from pmdsim.simulation.imaging import (HOLD_ALIASES, ImagingMaps, imaging_maps, render_direction_imaging,
                                        render_period_imaging)
-from pmdsim.simulation.imaging_held import fast_asin, kernel_cdf, semicircle_cdf, semicircle_g1, semicircle_g2
+from pmdsim.simulation.imaging_held import kernel_cdf, semicircle_cdf, semicircle_g1, semicircle_g2
 from pmdsim.simulation.render import render_images, trace_setup_camera
 
 EVERY_EFFECT = dict(bit_depth=12, full_well_e=10500.0, read_noise_e=6.0, dark_offset_dn=16.0, exposure=0.8,

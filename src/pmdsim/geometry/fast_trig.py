@@ -8,6 +8,9 @@ Cody–Waite reduction by π/2 (fdlibm's three-part π/2; k·PIO2_1 and k·PIO2_
 (tests/test_synthetic_decode.py). It is not bit-identical to libm; callers that must reproduce
 libm-based results (the quantised fringe images) recompute with libm every value that lies
 within :data:`TIE_GUARD` of a rounding boundary.
+
+:func:`fast_asin` is fdlibm's ``e_asin.c`` rational approximation as an inlinable numba function
+(libm's ``asin`` is a call, too; used by the screen pixels' staircase, :mod:`pmdsim.simulation.imaging_held`).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["sincos", "sincos_into", "libm_grey_level", "MAX_FAST_PHASE", "TIE_GUARD"]
+__all__ = ["sincos", "sincos_into", "libm_grey_level", "fast_asin", "asin_ratio", "ASIN_PIO2_HI", "ASIN_PIO2_LO", "MAX_FAST_PHASE", "TIE_GUARD"]
 
 _TWO_OVER_PI = 6.36619772367581382433e-01
 _PIO2_1 = 1.57079632673412561417e+00
@@ -82,3 +85,41 @@ def libm_grey_level(c, s, cos_dk, sin_dk, mean, amp, full_scale, has_noise, nois
     elif q > full_scale:
         q = full_scale
     return q
+
+
+# fdlibm e_asin.c (Sun Microsystems 1993) coefficients: asin x = x + x·R(x²), R = P/Q.
+ASIN_PIO2_HI = 1.57079632679489655800e00
+ASIN_PIO2_LO = 6.12323399573676603587e-17
+_PS0 = 1.66666666666666657415e-01
+_PS1 = -3.25565818622400915405e-01
+_PS2 = 2.01212532134862925881e-01
+_PS3 = -4.00555345006794114027e-02
+_PS4 = 7.91534994289814532176e-04
+_PS5 = 3.47933107596021167570e-05
+_QS1 = -2.40339491173441421878e00
+_QS2 = 2.02094576023350569471e00
+_QS3 = -6.88283971605453293030e-01
+_QS4 = 7.70381505559019352791e-02
+
+
+@numba.njit(cache=True, error_model="numpy")
+def asin_ratio(t):
+    """fdlibm's R(t) = P(t)/Q(t) of ``e_asin.c``: asin x = x + x·R(x²) for |x| < ½, and
+    π/2 − 2·(s + s·R(t)) with t = (1 − |x|)/2, s = √t, above (:func:`fast_asin`; branch-free
+    callers evaluate both)."""
+    p = t * (_PS0 + t * (_PS1 + t * (_PS2 + t * (_PS3 + t * (_PS4 + t * _PS5)))))
+    q = 1.0 + t * (_QS1 + t * (_QS2 + t * (_QS3 + t * _QS4)))
+    return p / q
+
+
+@numba.njit(cache=True, error_model="numpy")
+def fast_asin(x):
+    """asin x for |x| ≤ 1 (fdlibm's e_asin.c rational approximation, Sun Microsystems 1993,
+    without its extra-precision split: within a few ulp of libm; tests/test_imaging_held.py)."""
+    ax = abs(x)
+    if ax < 0.5:
+        return x + x * asin_ratio(x * x)
+    t = 0.5 * (1.0 - ax)
+    s = np.sqrt(t)
+    r = ASIN_PIO2_HI - (2.0 * (s + s * asin_ratio(t)) - ASIN_PIO2_LO)
+    return r if x > 0.0 else -r

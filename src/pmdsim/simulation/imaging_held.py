@@ -45,43 +45,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["fast_asin", "semicircle_cdf", "semicircle_g1", "semicircle_g2", "kernel_cdf", "held_values",
+from ..geometry.fast_trig import ASIN_PIO2_HI, ASIN_PIO2_LO, asin_ratio, fast_asin
+from .sensor_code import sensor_code
+
+__all__ = ["semicircle_cdf", "semicircle_g1", "semicircle_g2", "kernel_cdf", "held_values",
            "render_direction_held", "held_kernel"]
 
-_PIO2_HI = 1.57079632679489655800e00
-_PIO2_LO = 6.12323399573676603587e-17
-_PS0 = 1.66666666666666657415e-01
-_PS1 = -3.25565818622400915405e-01
-_PS2 = 2.01212532134862925881e-01
-_PS3 = -4.00555345006794114027e-02
-_PS4 = 7.91534994289814532176e-04
-_PS5 = 3.47933107596021167570e-05
-_QS1 = -2.40339491173441421878e00
-_QS2 = 2.02094576023350569471e00
-_QS3 = -6.88283971605453293030e-01
-_QS4 = 7.70381505559019352791e-02
 #: a·b below this × max(R, a)² merges the two boxes into one of equal variance (module docstring).
 MERGE_RATIO = 1e-7
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _asin_ratio(t):
-    p = t * (_PS0 + t * (_PS1 + t * (_PS2 + t * (_PS3 + t * (_PS4 + t * _PS5)))))
-    q = 1.0 + t * (_QS1 + t * (_QS2 + t * (_QS3 + t * _QS4)))
-    return p / q
-
-
-@numba.njit(cache=True, error_model="numpy")
-def fast_asin(x):
-    """asin x for |x| ≤ 1 (fdlibm's e_asin.c rational approximation, Sun Microsystems 1993,
-    without its extra-precision split: within a few ulp of libm; tests/test_imaging_held.py)."""
-    ax = abs(x)
-    if ax < 0.5:
-        return x + x * _asin_ratio(x * x)
-    t = 0.5 * (1.0 - ax)
-    s = np.sqrt(t)
-    r = _PIO2_HI - (2.0 * (s + s * _asin_ratio(t)) - _PIO2_LO)
-    return r if x > 0.0 else -r
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -152,9 +123,9 @@ def _g2_many(xs, m, radius, out):
         ax = abs(t)
         small = ax < 0.5
         z = t * t if small else 0.5 * (1.0 - ax)
-        r = _asin_ratio(z)
+        r = asin_ratio(z)
         q = np.sqrt(z)
-        big = _PIO2_HI - (2.0 * (q + q * r) - _PIO2_LO)
+        big = ASIN_PIO2_HI - (2.0 * (q + q * r) - ASIN_PIO2_LO)
         asn = t + t * r if small else (big if t > 0.0 else -big)
         s = np.sqrt((1.0 - t) * (1.0 + t))
         u = t + 1.0
@@ -228,20 +199,8 @@ def _held_rows(v0, v1, coord, valid, radius, box_a, box_b, pitch, j0, levels, dl
                     mean = g * acc[p * n + k]
                     if keep_means:
                         means[p, k, v, u] = mean
-                    if mean >= clip:  # the full well is reached: the saturation code, no noise
-                        out[p, k, v, u] = full
-                        continue
-                    if mean < 0.0:
-                        mean = 0.0
-                    val = dark + mean
-                    if use_noise:
-                        val += np.sqrt(shot * mean + const_var) * noise[p, k, v, u]
-                    q = np.floor(val + 0.5)
-                    if q < 0.0:
-                        q = 0.0
-                    elif q > full:
-                        q = full
-                    out[p, k, v, u] = q
+                    out[p, k, v, u] = sensor_code(mean, dark, clip, shot, const_var, full, use_noise,
+                                                  noise[p, k, v, u] if use_noise else 0.0)
 
 
 @numba.njit(cache=True, parallel=True)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .sensor_code import sensor_code
+
 __all__ = ["point_kernel", "render_period_point"]
 
 
@@ -59,20 +61,8 @@ def point_kernel(coord, valid, period, delta, mean_level, amplitude, lut, pw, us
                 mean = g * val
                 if keep_means:
                     means[k, v, u] = mean
-                if mean >= clip:  # the full well is reached: the saturation code, no noise
-                    out[k, v, u] = full
-                    continue
-                if mean < 0.0:
-                    mean = 0.0
-                val = dark + mean
-                if use_noise:
-                    val += np.sqrt(shot * mean + const_var) * noise[k, v, u]
-                q = np.floor(val + 0.5)
-                if q < 0.0:
-                    q = 0.0
-                elif q > full:
-                    q = full
-                out[k, v, u] = q
+                out[k, v, u] = sensor_code(mean, dark, clip, shot, const_var, full, use_noise,
+                                           noise[k, v, u] if use_noise else 0.0)
 
 
 def render_period_point(coord: np.ndarray, valid: np.ndarray, period_mm: float, n_shifts: int, mean_level: float,

@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from .optics import jinc
+from .sensor_code import sensor_code
 
 __all__ = ["JINC_ENVELOPE", "TRUNCATION_TOLERANCE_DN", "series_kernel"]
 
@@ -283,20 +284,8 @@ def _series_rows(v0, v1, coord, valid, period, cos_d, sin_d, coefs, pw, use_pw, 
                 mean = g * s
                 if keep_means:
                     means[k, v, u] = mean
-                if mean >= clip:  # the full well is reached: the saturation code, no noise (issue 20)
-                    out[k, v, u] = full
-                    continue
-                if mean < 0.0:
-                    mean = 0.0
-                val = dark + mean
-                if use_noise:
-                    val += np.sqrt(shot * mean + const_var) * noise[k, v, u]
-                q = np.floor(val + 0.5)
-                if q < 0.0:
-                    q = 0.0
-                elif q > full:
-                    q = full
-                out[k, v, u] = q
+                out[k, v, u] = sensor_code(mean, dark, clip, shot, const_var, full, use_noise,
+                                           noise[k, v, u] if use_noise else 0.0)
 
 
 @numba.njit(cache=True, parallel=True)
