@@ -29,12 +29,14 @@ temporaries), the flops it must do (counted from the kernel's arithmetic, commen
 below) and its divisions and square roots; the floor is the largest of bytes/bandwidth,
 flops/peak and divisions/division rate. It prints one table: kernel, the three floors, the
 floor, the times (1 and 2 threads, wall and CPU), the ratio and whether it is within 3×. The
-verdict uses one thread's CPU time against the floor at the rates measured by CPU time (one
-core's work: steady on a loaded machine, where wall times stretch by the share of the core other
-jobs take); the ratio of the best wall time (1 or 2 threads) to the floor at the rates measured
-by wall time is printed beside it. OpenBLAS runs on one thread (``OPENBLAS_NUM_THREADS=1``
-unless set), so the matrix product is one core's peak.
-Takes ≈ 1.5 min (30 s of it building the inputs).
+verdict is the best wall time (1 or 2 threads) against the floor at the rates measured by wall
+time; beside it, one thread's CPU time against the floor at the rates measured by CPU time
+(steadier on a loaded machine, where wall times stretch by the share of the core other jobs
+take). The floor is one core's: the two vCPUs share one core's vector units (the matrix product
+is no faster on two threads), but a latency-bound kernel gains up to 2× from the second hardware
+thread. OpenBLAS runs on one thread (``OPENBLAS_NUM_THREADS=1`` unless set), so the matrix
+product is one core's peak.
+Takes ≈ 30 s with the calibration observations cached and a warm numba cache, ≈ 1.5 min without.
 """
 
 from __future__ import annotations
@@ -373,13 +375,15 @@ def main() -> None:
         floor = max(f_bytes, f_flops, f_divs)
         floor_wall = max(counts["bytes"] / rates["bandwidth_wall"], counts["flops"] / rates["peak_flops_wall"],
                          counts["divs"] / rates["div_rate_wall"])
-        # The verdict: one thread's CPU time against the floor at the rates measured by CPU time
-        # (one core's; steady under load); the wall ratio beside it (rates by wall time).
-        ratio = timing[1]["cpu_s"] / floor
+        # The verdict: the best wall time (1 or 2 threads: what a user waits for) against the floor
+        # at the rates measured by wall time; beside it one thread's CPU time against the floor at
+        # the rates measured by CPU time (steadier under load, but blind to what the second
+        # hardware thread adds to a latency-bound kernel).
+        ratio_wall = best / floor_wall
         rows.append({"kernel": name, **counts, "floor_bytes_s": f_bytes, "floor_flops_s": f_flops,
                      "floor_divs_s": f_divs, "floor_s": floor, "floor_wall_s": floor_wall, "t1": timing[1],
-                     "t2": timing[2], "best_wall_s": best, "ratio": ratio, "ratio_wall": best / floor_wall,
-                     "met": ratio <= 3.0})
+                     "t2": timing[2], "best_wall_s": best, "ratio": timing[1]["cpu_s"] / floor,
+                     "ratio_wall": ratio_wall, "met": ratio_wall <= 3.0})
         print(f"  timed {name}: {best * 1e3:.1f} ms wall, {timing[1]['cpu_s'] * 1e3:.1f} ms CPU "
               f"(load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
@@ -406,11 +410,11 @@ def _print(res: dict) -> None:
               f"{r['peak_flops' + key] / 1e9:.1f} GFLOP/s (float64 matrix product), divisions "
               f"{r['div_rate' + key] / 1e9:.2f} G/s")
     print(f"Brown camera: {res['brown_newton'][0]} Newton iterations, {res['brown_newton'][1]} pixels to the fallback")
-    print("floors at the CPU-time rates; ratio = 1 thread's CPU time / floor (wall: best wall of 1 and 2 threads "
-          "/ floor at the wall-time rates)")
+    print("ratio = best wall time of 1 and 2 threads / floor at the wall-time rates (the verdict); in brackets one "
+          "thread's CPU time / floor at the CPU-time rates (the floor column)")
     print()
     print("| kernel | bytes (floor) | flops (floor) | div + sqrt (floor) | floor | 1 thread wall (CPU) "
-          "| 2 threads wall (CPU) | ratio CPU (wall) | within 3× |")
+          "| 2 threads wall (CPU) | ratio wall (CPU) | within 3× |")
     print("|---|---|---|---|---|---|---|---|---|")
     for w in res["rows"]:
         print(f"| {w['kernel']} | {w['bytes'] / 1e6:.0f} MB ({w['floor_bytes_s'] * 1e3:.1f} ms) "
@@ -418,7 +422,7 @@ def _print(res: dict) -> None:
               f"| {w['divs'] / 1e6:.1f} M ({w['floor_divs_s'] * 1e3:.1f} ms) | {w['floor_s'] * 1e3:.1f} ms "
               f"| {w['t1']['wall_s'] * 1e3:.1f} ms ({w['t1']['cpu_s'] * 1e3:.0f}) "
               f"| {w['t2']['wall_s'] * 1e3:.1f} ms ({w['t2']['cpu_s'] * 1e3:.0f}) "
-              f"| {w['ratio']:.1f}× ({w['ratio_wall']:.1f}×) | {'MET' if w['met'] else 'NOT MET'} |")
+              f"| {w['ratio_wall']:.2f}× ({w['ratio']:.1f}×) | {'MET' if w['met'] else 'NOT MET'} |")
 
 
 if __name__ == "__main__":
