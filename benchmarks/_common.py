@@ -20,6 +20,28 @@ def best_of(fn, repeat):
     return best, out
 
 
+def best_wall_cpu(fn, repeat):
+    """(least wall time, least CPU (process) time) in s of ``repeat`` calls of ``fn``."""
+    wall, cpu = [], []
+    for _ in range(repeat):
+        c0, w0 = time.process_time(), time.perf_counter()
+        fn()
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
+
+
+def rendered_images(setup, camera, mapping):
+    """The camera's images as ``decode_images`` takes them: ``{(direction, period_mm): [image per
+    shift]}``, rendered from ``mapping`` (``pmdsim.simulation.render_images``)."""
+    from pmdsim.simulation import render_images
+
+    images = {}
+    for spec, img in render_images(setup, camera, mapping):
+        images.setdefault((spec.frame.direction, spec.frame.period_mm), []).append(img)
+    return images
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far (MB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

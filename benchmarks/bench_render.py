@@ -10,24 +10,14 @@ of those images and, where the tree has it, the fused ``decode_simulated`` (no i
 from __future__ import annotations
 
 import argparse
-import time
 
 import numba
 
+from _common import best_wall_cpu
 from pmdsim.evaluation import pipeline
 from pmdsim.setup import default_setup
 from pmdsim.simulation.patterns import render_period
 from pmdsim.simulation.render import render_images, trace_setup_camera
-
-
-def _best(f, repeat: int) -> tuple[float, float]:
-    wall, cpu = [], []
-    for _ in range(repeat):
-        c0, w0 = time.process_time(), time.perf_counter()
-        f()
-        wall.append(time.perf_counter() - w0)
-        cpu.append(time.process_time() - c0)
-    return min(wall), min(cpu)
 
 
 def main() -> None:
@@ -55,7 +45,7 @@ def main() -> None:
         cases.append(("decode_simulated (fused, no images)", lambda: pipeline.decode_simulated(s, m.screen_xy_mm, m.valid)))
     for label, f in cases:
         f()  # compile / warm up
-        w, c = _best(f, args.repeat)
+        w, c = best_wall_cpu(f, args.repeat)
         print(f"{label:38s} best wall {w * 1e3:7.1f} ms, best CPU {c * 1e3:7.1f} ms")
 
 
