@@ -206,7 +206,8 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     state[sv, su, 3] = 1.0
     cur = np.empty(H * W, dtype=np.int64)
     cur[0] = sv * W + su
-    return _expand_kernel(o, d, q, state, cur, 1, tol, max_iter, nb_dv, nb_du)
+    # n_cur as int64, not the literal 1: one compiled signature with _fill_kernel's call
+    return _expand_kernel(o, d, q, state, cur, np.int64(1), tol, max_iter, nb_dv, nb_du)
 
 
 def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
@@ -326,7 +327,7 @@ def _fill_kernel(o, d, q, S, z, tol, max_iter, nb_dv, nb_du):
                     state[v, u, 3] = 0.0
                     n_invalidated += 1
     cur = np.empty(H * W, dtype=np.int64)
-    n_cur = 0
+    n_cur = np.int64(0)  # not the literal 0: typing would compile _expand_kernel for Literal[int](0) too
     for v in range(H):
         for u in range(W):
             if state[v, u, 3] == 1.0 and np.isfinite(state[v, u, 1]):

@@ -149,7 +149,9 @@ def _render_decode_kernel(screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_
     h = valid.shape[0]
     n_redo = np.zeros(h, np.int64)
     for v in numba.prange(0, h):
-        n_redo[v] = _render_decode_row(v, screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
+        # the row as int64 (this prange's index reached it as uint64, although it starts at 0): the serial
+        # kernel's signature of the row functions and of decoding._finish_row, not a second compile of each
+        n_redo[v] = _render_decode_row(np.int64(v), screen_xy, valid, axis, cos_d, sin_d, mean, amp, full_scale,
                                        render_noise, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                                        min_modulation, min_ratio, mode, period, origin, upper, tolerance, store,
                                        finish, std_scale, noise_sigma, tie_guard, out, flags, modulation, offset,
