@@ -87,7 +87,8 @@ def main() -> None:
         os.makedirs(args.dump_code, exist_ok=True)
         for a, e in zip(addresses, ends):
             name = syms[a]
-            key = next((k for k in _DUMPED if k in name), None)
+            # (mangled names hold each part as <length><text>: "9trace_rowB…", not "10trace_rows…")
+            key = next((k for k in _DUMPED if f"{len(k)}{k}B" in name), None)
             if key and name.startswith("_ZN6pmdsim"):  # the function itself, not its C wrappers
                 with open(os.path.join(args.dump_code, f"{key}_{a:x}.bin"), "wb") as fh:
                     fh.write(ctypes.string_at(a, min(e - a, 0x40000)))
