@@ -76,6 +76,10 @@ def glass_band_rows(n_rows: int, band_rows: int) -> int:
     return max(band_rows, min(4 * band_rows, n_rows // _MIN_BANDS))
 
 
+# glass_block copies the reflected ray's six fields in one piece: the same order in both places.
+assert (_QOY, _QOZ, _WX, _WY, _WZ) == tuple(range(_QOX + 1, _QOX + 6))
+assert (_OOY, _OOZ, _ODX, _ODY, _ODZ) == tuple(range(_OOX + 1, _OOX + 6))
+
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0
 
@@ -252,13 +256,44 @@ def glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, ox, oy, oz,
 
 
 @numba.njit(**_JIT)
+def _in_patch(n, gx, gy, i0, j0, S):
+    """Whether the foot points (_UX, _UY) of all n pixels lie strictly inside grid interval i0 of
+    ``gx`` and j0 of ``gy`` (the edge intervals open outwards): then each one's patch
+    (:func:`_patches_at`, ``_interval``) is that one, and the block is one run of
+    :func:`_foot_run`. A point on a grid line, or NaN, answers False (the search per pixel
+    decides). One loop without branches (vectorised)."""
+    B = _BLK
+    inf = np.inf
+    nx = gx.shape[0]
+    ny = gy.shape[0]
+    x_lo = -inf if i0 == 0 else gx[i0]
+    x_hi = inf if i0 == nx - 2 else gx[i0 + 1]
+    y_lo = -inf if j0 == 0 else gy[j0]
+    y_hi = inf if j0 == ny - 2 else gy[j0 + 1]
+    n_in = 0
+    for i in range(n):
+        ux = S[_UX * B + i]
+        uy = S[_UY * B + i]
+        n_in += (ux > x_lo) & (ux < x_hi) & (uy > y_lo) & (uy < y_hi)
+    return n_in == n
+
+
+@numba.njit(**_JIT)
 def _patches_at(n, gx, gy, S, P):
     """Patch offsets of the foot points (_UX, _UY) of n pixels (as ``trace_rows._patches_small``:
-    counting grid lines on small grids, bisection otherwise)."""
+    counting grid lines on small grids, bisection otherwise). Where all of them lie inside the
+    first one's patch (:func:`_in_patch`: nearly every block), that patch without a search."""
     B = _BLK
     nx = gx.shape[0]
     ny = gy.shape[0]
     nx1 = nx - 1
+    i0 = _interval(gx, S[_UX * B])
+    j0 = _interval(gy, S[_UY * B])
+    if _in_patch(n, gx, gy, i0, j0, S):
+        b = (j0 * nx1 + i0) * 16
+        for i in range(n):
+            P[_PID * B + i] = b
+        return
     if nx1 + ny - 1 > _SMALL_GRID:
         for i in range(n):
             P[_PID * B + i] = (_interval(gy, S[_UY * B + i]) * nx1 + _interval(gx, S[_UX * B + i])) * 16
@@ -373,17 +408,19 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     my1 = zr[8][col0:]
     my2 = zr[9][col0:]
     plane = kind == _KIND_PLANE
+    # The reflected ray (origin _QOX…, direction _WX…: six consecutive fields) kept for the scalar
+    # path in _OOX … _ODZ: one contiguous copy of the six fields (the unused tail of each field
+    # too). Copied field by field inside the loop below, each store was followed by a load from
+    # an address 4096·k bytes away (fields are 1 kB apart), which the processor holds back as a
+    # possible dependence ("4K aliasing"): that loop took ≈ 12 ms of the image's 100 ms
+    # (docs/benchmarks.md, "Cover glass (issue 21): the glass trace at 1.5×?").
+    for j in range(6 * B):
+        S[_OOX * B + j] = S[_QOX * B + j]
     for i in range(n):
         ax = S[_AX * B + i]
         ay = S[_AY * B + i]
         bx = S[_BX * B + i]
         by = S[_BY * B + i]
-        S[_OOX * B + i] = S[_QOX * B + i]
-        S[_OOY * B + i] = S[_QOY * B + i]
-        S[_OOZ * B + i] = S[_QOZ * B + i]
-        S[_ODX * B + i] = S[_WX * B + i]
-        S[_ODY * B + i] = S[_WY * B + i]
-        S[_ODZ * B + i] = S[_WZ * B + i]
         azg = 2.0 * a1[i] - a2[i]
         mxg = 2.0 * mx1[i] - mx2[i]
         myg = 2.0 * my1[i] - my2[i]
@@ -436,7 +473,14 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     _intersect_block(n, kind, gx, gy, coef, dmax, tol, False, S, P)
     _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_WX), S)
     # Pixels the fast path did not settle: more foot-point steps (scalar), else the refracting
-    # pass's trace.
+    # pass's trace. Counted first in a loop without calls (vectorised): most blocks have none.
+    n_left = 0
+    for i in range(n):
+        mg = S[_GM * B + i]
+        settled = (S[_C * B + i] == 0.0) & _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg)
+        n_left += (mg >= 0.0) & (not settled)
+    if n_left == 0:
+        return
     for i in range(n):
         mg = S[_GM * B + i]
         if mg < 0.0:
