@@ -3,6 +3,7 @@
     python benchmarks/bench_uncertainty_stereo.py --binning 16 --sets 100 [--noise-std 2] [--bins 5]
     python benchmarks/bench_uncertainty_stereo.py --sets 0 --time-binning 1 [--compare-strides 8,16]
     python benchmarks/bench_uncertainty_stereo.py --sets 0 --cli IMAGE_DIR --repeat 2
+        [--cli-setup SETUP.toml] [--cli-trees /work/main/src,src] [--cli-keep DIR]
 
 Monte Carlo (``--sets`` > 0): Table 1, both cameras binned ``--binning``×, the patterns'
 intensity noise ``--noise-std`` grey levels, ``--sets`` seeded noisy image sets of both cameras,
@@ -21,7 +22,10 @@ B; CPU (process) and wall time of the stereo evaluation (search, integration, re
 σ (K = ``--samples``), default numba threads, and the σ's stages; ``--compare-strides``: the
 noise σ on those subgrids against every pixel's (same draws). ``--cli IMAGE_DIR``: ``pmdsim
 evaluate IMAGE_DIR --stereo`` with σ and with ``--no-uncertainty``, subprocesses, A/B
-interleaved, CPU and wall times.
+interleaved, CPU and wall times; ``--cli-setup FILE`` the evaluation's setup (e.g. one carrying
+``[calibration_report]``), ``--cli-trees SRC,SRC`` the same for each source tree in turn (the
+children's PYTHONPATH; e.g. main's against a branch), ``--cli-keep DIR`` keeps each tree's
+evaluation with σ (to compare the arrays).
 """
 
 from __future__ import annotations
@@ -219,24 +223,30 @@ def cli(a) -> None:
     import sys
     import tempfile
 
-    times = {"with σ": [], "--no-uncertainty": []}
+    trees = [p for p in a.cli_trees.split(",") if p] or [os.environ.get("PYTHONPATH", "")]
+    times = {(t, k): [] for t in trees for k in ("with σ", "--no-uncertainty")}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(a.repeat):
-            for label, extra in (("with σ", []), ("--no-uncertainty", ["--no-uncertainty"])):
-                out = os.path.join(tmp, f"ev{r}{len(extra)}")
-                ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-                t = time.perf_counter()
-                mode = ([] if a.mono else ["--stereo"]) + (["--setup", a.cli_setup] if a.cli_setup else [])
-                subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, *mode, "--out", out, "--quiet",
-                                *extra], check=True, capture_output=True)
-                wall = time.perf_counter() - t
-                ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-                cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
-                times[label].append(cpu)
-                print(f"run {r}: evaluate{'' if a.mono else ' --stereo'} {label}: {cpu:.1f} s CPU, {wall:.1f} s wall (load "
-                      f"{os.getloadavg()[0]:.2f})", flush=True)
-    w, wo = statistics.median(times["with σ"]), statistics.median(times["--no-uncertainty"])
-    print(f"median CPU: with σ {w:.1f} s, without {wo:.1f} s: {100 * (w / wo - 1):+.0f} % (target ≤ +50 %)")
+            for i, tree in enumerate(trees):
+                for label, extra in (("with σ", []), ("--no-uncertainty", ["--no-uncertainty"])):
+                    out = os.path.join(tmp, f"ev{r}{i}{len(extra)}")
+                    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    t = time.perf_counter()
+                    mode = ([] if a.mono else ["--stereo"]) + (["--setup", a.cli_setup] if a.cli_setup else [])
+                    subprocess.run([sys.executable, "-m", "pmdsim", "evaluate", a.cli, *mode, "--out", out, "--quiet",
+                                    *extra], check=True, capture_output=True, env={**os.environ, "PYTHONPATH": tree})
+                    wall = time.perf_counter() - t
+                    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    cpu = ru1.ru_utime - ru0.ru_utime + ru1.ru_stime - ru0.ru_stime
+                    times[tree, label].append(cpu)
+                    print(f"run {r}: [{tree}] evaluate{'' if a.mono else ' --stereo'} {label}: {cpu:.1f} s CPU, {wall:.1f} s "
+                          f"wall (load {os.getloadavg()[0]:.2f}, {time.strftime('%H:%M:%S', time.gmtime())} UTC)", flush=True)
+                    if a.cli_keep and label == "with σ":
+                        import shutil
+                        shutil.copytree(out, os.path.join(a.cli_keep, f"tree{i}_run{r}"), dirs_exist_ok=True)
+    for tree in trees:
+        w, wo = statistics.median(times[tree, "with σ"]), statistics.median(times[tree, "--no-uncertainty"])
+        print(f"[{tree}] median CPU: with σ {w:.1f} s, without {wo:.1f} s: {100 * (w / wo - 1):+.0f} % (target ≤ +50 %)")
 
 
 def main() -> None:
@@ -256,6 +266,9 @@ def main() -> None:
     ap.add_argument("--compare-samples", type=int, default=64, help="K of --compare-strides")
     ap.add_argument("--cli-setup", default="", metavar="FILE", help="--cli: the evaluation's setup file (default: "
                     "Table 1)")
+    ap.add_argument("--cli-trees", default="", metavar="SRC,SRC",
+                    help="--cli: A/B source trees (PYTHONPATH of each child, interleaved per run; default: this one)")
+    ap.add_argument("--cli-keep", default="", metavar="DIR", help="--cli: keep each tree's evaluations with σ in DIR")
     ap.add_argument("--mono", action="store_true", help="--cli: the mono evaluation (no --stereo)")
     ap.add_argument("--cli", default="", metavar="IMAGE_DIR", help="time `pmdsim evaluate IMAGE_DIR --stereo` with σ "
                     "and with --no-uncertainty (subprocesses, A/B interleaved, --repeat times)")

@@ -154,6 +154,25 @@ def test_principal_axes_sum_to_the_dense_reference(chain):
             assert np.max(np.abs(g[..., k] - g_ref[..., k])[S]) < 0.01 * np.sqrt(np.mean(g_ref[..., k][S] ** 2))
 
 
+def test_threads_do_not_change_the_result_and_are_restored(chain):
+    """The calibration part runs on one numba thread by default (speed, docs/benchmarks.md); with
+    all the caller's threads it gives the same arrays bit for bit, and the caller's thread
+    count is restored after either (also after an error)."""
+    _, _, model, dec, st = chain
+    before = numba.get_num_threads()
+    one = stereo_calibration_contribution(model, dec, st)
+    assert numba.get_num_threads() == before
+    every = stereo_calibration_contribution(model, dec, st, threads=numba.config.NUMBA_NUM_THREADS)
+    assert numba.get_num_threads() == before
+    for c in st.cameras:
+        for key in ("height_std_um", "slope_std_urad"):
+            assert np.array_equal(getattr(one.cameras[c], key), getattr(every.cameras[c], key), equal_nan=True)
+        assert np.array_equal(one.anchor_height_std_um[c], every.anchor_height_std_um[c], equal_nan=True)
+    with pytest.raises(CalibrationUncertaintyError, match="stride"):
+        stereo_calibration_contribution(model, dec, st, stride=0)
+    assert numba.get_num_threads() == before
+
+
 def test_stereo_sigma_carries_the_calibration_part_and_says_so(chain):
     _, _, model, dec, st = chain
     views = stereo_views(model, dec)

@@ -41,8 +41,10 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
 from ..setup.covariance import perturbed_setup
@@ -60,6 +62,25 @@ __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calib
 
 #: Relative tolerance of each axis's solve (a few dozen solves: tight).
 _RTOL = 1e-6
+
+#: Numba threads of the calibration part (:func:`stereo_calibration_contribution`). Its work is
+#: a few hundred small kernel calls (a 240 × 150 px subgrid, ≈ 1 ms each on one thread); with
+#: more threads each call's parallel region costs more than it saves, and the OpenMP layer's
+#: waiting threads spin: measured at 240 × 150 px, load 4, 2 vCPUs, 3.82 s CPU with 2 threads
+#: against 1.27 s with one (wall 3.87 s against 1.39 s; docs/benchmarks.md "Uncertainty: stereo
+#: calibration part at full resolution").
+THREADS = 1
+
+
+@contextmanager
+def _numba_threads(n: int):
+    """Run the block with at most ``n`` numba threads (this thread's setting), restored after."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(n), before)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,7 +301,7 @@ class StereoLinearisation:
 
 def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
                                     stride: int | None = None, step: float = DEFAULT_STEP,
-                                    central: bool = False) -> StereoCalibrationContribution:
+                                    central: bool = False, threads: int = THREADS) -> StereoCalibrationContribution:
     """Per-pixel standard uncertainty of a stereo evaluation's heights and slopes from the
     calibration covariance ``setup`` carries (module docstring).
 
@@ -303,6 +324,10 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
         Finite-difference step along each principal axis, in standard deviations.
     central : bool
         Central instead of forward differences (twice the work; for checks).
+    threads : int
+        Numba threads of the linearisation (default :data:`THREADS`: one; at most the
+        caller's). The result does not depend on it beyond the solves' rounding (measured:
+        docs/benchmarks.md).
 
     Returns
     -------
@@ -324,15 +349,16 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     s = default_stereo_stride(stereo.cameras[cams[0]].reconstructed.shape) if stride is None else int(stride)
     names = stereo_calibration_parameters(setup, cams, screen_model=screen_model)
     axes = principal_axes(cov.subset(names))
-    lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model, stride=s)
-    fields = {c: [] for c in cams}
-    var_a = {c: np.zeros(lin.a_base[c].size) for c in cams}
-    for delta in axes:
-        ch = lin.change(step * delta, central=central)
-        for c in cams:
-            dz, dg, da = (x / step for x in ch[c])
-            fields[c].append(np.concatenate([dz[..., None], dg], axis=-1))
-            var_a[c] += da * da
+    with _numba_threads(threads):
+        lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model, stride=s)
+        fields = {c: [] for c in cams}
+        var_a = {c: np.zeros(lin.a_base[c].size) for c in cams}
+        for delta in axes:
+            ch = lin.change(step * delta, central=central)
+            for c in cams:
+                dz, dg, da = (x / step for x in ch[c])
+                fields[c].append(np.concatenate([dz[..., None], dg], axis=-1))
+                var_a[c] += da * da
     notes = []
     if lin.lost_px:
         notes.append(f"calibration part: up to {lin.lost_px} pixel(s) lost their screen point in a moved setup (taken as "
