@@ -213,7 +213,7 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> P
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)  # any layout (the summary's (2, M) rows transposed: no copy)
     sig = np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2)
-    res = np.ascontiguousarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
+    res = np.asarray(fit.residual_slopes, dtype=float).reshape(-1, 2)  # any layout (the fit's rows: no copy)
     xc, yc = _centre(xy, res, sig)
     N, B = _sandwich_sums(xy, res, sig, xc, yc, float(fit.scale))
     Ni = np.linalg.inv(N)
@@ -542,7 +542,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # contiguous copy per column.
     if n == ok.size:
         xc, yc = float(p[..., 0].mean()), float(p[..., 1].mean())
-        x, y = (p[..., 0] - xc).reshape(-1), (p[..., 1] - yc).reshape(-1)
+        xyc = np.empty((2,) + p.shape[:-1])  # the centred x, y as rows: later the residuals, in place
+        np.subtract(p[..., 0], xc, out=xyc[0])
+        np.subtract(p[..., 1], yc, out=xyc[1])
+        x, y = xyc[0].reshape(-1), xyc[1].reshape(-1)
         gx, gy = np.ascontiguousarray(g[..., 0]).reshape(-1), np.ascontiguousarray(g[..., 1]).reshape(-1)
     else:
         x, y, gx, gy = p[..., 0][ok], p[..., 1][ok], g[..., 0][ok], g[..., 1][ok]
@@ -582,7 +585,7 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     rx, ry = _residuals(x, y, gx, gy, a, b, c, d, e, in_place=True)  # g − A·c over the centred copies
     del x, y
     if n == ok.size:
-        res = np.stack([rx, ry], axis=-1).reshape(g.shape)
+        res = xyc.reshape(2, -1).T.reshape(g.shape)  # a view of the (2, M) rows rx, ry: no third copy
     else:
         res = np.full(g.shape, np.nan)
         res[ok, 0] = rx
