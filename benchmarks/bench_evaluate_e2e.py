@@ -3,7 +3,7 @@
 Make a full-resolution image set once (Table 1: two cameras, 1920×1200) and pass its directory:
 
     pmdsim simulate --bulge-mm 3 --out set3
-    python benchmarks/bench_evaluate_e2e.py set3 [--repeat 2] [--no-cli] [--json] [--no-uncertainty]
+    python benchmarks/bench_evaluate_e2e.py set3 [--repeat 2] [--no-cli] [--json] [--no-uncertainty] [--trace-memory]
 
 Prints, for ``--repeat`` evaluations in this process (the first one also loads the cached numba
 kernels; the best is reported): wall time per stage — decode (reading the images + decoding),
@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tracemalloc
 from collections import defaultdict
 from pathlib import Path
 
@@ -38,6 +39,8 @@ from _common import dump_json, peak_rss_mb
 _T = defaultdict(float)
 _CPU = defaultdict(float)
 _DEPTH = {"n": 0}
+_MEM = {}  # stage → (traced MB alive at entry, traced peak MB inside), with --trace-memory
+_TRACE = {"on": False}
 _ORDER = ("decode", "checks", "registration+reconstruction", "  of which registration.register",
           "  of which RigidTransform.apply", "  of which Camera.view_rays", "surface fit",
           "  of which fit_paraboloid_slopes", "uncertainty", "  of which _sampled_std", "files",
@@ -53,6 +56,9 @@ def _timed(stage, fn, *, nested=False):
             return fn(*a, **k)
         if not nested:
             _DEPTH["n"] += 1
+        if _TRACE["on"] and not nested:
+            cur, before = tracemalloc.get_traced_memory()
+            tracemalloc.reset_peak()
         t = time.perf_counter()
         c = time.process_time()
         try:
@@ -60,6 +66,11 @@ def _timed(stage, fn, *, nested=False):
         finally:
             _T[stage] += time.perf_counter() - t
             _CPU[stage] += time.process_time() - c
+            if _TRACE["on"] and not nested:
+                peak = tracemalloc.get_traced_memory()[1]
+                old = _MEM.get(stage, (0.0, 0.0))
+                _MEM[stage] = (max(old[0], cur / 2**20), max(old[1], peak / 2**20))
+                _MEM["(all)"] = (0.0, max(_MEM.get("(all)", (0.0, 0.0))[1], before / 2**20, peak / 2**20))
             if not nested:
                 _DEPTH["n"] -= 1
     return wrapper
@@ -115,6 +126,9 @@ def main() -> None:
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--no-uncertainty", action="store_true", help="evaluate without σ (the CLI's --no-uncertainty)")
+    ap.add_argument("--trace-memory", action="store_true",
+                    help="tracemalloc per stage in the last run (numpy buffers: what is alive at the stage's entry "
+                         "and its peak; slows the run)")
     args = ap.parse_args()
 
     import numba
@@ -133,6 +147,10 @@ def main() -> None:
         for i in range(args.repeat):
             _T.clear()
             _CPU.clear()
+            if args.trace_memory and i == args.repeat - 1:
+                _MEM.clear()
+                tracemalloc.start()
+                _TRACE["on"] = True
             t = time.perf_counter()
             c = time.process_time()
             evaluate_image_set(args.image_dir, setup, Path(tmp) / f"e{i}", progress=None,
@@ -142,7 +160,13 @@ def main() -> None:
             stages = {k: (_T[k], _CPU[k]) for k in _ORDER if k in _T}
             stages["rest"] = (total - sum(v[0] for k, v in stages.items() if not k.startswith(" ")),
                               cpu - sum(v[1] for k, v in stages.items() if not k.startswith(" ")))
-            runs.append((total, stages, cpu))
+            if _TRACE["on"]:
+                _MEM["(all)"] = (0.0, max(_MEM.get("(all)", (0.0, 0.0))[1], tracemalloc.get_traced_memory()[1] / 2**20))
+                tracemalloc.stop()
+                _TRACE["on"] = False
+                res["traced_mb_at_entry_and_peak"] = dict(_MEM)
+            else:
+                runs.append((total, stages, cpu))
         res["in_process_peak_rss_mb"] = peak_rss_mb()
         total, stages, cpu = min(runs, key=lambda r: r[0])
         res["in_process_s"] = total
@@ -171,6 +195,10 @@ def main() -> None:
     print(f"  {'stage':40s} {'wall s':>7s} {'CPU s':>7s}")
     for k, (v, c) in stages.items():
         print(f"  {k:40s} {v:7.2f} {c:7.2f}")
+    if "traced_mb_at_entry_and_peak" in res:
+        print(f"  traced memory of the last run (MB)       {'entry':>7s} {'peak':>7s}")
+        for k, (a, b) in res["traced_mb_at_entry_and_peak"].items():
+            print(f"  {k:40s} {a:7.0f} {b:7.0f}")
     if "cli_wall_s" in res:
         print(f"pmdsim evaluate (subprocess): {res['cli_wall_s']:.2f} s wall, peak RSS {res['cli_peak_rss_mb']:.0f} MB")
 

@@ -414,21 +414,24 @@ def _orientation_kernel(measured, expected, out):
             out[v, u] = (det_m < 0) or (tr_m < 0)
 
 
-def _noise_model(stats_list, mask, given2: np.ndarray):
-    """Fit σ_I² = a + b·A to the residual variances (see the module docstring)."""
+def _noise_idx(mask) -> np.ndarray:
+    """The pixels (flat indices into (H, W)) the noise model samples: all of ``mask``, or a
+    seeded subsample of at most ``_MAX_NOISE_SAMPLES`` (the medians/means need no more)."""
+    idx = np.flatnonzero(mask)
+    if idx.size > _MAX_NOISE_SAMPLES:
+        idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
+    return idx
+
+
+def _noise_model(sampled):
+    """Fit σ_I² = a + b·A to the residual variances (see the module docstring): ``sampled`` per
+    stack with more than 3 images (A, RSS, ν) at the pixels of :func:`_noise_idx`."""
     from scipy import stats as sst
     from scipy.optimize import nnls
 
-    usable = [(st["A"], st["rss"], st["n"] - 3) for st in stats_list if st["n"] > 3]
-    if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
-        return None
     lines = []
-    idx = np.flatnonzero(mask)
-    if idx.size > _MAX_NOISE_SAMPLES:  # a seeded subsample: the medians/means need no more
-        idx = np.sort(np.random.default_rng(0).choice(idx, _MAX_NOISE_SAMPLES, replace=False))
-    for a_map, rss_map, nu in usable:
-        av = a_map.ravel()[idx]
-        vv = rss_map.ravel()[idx] / nu  # RSS/ν at the sampled pixels only (no full-size quotient)
+    for av, rv, nu in sampled:
+        vv = rv / nu  # RSS/ν at the sampled pixels only (no full-size quotient)
         # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
         # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
         # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
@@ -450,6 +453,43 @@ def _noise_model(stats_list, mask, given2: np.ndarray):
     if not lines:
         return None
     return np.asarray(lines)  # (S, 2): one (a, b) per stack
+
+
+def _item_stats(it):
+    """A, B, φ, RSS and the worst image of one stack of :func:`check_consistency` (see there)."""
+    st_a, st_b, st_phi, st_rss, st_worst = _stack_stats(it["stack"])
+    if it["n"] == 4:  # r ∝ (1, −1, 1, −1): every frame has the same |residual|
+        st_worst = np.full(st_worst.shape, it["n"], np.int16)
+    return st_a, st_b, st_phi, st_rss, st_worst
+
+
+def _noise_pass(items, tested):
+    """The noise model's pixels (``tested`` where every stack's RSS is finite) and lines
+    (:func:`_noise_model`, None if there are too few pixels or no stack of more than 3 images).
+    One stack's maps alive at a time for integer images (their RSS is finite: the pixels are
+    known before); for float images A and RSS of every stack until the pixels are known."""
+    usable = [it for it in items if it["n"] > 3]
+    integer = all(np.asarray(it["stack"]).dtype.kind in "ui" for it in items)
+    kept = []
+    if integer:
+        mask = tested
+    else:
+        mask = tested.copy()
+        for it in items:
+            st = _item_stats(it)
+            mask &= np.isfinite(st[3])
+            if it["n"] > 3:
+                kept.append((st[0], st[3], it["n"] - 3))
+    if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
+        return mask, None
+    idx = _noise_idx(mask)
+    if integer:
+        for it in usable:
+            st = _item_stats(it)
+            kept.append((st[0].ravel()[idx], st[3].ravel()[idx], it["n"] - 3))
+    else:
+        kept = [(a.ravel()[idx], r.ravel()[idx], nu) for a, r, nu in kept]
+    return mask, _noise_model(kept)
 
 
 def check_consistency(
@@ -522,7 +562,10 @@ def check_consistency(
         raise PhaseDecodingError(f"noise_std must be > 0 grey levels, got {noise_std!r}")
     given2 = np.broadcast_to(np.asarray(noise_std, dtype=np.float64) ** 2, (h, w))
 
-    # Per stack statistics, directions in order, stacks sorted coarse → fine within a direction.
+    # The stacks, directions in order, sorted coarse → fine within a direction. A stack's (H, W)
+    # maps (A, B, φ, RSS, worst image: 78 MB at 1920×1200) are computed where they are used, not
+    # kept for all stacks at once (issue 25: memory): once for the noise model's samples, once in
+    # the checks below.
     labels: list[ImageLabel] = []
     per_dir = []
     for direction, stacks, periods in (("x", x_stacks, x_periods_mm), ("y", y_stacks, y_periods_mm)):
@@ -532,15 +575,12 @@ def check_consistency(
             raise PhaseDecodingError(f"direction {direction!r}: {len(stacks)} stacks but {periods.size} periods")
         items = []
         for stack, p in zip(stacks, periods):
-            st_a, st_b, st_phi, st_rss, st_worst = _stack_stats(stack)
-            if st_a.shape != (h, w):
-                raise PhaseDecodingError(f"direction {direction!r}, period {p:g} mm: image size {st_a.shape} "
+            shape = np.shape(stack)
+            if len(shape) != 3 or shape[1:] != (h, w):
+                raise PhaseDecodingError(f"direction {direction!r}, period {p:g} mm: image size {shape[1:]} "
                                          f"differs from the decoded map's {(h, w)}")
-            n = np.asarray(stack).shape[0]
-            if n == 4:  # r ∝ (1, −1, 1, −1): every frame has the same |residual|
-                st_worst = np.full(st_worst.shape, n, np.int16)
-            items.append(dict(p=float(p), n=n, A=st_a, B=st_b, phi=st_phi, rss=st_rss, worst=st_worst,
-                              first=len(labels)))
+            n = shape[0]
+            items.append(dict(p=float(p), n=n, stack=stack, first=len(labels)))
             labels.extend(ImageLabel(direction, float(p), k) for k in range(n))
             if n == 4:
                 labels.append(ImageLabel(direction, float(p), None))
@@ -548,8 +588,7 @@ def check_consistency(
         per_dir.append((direction, items))
 
     all_items = [it for _, items in per_dir for it in items]
-    mask = tested & np.all([np.isfinite(it["rss"]) for it in all_items], axis=0)
-    lines = _noise_model(all_items, mask, given2)
+    mask, lines = _noise_pass(all_items, tested)
 
     def sigma2(a_map):
         """σ_I² at offset A — the lowest of the stacks' lines (robust to bad stacks), at least
@@ -586,16 +625,20 @@ def check_consistency(
             dir_bad = np.zeros((h, w), bool)
             bad = np.empty((h, w), bool)
             rev = np.ascontiguousarray(decoded.reversed[..., axis])
+            ratio_prev = None
             for level, it in enumerate(items):
-                s2, top = sigma2(it["A"])
+                st_a, st_b, st_phi, st_rss, st_worst = _item_stats(it)
+                if axis == 0 and level == 0 and lines is not None and mask.any():  # all_items[0]
+                    a_typical = np.nanmedian(st_a[mask])
+                s2, top = sigma2(st_a)
                 noise_max = max(noise_max, float(np.sqrt(top)))
                 if it["n"] > 3:
                     thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3))
-                    n_bad = _fit_level_kernel(it["rss"], s2, thr, it["worst"], it["first"], tested, fit_ratio,
+                    n_bad = _fit_level_kernel(st_rss, s2, thr, st_worst, it["first"], tested, fit_ratio,
                                               worst_image, bad)
                     if n_tested and n_bad > limit:
                         # A frame of this stack is bad as a whole: its other pixels agree by chance.
-                        k = int(np.bincount(it["worst"][bad], minlength=it["n"] + 1).argmax())
+                        k = int(np.bincount(st_worst[bad], minlength=it["n"] + 1).argmax())
                         defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
                                        f"sinusoid in {n_bad / n_tested:.0%} of the pixels")
                         escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
@@ -603,13 +646,14 @@ def check_consistency(
                     else:
                         fit_bad |= bad
                 sig = np.empty((h, w))
-                _sigma_kernel(s2, it["B"], it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]), sig)
+                _sigma_kernel(s2, st_b, it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]), sig)
+                ratio = st_b / st_a
                 if level == 0:
                     c = np.empty((h, w))
-                    _coarse_kernel(it["phi"], p0, float(origin[axis]), float(origin[axis] + ext + margin), c)
+                    _coarse_kernel(st_phi, p0, float(origin[axis]), float(origin[axis] + ext + margin), c)
                 else:
-                    n_bad = _period_level_kernel(c, it["phi"], it["p"], sig_prev, sig, z, tested, mis_ratio, bad,
-                                                 rev, it["B"] / it["A"], items[level - 1]["B"] / items[level - 1]["A"])
+                    n_bad = _period_level_kernel(c, st_phi, it["p"], sig_prev, sig, z, tested, mis_ratio, bad,
+                                                 rev, ratio, ratio_prev)
                     if n_tested and n_bad > limit:
                         # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
                         # where it agrees, it does so by chance.
@@ -622,6 +666,8 @@ def check_consistency(
                         period_counts[(direction, it["p"])] = int(new)
                     dir_bad |= bad
                 sig_prev = sig
+                ratio_prev = ratio
+                del st_a, st_b, st_phi, st_rss, st_worst, s2
             final[..., axis] = c
             flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
             tol = OUTSIDE_SCREEN_FRACTION * ext
@@ -648,7 +694,7 @@ def check_consistency(
         flags=flags, fit_residual_ratio=fit_ratio, period_mismatch_ratio=mis_ratio, worst_image=worst_image,
         images=tuple(labels), image_counts=image_counts, period_counts=period_counts,
         geometry_counts=geometry_counts, defects=tuple(defects), tested=tested,
-        noise_model=(math.nan, math.nan) if lines is None else tuple(float(v) for v in lines[np.argmin(lines[:, 0] + lines[:, 1] * np.nanmedian(all_items[0]["A"][mask]) if mask.any() else lines[:, 0])]),
+        noise_model=(math.nan, math.nan) if lines is None else tuple(float(v) for v in lines[np.argmin(lines[:, 0] + lines[:, 1] * a_typical if mask.any() else lines[:, 0])]),
         noise_std_max=noise_max,
         false_alarm=float(false_alarm), noise_lines=lines, given_noise_std=noise_std,
     )

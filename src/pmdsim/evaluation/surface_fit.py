@@ -211,9 +211,9 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> P
     slope_std : ndarray (M, 2)
         σ of (g_x, g_y) at those points (rad).
     """
-    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)  # any layout (the summary's (2, M) rows transposed: no copy)
     sig = np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2)
-    res = np.ascontiguousarray(fit.residual_slopes, dtype=float).reshape(-1, 2)
+    res = np.asarray(fit.residual_slopes, dtype=float).reshape(-1, 2)  # any layout (the fit's rows: no copy)
     xc, yc = _centre(xy, res, sig)
     N, B = _sandwich_sums(xy, res, sig, xc, yc, float(fit.scale))
     Ni = np.linalg.inv(N)
@@ -490,18 +490,21 @@ def _solve_normal(s) -> np.ndarray:
 @numba.njit(cache=True, fastmath=False)
 def _residual_kernel(x, y, gx, gy, a2, b, c2, d, e, rx, ry):
     for i in range(0, x.size):
-        rx[i] = gx[i] - (a2 * x[i] + b * y[i] + d)
-        ry[i] = gy[i] - (b * x[i] + c2 * y[i] + e)
+        xi = x[i]  # read before writing: rx, ry may be x, y (in place)
+        yi = y[i]
+        rx[i] = gx[i] - (a2 * xi + b * yi + d)
+        ry[i] = gy[i] - (b * xi + c2 * yi + e)
 
 
-def _residuals(x, y, gx, gy, a, b, c, d, e):
+def _residuals(x, y, gx, gy, a, b, c, d, e, *, in_place: bool = False):
     """(g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e)) per point: numpy's expression of the
-    same operations in the same order (bit-identical; no FMA without fastmath), in one pass."""
+    same operations in the same order (bit-identical; no FMA without fastmath), in one pass.
+    ``in_place``: written over x and y (no two more M-arrays alive; issue 25, memory)."""
     from ..geometry.kernel_args import readonly
 
-    rx, ry = np.empty(x.size), np.empty(x.size)
-    _residual_kernel(readonly(x), readonly(y), readonly(gx), readonly(gy), float(2.0 * a), float(b), float(2.0 * c),
-                     float(d), float(e), rx, ry)
+    rx, ry = (x, y) if in_place else (np.empty(x.size), np.empty(x.size))
+    _residual_kernel(x, y, readonly(gx), readonly(gy), float(2.0 * a), float(b), float(2.0 * c), float(d), float(e),
+                     rx, ry)
     return rx, ry
 
 
@@ -539,7 +542,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # contiguous copy per column.
     if n == ok.size:
         xc, yc = float(p[..., 0].mean()), float(p[..., 1].mean())
-        x, y = (p[..., 0] - xc).reshape(-1), (p[..., 1] - yc).reshape(-1)
+        xyc = np.empty((2,) + p.shape[:-1])  # the centred x, y as rows: later the residuals, in place
+        np.subtract(p[..., 0], xc, out=xyc[0])
+        np.subtract(p[..., 1], yc, out=xyc[1])
+        x, y = xyc[0].reshape(-1), xyc[1].reshape(-1)
         gx, gy = np.ascontiguousarray(g[..., 0]).reshape(-1), np.ascontiguousarray(g[..., 1]).reshape(-1)
     else:
         x, y, gx, gy = p[..., 0][ok], p[..., 1][ok], g[..., 0][ok], g[..., 1][ok]
@@ -576,10 +582,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
     e0 = e - b * xc - 2 * c * yc
-    rx, ry = _residuals(x, y, gx, gy, a, b, c, d, e)  # g − A·c, no full-size temporaries
+    rx, ry = _residuals(x, y, gx, gy, a, b, c, d, e, in_place=True)  # g − A·c over the centred copies
     del x, y
     if n == ok.size:
-        res = np.stack([rx, ry], axis=-1).reshape(g.shape)
+        res = xyc.reshape(2, -1).T.reshape(g.shape)  # a view of the (2, M) rows rx, ry: no third copy
     else:
         res = np.full(g.shape, np.nan)
         res[ok, 0] = rx

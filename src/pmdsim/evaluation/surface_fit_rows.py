@@ -107,5 +107,5 @@ def scatter_residuals(residuals, ok, start: int) -> tuple[np.ndarray, int]:
     order), NaN elsewhere, and the next row index."""
     ok = readonly(np.ascontiguousarray(ok, dtype=np.bool_))
     out = np.empty(ok.shape + (2,))
-    j = _scatter_kernel(readonly(np.ascontiguousarray(residuals, dtype=np.float64)), ok, int(start), out)
+    j = _scatter_kernel(readonly(np.asarray(residuals, dtype=np.float64)), ok, int(start), out)  # any layout
     return out, int(j)

@@ -411,11 +411,16 @@ class _LinearisedIntegration:
         return np.where(self.S, x[1:-1, 1:-1], np.nan)
 
 
-def _sampled_std(lin, A, samples: int, rng_seed: int) -> np.ndarray:
+def _sampled_std(lin, A, samples: int, rng_seed: int, *, overwrite: bool = False) -> np.ndarray:
     """σ (H, W) of the heights, mm, from A = J·diag(σ_xy) (H, W, 2, 2) with ``samples``
-    counter-based Rademacher right-hand sides (reproducible for a seed)."""
+    counter-based Rademacher right-hand sides (reproducible for a seed). ``overwrite``: A (a
+    C-contiguous float64 array the caller no longer needs) is zeroed off S in place instead of
+    being copied (the same values: 147 MB less at a 1920×1200 camera's σ)."""
     S = lin.S
-    A = np.ascontiguousarray(np.where(S[..., None, None], A, 0.0))
+    if overwrite and A.dtype == np.float64 and A.flags.c_contiguous and A.flags.writeable:
+        np.copyto(A, 0.0, where=~S[..., None, None])
+    else:
+        A = np.ascontiguousarray(np.where(S[..., None, None], A, 0.0))
     seed = int(rng_seed) % (1 << 63)
     K = int(samples)
     acc = np.zeros(S.shape)
@@ -445,7 +450,7 @@ def height_std_sampled(o, d, q, rec, J, std_xy_mm, *, samples: int = DEFAULT_SAM
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
     lin = _LinearisedIntegration(o, d, q, rec)
     sig = np.nan_to_num(np.asarray(std_xy_mm, dtype=float))
-    return _sampled_std(lin, np.nan_to_num(J) * sig[..., None, :], samples, rng_seed)
+    return _sampled_std(lin, np.nan_to_num(J) * sig[..., None, :], samples, rng_seed, overwrite=True)
 
 
 def anchor_height_derivative(reg, anchor, method, *, T_world_ref, step_mm: float = 1e-3) -> np.ndarray:
@@ -469,6 +474,14 @@ def anchor_height_derivative(reg, anchor, method, *, T_world_ref, step_mm: float
 def combine(*parts) -> np.ndarray:
     """Root-sum-square of standard uncertainties (uncorrelated contributions)."""
     return np.sqrt(sum(np.asarray(p, dtype=float) ** 2 for p in parts))
+
+
+def _combined(noise, cal) -> np.ndarray:
+    """:func:`combine` of the noise and calibration parts; ``noise`` itself (one array, not two
+    equal ones: 55 MB less per 1920×1200 camera) where the sum equals it bit for bit, as it does
+    for a zero calibration part (sqrt(x²) = |x| in IEEE arithmetic)."""
+    total = combine(noise, cal)
+    return noise if np.array_equal(total, noise, equal_nan=True) else total
 
 
 def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, screen_model=None, anchor=None,
@@ -511,13 +524,17 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
     if bad:
         raise UncertaintyError(f"camera {camera!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
                                f"pixel(s); no σ of the surface")
-    std = np.nan_to_num(std)  # outside the reconstructed pixels: unused
+    if int(samples) < 2:
+        raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
+    # Memory (issue 25): the linearisation first (its temporaries are gone before A exists), A
+    # zeroed off S in place (no copy).
+    lin = _LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
+    # the kernel reads σ only on S, where it is finite (checked above): no NaN-free copy
     A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
     if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
         notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
-    if int(samples) < 2:
-        raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
-    h_noise = _sampled_std(_LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec), A, samples, rng_seed)
+    h_noise = _sampled_std(lin, A, samples, rng_seed, overwrite=True)
+    del lin, A
     if anchor_std_mm and anchor is not None:
         dz_da = anchor_height_derivative(reg, anchor, method, T_world_ref=setup.sample.T_world_sample)
         h_noise = combine(h_noise, dz_da * float(anchor_std_mm))
@@ -538,7 +555,7 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
         notes.append(NO_COVARIANCE_NOTE)
     h_noise_um = h_noise * 1e3
     g_noise_urad = g_noise * 1e6
-    return SurfaceUncertainty(slope_std_urad=combine(g_noise_urad, g_cal), height_std_um=combine(h_noise_um, h_cal),
+    return SurfaceUncertainty(slope_std_urad=_combined(g_noise_urad, g_cal), height_std_um=_combined(h_noise_um, h_cal),
                               slope_std_noise_urad=g_noise_urad, height_std_noise_um=h_noise_um,
                               slope_std_calibration_urad=g_cal, height_std_calibration_um=h_cal,
                               samples=int(samples), notes=tuple(notes))

@@ -482,7 +482,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                     raise
                 raise type(exc)(f"{exc}; likely cause: {' / '.join(coverage or warnings)}") from None
             rec = ar.reconstruction
-            results[cam] = (decoded, reg, rec)
+            decoded = kept_for_files(decoded, reg, rec)[0]  # σ reads the coordinates and their σ: release the rest
             anchors[cam] = ar.anchor
             if uncertainty:
                 uncs[cam], w = uj.camera_uncertainty(setup, cam, decoded, reg, rec, method=method,
