@@ -76,15 +76,27 @@ class _Command(click.Command):
     ``--quiet`` too (that flag hides progress bars, not notes): a silent minute is what it explains."""
 
     def invoke(self, ctx):
-        packages, took = _KERNELS.get(self.name, ((), None))
-        if packages:
-            from . import _cold_kernel_packages
-
-            cold = _cold_kernel_packages(packages)
-            if cold:
-                click.echo(f"pmdsim: note: numba kernels not compiled yet ({', '.join(cold)}): this run compiles "
-                           f"them first ({took or 'minutes'} on 2 cores), later runs use the cache", err=True)
+        if self.name not in _NOTE_AFTER_CHECKS:
+            _cold_note(self.name)
         return super().invoke(ctx)
+
+
+#: Commands that print the first-run note themselves, once their input is checked and before
+#: the work that compiles: a bad study file or an unreachable scheduler is refused in its one
+#: line without a note about compiling that will not happen (the kernels compile in the workers).
+_NOTE_AFTER_CHECKS = {"study"}
+
+
+def _cold_note(command: str) -> None:
+    """The first-run note of ``command`` on stderr when its kernels' cache is cold (:class:`_Command`)."""
+    packages, took = _KERNELS.get(command, ((), None))
+    if packages:
+        from . import _cold_kernel_packages
+
+        cold = _cold_kernel_packages(packages)
+        if cold:
+            click.echo(f"pmdsim: note: numba kernels not compiled yet ({', '.join(cold)}): this run compiles "
+                       f"them first ({took or 'minutes'} on 2 cores), later runs use the cache", err=True)
 
 
 class _Group(click.Group):
@@ -598,6 +610,7 @@ def study_cmd(study_file, out_dir, scheduler, workers, connect_timeout_s, quiet)
     # The scheduler, its workers and their pmdsim are checked before OUT is touched (issue 23).
     with open_cluster(scheduler, workers, timeout_s=connect_timeout_s) as cluster, _StudyProgress(study.n_cases, quiet) as progress:
         click.echo(f"  on {cluster.describe()}", err=True)
+        _cold_note("study")  # after the study file and the cluster are checked (_NOTE_AFTER_CHECKS)
         with reused_output_dir(out_dir, inputs=[study_file], command=_command()):  # marked, locked
             try:
                 run = run_study(study, out_dir, client=cluster.client, progress=progress,
