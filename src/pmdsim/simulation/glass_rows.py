@@ -329,12 +329,17 @@ def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
     warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
     accepted or the ray does not enter the plate)."""
     B = _BLK
-    ax = S[_AX * B + i]
-    ay = S[_AY * B + i]
-    bx = S[_BX * B + i]
-    by = S[_BY * B + i]
-    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, S[_WX * B + i],
+    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, S[_AX * B + i], S[_AY * B + i],
+                                                          S[_BX * B + i], S[_BY * B + i], S[_WX * B + i],
                                                           S[_WY * B + i], S[_WZ * B + i], t, n_idx)
+    _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, mx, my, ok & enters & np.isfinite(a_z + rz), S)
+
+
+@numba.njit(**_JIT, inline="always")
+def _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, mx, my, ok, S):
+    """The stores of :func:`_foot_store` for pixel i: the refracted ray from A (direction r), its
+    parametrisation by height, the warm-start values, and the code (``ok``: 0, else _FALLBACK)."""
+    B = _BLK
     inv = 1.0 / rz
     cx = rx * inv
     cy = ry * inv
@@ -353,7 +358,7 @@ def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
     S[_GMX * B + i] = mx
     S[_GMY * B + i] = my
     c = S[_C * B + i]
-    S[_C * B + i] = c if c != 0.0 else (0.0 if ok & enters & np.isfinite(a_z + rz) else _FALLBACK)
+    S[_C * B + i] = c if c != 0.0 else (0.0 if ok else _FALLBACK)
 
 
 @numba.njit(**_JIT, inline="always")
@@ -381,26 +386,8 @@ def _plane_store(i, t, n_idx, S):
     rx = eta * wx
     ry = eta * wy
     rz = eta * wz - f
-    inv = 1.0 / rz
-    cx = rx * inv
-    cy = ry * inv
-    S[_QOX * B + i] = a_x
-    S[_QOY * B + i] = a_y
-    S[_QOZ * B + i] = a_z
-    S[_WX * B + i] = rx
-    S[_WY * B + i] = ry
-    S[_WZ * B + i] = rz
-    S[_AX * B + i] = a_x - a_z * cx
-    S[_AY * B + i] = a_y - a_z * cy
-    S[_BX * B + i] = cx
-    S[_BY * B + i] = cy
-    S[_INV * B + i] = inv
-    S[_GAZ * B + i] = a_z
-    S[_GMX * B + i] = 0.0
-    S[_GMY * B + i] = 0.0
-    c = S[_C * B + i]
     ok = (wm < 0.0) & np.isfinite(a_z + rz + ax + ay + bx + by + wx + wy)
-    S[_C * B + i] = c if c != 0.0 else (0.0 if ok else _FALLBACK)
+    _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, 0.0, 0.0, ok, S)
 
 
 @numba.njit(**_JIT)
