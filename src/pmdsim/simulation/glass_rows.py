@@ -329,12 +329,17 @@ def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
     warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
     accepted or the ray does not enter the plate)."""
     B = _BLK
-    ax = S[_AX * B + i]
-    ay = S[_AY * B + i]
-    bx = S[_BX * B + i]
-    by = S[_BY * B + i]
-    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, ax, ay, bx, by, S[_WX * B + i],
+    a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, S[_AX * B + i], S[_AY * B + i],
+                                                          S[_BX * B + i], S[_BY * B + i], S[_WX * B + i],
                                                           S[_WY * B + i], S[_WZ * B + i], t, n_idx)
+    _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, mx, my, ok & enters & np.isfinite(a_z + rz), S)
+
+
+@numba.njit(**_JIT, inline="always")
+def _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, mx, my, ok, S):
+    """The stores of :func:`_foot_store` for pixel i: the refracted ray from A (direction r), its
+    parametrisation by height, the warm-start values, and the code (``ok``: 0, else _FALLBACK)."""
+    B = _BLK
     inv = 1.0 / rz
     cx = rx * inv
     cy = ry * inv
@@ -353,7 +358,36 @@ def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
     S[_GMX * B + i] = mx
     S[_GMY * B + i] = my
     c = S[_C * B + i]
-    S[_C * B + i] = c if c != 0.0 else (0.0 if ok & enters & np.isfinite(a_z + rz) else _FALLBACK)
+    S[_C * B + i] = c if c != 0.0 else (0.0 if ok else _FALLBACK)
+
+
+@numba.njit(**_JIT, inline="always")
+def _plane_store(i, t, n_idx, S):
+    """:func:`_foot_store` after the foot step on a planar emitting surface (z = 0: the plate
+    normal m = (0, 0, −1), the outer surface z = −t) for pixel i, with the products by m's zero
+    components left out (``fastmath={"contract"}`` does not fold x·0, which may be NaN): the
+    same values for finite rays (the foot point does not enter them on a plane; the step was
+    accepted, the surface's derivative bounds being 0, where the ray is finite)."""
+    B = _BLK
+    ax = S[_AX * B + i]
+    ay = S[_AY * B + i]
+    bx = S[_BX * B + i]
+    by = S[_BY * B + i]
+    wx = S[_WX * B + i]
+    wy = S[_WY * B + i]
+    wz = S[_WZ * B + i]
+    a_z = -t
+    a_x = ax + bx * a_z
+    a_y = ay + by * a_z
+    wm = -wz
+    ww = wx * wx + wy * wy + wz * wz
+    eta = 1.0 / n_idx
+    f = -eta * wm - math.sqrt(ww - eta * eta * (ww - wm * wm))
+    rx = eta * wx
+    ry = eta * wy
+    rz = eta * wz - f
+    ok = (wm < 0.0) & np.isfinite(a_z + rz + ax + ay + bx + by + wx + wy)
+    _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, 0.0, 0.0, ok, S)
 
 
 @numba.njit(**_JIT)
@@ -443,10 +477,7 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     d3 = dmax[1]
     if plane:
         for i in range(n):
-            ux, uy, h, hx, hy, g, ok = foot_newton(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, S[_UX * B + i], S[_UY * B + i],
-                                                   S[_AX * B + i], S[_AY * B + i], S[_BX * B + i], S[_BY * B + i], t,
-                                                   d2, d3, tol)
-            _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
+            _plane_store(i, t, n_idx, S)
     elif kind == _KIND_SPLINE:
         _patches_at(n, gx, gy, S, P)
         nx1 = gx.shape[0] - 1
