@@ -369,6 +369,7 @@ def main() -> None:
     for name, fn, counts in kernels(inp):
         timing = {th: _timed(fn, a.repeat, th) for th in (1, 2)}
         best = min(timing[1]["wall_s"], timing[2]["wall_s"])
+        counts = {k: float(v) for k, v in counts.items()}  # plain floats for --json
         f_bytes = counts["bytes"] / rates["bandwidth"]
         f_flops = counts["flops"] / rates["peak_flops"]
         f_divs = counts["divs"] / rates["div_rate"]
@@ -383,7 +384,7 @@ def main() -> None:
         rows.append({"kernel": name, **counts, "floor_bytes_s": f_bytes, "floor_flops_s": f_flops,
                      "floor_divs_s": f_divs, "floor_s": floor, "floor_wall_s": floor_wall, "t1": timing[1],
                      "t2": timing[2], "best_wall_s": best, "ratio": timing[1]["cpu_s"] / floor,
-                     "ratio_wall": ratio_wall, "met": ratio_wall <= 3.0})
+                     "ratio_wall": ratio_wall, "met": bool(ratio_wall <= 3.0)})
         print(f"  timed {name}: {best * 1e3:.1f} ms wall, {timing[1]['cpu_s'] * 1e3:.1f} ms CPU "
               f"(load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
