@@ -58,6 +58,16 @@ def _cell_grams(stack):
     return G, bad
 
 
+@numba.njit(cache=True)
+def _cell(p, o, s, n):
+    """The cell (first node index) of pixel ``p`` along an axis of ``n`` subgrid nodes starting at
+    pixel ``o`` with stride ``s``, clamped to the outer cells, and p's fraction in it (< 0 or > 1
+    beyond the outer nodes: linear extrapolation; 0 for a single node)."""
+    f = (p - o) / s
+    i = min(max(int(math.floor(f)), 0), max(n - 2, 0))
+    return i, (f - i if n > 1 else 0.0)
+
+
 @numba.njit(cache=True, parallel=True)
 def _gram_squares(G, bad, ov, ou, s, h, w, H, W):
     """wᵀ G w at every pixel (H, W, c) of the cells' Gram matrices G (hc, wc, c, 10); pixels of
@@ -65,13 +75,9 @@ def _gram_squares(G, bad, ov, ou, s, h, w, H, W):
     c = G.shape[2]
     out = np.empty((H, W, c))
     for v in numba.prange(0, H):
-        fv = (v - ov) / s
-        i0 = min(max(int(math.floor(fv)), 0), max(h - 2, 0))
-        ay = fv - i0 if h > 1 else 0.0
+        i0, ay = _cell(v, ov, s, h)
         for u in range(W):
-            fu = (u - ou) / s
-            j0 = min(max(int(math.floor(fu)), 0), max(w - 2, 0))
-            ax = fu - j0 if w > 1 else 0.0
+            j0, ax = _cell(u, ou, s, w)
             if bad[i0, j0]:
                 for m in range(c):
                     out[v, u, m] = np.nan
