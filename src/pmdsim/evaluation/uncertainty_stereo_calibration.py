@@ -29,7 +29,8 @@ shorter side; every camera as the camera of focal length f/s),
 each anchor moved to its nearest subgrid pixel with its anchor weight (w² times the anchors
 there, so that the anchors keep their total weight; the slope equations' stiffness of a smooth
 field does not depend on the grid spacing), and each axis's changes are interpolated bilinearly
-to every pixel before squaring (:mod:`pmdsim.evaluation.uncertainty_calibration`'s kernel).
+to every pixel before squaring (Σ_k through each cell's Gram matrix over the axes,
+:mod:`pmdsim.evaluation.uncertainty_gram`: equal to the per-axis sum up to rounding).
 The subgrid underestimates σ, more than mono's, the more the coarser it is (measured: about 2 %
 with a 120 × 75 px subgrid, 5 % with 60 × 38, 15 % with 30 × 19; its cause is not identified),
 hence the default's minimum subgrid of 150 px. The heights are absolute, as the stereo heights: nothing
@@ -56,6 +57,7 @@ from .surface_fit import sample_slopes
 from .uncertainty_calibration import (DEFAULT_STEP, CalibrationContribution, CalibrationUncertaintyError,
                                       _interpolated_squares, _strided, calibration_parameters,
                                       principal_axes)
+from .uncertainty_gram import interpolated_squares
 
 __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calibration_contribution",
            "stereo_calibration_parameters", "default_stereo_stride", "MIN_SUBGRID_PX"]
@@ -372,7 +374,8 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
         S = np.asarray(stereo.cameras[c].reconstructed)
         H, W = S.shape
         if axes:
-            var = _interpolated_squares(np.stack(fields[c]), o, o, s, H, W)
+            interp = _interpolated_squares if s == 1 else interpolated_squares  # the latter: per-cell Gram matrices
+            var = interp(np.stack(fields[c]), o, o, s, H, W)
         else:
             var = np.zeros((H, W, 3))
         var[~S] = np.nan
