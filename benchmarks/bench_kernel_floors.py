@@ -356,6 +356,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--cache", default="", help="calibration observations (.npz), created if missing")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--only", default="", metavar="WORDS",
+                    help="time only the kernels whose name contains one of these comma-separated words "
+                         "(case-insensitive), e.g. --only decoder or --only 'brown,jᵀj'")
     a = ap.parse_args()
     if a.repeat < 5:
         sys.exit("--repeat must be ≥ 5 (best of at least 5)")
@@ -366,7 +369,10 @@ def main() -> None:
     inp = build_inputs(a.cache)
     t_build = time.perf_counter() - t0
     rows = []
+    words = [w.strip().lower() for w in a.only.split(",") if w.strip()]
     for name, fn, counts in kernels(inp):
+        if words and not any(w in name.lower() for w in words):
+            continue
         timing = {th: _timed(fn, a.repeat, th) for th in (1, 2)}
         best = min(timing[1]["wall_s"], timing[2]["wall_s"])
         counts = {k: float(v) for k, v in counts.items()}  # plain floats for --json
