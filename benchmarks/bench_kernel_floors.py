@@ -13,8 +13,8 @@ one core's vector units, so the floor is one core's):
    5-coefficient 1920×1200 camera (``bench_camera.py``'s ``brown_5``, distortion inverted by
    Newton's method to 1e-12);
 2. the tracer — ``trace_camera`` of the Table 1 camera, glass-free (``bench_trace.py``);
-3. the decoder — ``decode_images`` of the 24 images (stacking, the fused kernel per period,
-   the combine step), and ``decode_screen_coordinates`` on stacks built beforehand;
+3. the decoder — ``decode_images`` of the 24 images (the per-image lists, both directions in one
+   pass over image rows), and ``decode_screen_coordinates`` on stacks built beforehand;
 4. integration — ``reconstruct_least_squares`` of the registered frame (DCT-preconditioned CG
    on a full frame, coarse-to-fine start), as ``bench_poisson.py`` [1];
 5. the calibration's JᵀJ — ``solver._evaluate(..., want_normal=True)``: model rows, analytic
@@ -159,7 +159,7 @@ def tracer_counts(n_rays: int, n_hit: int) -> dict:
 
 def decoder_counts(n_pixels: int, n_images: int, image_itemsize: int, n_levels: int) -> dict:
     """Bytes, flops, divisions + square roots of decoding ``n_images`` images in ``n_levels``
-    periods (both directions; ``decoding._decode_kernel`` and ``_combine_kernel``).
+    periods (both directions; ``decoding_fused._fused_kernel``).
 
     Bytes: the images read once (n_images × itemsize per pixel) and the outputs written once:
     screen_xy, std_xy, modulation, offset (H, W, 2) float64 (64 B), flags uint8 and valid

@@ -80,7 +80,7 @@ def test_each_kernel_compiles_once_on_the_main_paths(tmp_path, small_setup_file)
     kernels = {k: v for k, v in sigs.items() if not k.endswith(" (unliteral)")}
     # The main paths reach the tracer, the decoder, both integrations and the calibration.
     for name in ("pmdsim.simulation.trace._trace_kernel", "pmdsim.geometry.camera._rays_kernel",
-                 "pmdsim.simulation.patterns._render_stack_kernel", "pmdsim.evaluation.decoding._decode_kernel",
+                 "pmdsim.simulation.patterns._render_stack_kernel", "pmdsim.evaluation.decoding_fused._fused_kernel",
                  "pmdsim.evaluation.stepwise._stepwise_kernel", "pmdsim.evaluation.least_squares._apply_update",
                  "pmdsim.evaluation.surface_fit._weighted_sums", "pmdsim.calibration.kernel._chunks_kernel"):
         assert name in kernels, sorted(kernels)
@@ -163,7 +163,7 @@ def test_writable_and_read_only_inputs_reach_one_compiled_kernel(monkeypatch, sm
     import numpy as np
 
     import pmdsim
-    from pmdsim.evaluation import consistency, decoding
+    from pmdsim.evaluation import consistency, decoding, decoding_fused
     from pmdsim.evaluation.phase import wrapped_phase
     from pmdsim.geometry.shapes import QuadricSurface
     from pmdsim.geometry.surface import PlaneSurface, SplineSurface
@@ -200,6 +200,11 @@ def test_writable_and_read_only_inputs_reach_one_compiled_kernel(monkeypatch, sm
         consistency._stack_stats(images)
     for seen in (decoded, stacked):
         assert len(seen) == 2 and seen[0] == seen[1] and not seen[0][0].mutable, seen
+    # decode_screen_coordinates (the fused kernel): per-image lists and stacks, writable or not
+    fused = _argument_types(monkeypatch, decoding_fused, "_fused_kernel")
+    for images in (img, _readonly_copy(img), list(img), [_readonly_copy(im) for im in img]):
+        decoding.decode_screen_coordinates([images], [10.0], [images], [10.0], (10.0, 10.0), 255)
+    assert len(fused) == 4 and len(set(fused)) == 1 and not fused[0][0].dtype.mutable, fused
 
 
 def _readonly_copy(a):

@@ -200,23 +200,41 @@ _MODE_REFINE = 2  # ``out`` holds the coordinate of the previous level and is re
 def _accumulate_row(images, v, w_a, w_c, w_s, sa, sc, ss, mx):
     """Row v: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I (image by image along the
     row: contiguous and vectorisable). The only part that depends on the image dtype."""
-    w = images.shape[2]
-    for u in range(w):
+    _clear_row_sums(sa, sc, ss, mx)
+    for k in range(images.shape[0]):
+        _add_image_row(images[k, v], w_a[k], w_c[k], w_s[k], sa, sc, ss, mx)
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _clear_row_sums(sa, sc, ss, mx):
+    """The row sums before the first image: 0, 0, 0 and −∞ (the maximum), each (W,)."""
+    for u in range(sa.shape[0]):
         sa[u] = 0.0
         sc[u] = 0.0
         ss[u] = 0.0
         mx[u] = -np.inf
-    for k in range(images.shape[0]):
-        ca = w_a[k]
-        cc = w_c[k]
-        cs = w_s[k]
-        row = images[k, v]
-        for u in range(w):
-            x = np.float64(row[u])
-            sa[u] += ca * x
-            sc[u] += cc * x
-            ss[u] += cs * x
-            mx[u] = max(mx[u], x)
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _add_image_row(row, ca, cc, cs, sa, sc, ss, mx):
+    """One image's row (W,) into the row sums: sa += ca·I, sc += cc·I, ss += cs·I, mx = max."""
+    for u in range(sa.shape[0]):
+        x = np.float64(row[u])
+        sa[u] += ca * x
+        sc[u] += cc * x
+        ss[u] += cs * x
+        mx[u] = max(mx[u], x)
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _modulation_phase_row(sc, ss):
+    """Modulation B = √(c² + s²) and phase φ ∈ [0, 2π) in place of the row's B cos φ (``sc``)
+    and B sin φ (``ss``), each (W,): a branch-free, vectorised loop."""
+    for u in range(sc.shape[0]):
+        bc = sc[u]
+        bs = ss[u]
+        sc[u] = math.sqrt(bc * bc + bs * bs)
+        ss[u] = _phase_0_2pi(bs, bc)
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
@@ -229,12 +247,7 @@ def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_
     sv = 1 if noise.shape[0] > 1 else 0  # broadcasting strides of the noise map
     su = 1 if noise.shape[1] > 1 else 0
     w = sa.shape[0]
-    # Modulation and phase in place of B cos φ, B sin φ: a branch-free, vectorised loop.
-    for u in range(w):
-        bc = sc[u]
-        bs = ss[u]
-        sc[u] = math.sqrt(bc * bc + bs * bs)
-        ss[u] = _phase_0_2pi(bs, bc)
+    _modulation_phase_row(sc, ss)
     for u in range(w):
         a = sa[u]
         b = sc[u]
@@ -620,13 +633,13 @@ class _DirectionInput:
 
 def _prepare_direction(images_by_period, periods_mm, extent_mm, max_value, noise_std, origin_mm,
                        dark_fraction, min_modulation_fraction, min_modulation_ratio, tolerance,
-                       margin_mm, correct_reversal=True) -> _DirectionInput:
+                       margin_mm, correct_reversal=True, convert=_as_image_stack) -> _DirectionInput:
     if isinstance(images_by_period, np.ndarray) and images_by_period.ndim == 3:
         raise PhaseDecodingError(
             "images_by_period: expected a sequence of (N, H, W) stacks, one per period, "
             f"got a single array of shape {images_by_period.shape}"
         )
-    stacks = [_as_image_stack(s, f"images_by_period[{i}]") for i, s in enumerate(images_by_period)]
+    stacks = [convert(s, f"images_by_period[{i}]") for i, s in enumerate(images_by_period)]
     if not stacks:
         raise PhaseDecodingError("images_by_period: no image stacks given")
     periods = _check_periods(periods_mm, len(stacks))
@@ -696,13 +709,15 @@ def decode_screen_coordinates(
 ) -> ScreenCoordinates:
     """Decode the pixel → screen mapping (x_q, y_q) from x- and y-fringe image stacks.
 
-    Runs :func:`decode_direction` for direction "x" (fringes encoding the screen's x_q) and
-    "y" (y_q) and combines them (docs/conventions.md, "Fringe patterns").
+    The values of :func:`decode_direction` for direction "x" (fringes encoding the screen's x_q)
+    and "y" (y_q), combined (docs/conventions.md, "Fringe patterns"); both directions are decoded
+    in one parallel pass over image rows (:mod:`pmdsim.evaluation.decoding_fused`).
 
     Parameters
     ----------
     x_stacks, y_stacks : sequence of array_like, each shape (N_i, H, W)
         Image stacks per period for the x and y direction (grey levels); all with equal H, W.
+        A stack may be a list of N_i (H, W) images: those are read in place (not stacked).
     x_periods_mm, y_periods_mm : array_like, shape (P_x,), (P_y,)
         Fringe periods in mm of the stacks.
     screen_size_mm : (float, float)
@@ -739,12 +754,15 @@ def decode_screen_coordinates(
         raise PhaseDecodingError(f"screen_size_mm: expected (width, height) in mm, got shape {size.shape}")
     if origin.shape != (2,):
         raise PhaseDecodingError(f"screen_origin_mm: expected (x, y) in mm, got shape {origin.shape}")
+    from .decoding_fused import as_image_list, decode_both_directions  # imports this module
+
     preps = []
     for i, (axis, stacks, periods) in enumerate((("x", x_stacks, x_periods_mm), ("y", y_stacks, y_periods_mm))):
         try:
             preps.append(_prepare_direction(
                 stacks, periods, size[i], max_value, noise_std, origin[i], dark_fraction,
                 min_modulation_fraction, min_modulation_ratio, tolerance, margin_mm, correct_reversal,
+                as_image_list,
             ))
         except PhaseDecodingError as exc:
             raise PhaseDecodingError(f"direction {axis!r}: {exc}") from exc
@@ -752,22 +770,4 @@ def decode_screen_coordinates(
         raise PhaseDecodingError(
             f"x and y image stacks differ in image size (H, W): {preps[0].shape} vs {preps[1].shape}"
         )
-    h, w = preps[0].shape
-    per_dir = []
-    for prep in preps:
-        arrays = dict(coord=np.empty((h, w)), flags=np.zeros((h, w), np.uint8),
-                      modulation=np.empty((h, w)), offset=np.empty((h, w)), std=np.empty((h, w)),
-                      rev=np.zeros((h, w), np.bool_))
-        _decode_direction_into(prep, check_saturation, **arrays)
-        per_dir.append(arrays)
-    rx, ry = per_dir
-    xy = np.empty((h, w, 2))
-    std = np.empty((h, w, 2))
-    modulation = np.empty((h, w, 2))
-    offset = np.empty((h, w, 2))
-    flags = np.empty((h, w), np.uint8)
-    _combine_kernel(rx["coord"], ry["coord"], rx["flags"], ry["flags"], rx["std"], ry["std"],
-                    rx["modulation"], ry["modulation"], rx["offset"], ry["offset"],
-                    xy, flags, std, modulation, offset)
-    return ScreenCoordinates(screen_xy_mm=xy, valid=flags == 0, flags=flags, std_xy_mm=std,
-                             modulation=modulation, offset=offset, reversed=np.stack([rx["rev"], ry["rev"]], -1))
+    return decode_both_directions(preps, check_saturation)

@@ -35,8 +35,9 @@ def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordin
         return decode_images_imaging(setup, images, response=response)
     seq = setup.patterns.sequence
     full = float(2**setup.patterns.bit_depth - 1)
-    xs = [np.stack(images[("x", p)]) for p in seq.periods_x_mm]
-    ys = [np.stack(images[("y", p)]) for p in seq.periods_y_mm]
+    # the per-image lists as they are: the decoder reads the images in place (no np.stack copy)
+    xs = [images[("x", p)] for p in seq.periods_x_mm]
+    ys = [images[("y", p)] for p in seq.periods_y_mm]
     noise = np.hypot(setup.patterns.noise_std, 1.0 / np.sqrt(12.0))
     return decode_screen_coordinates(xs, seq.periods_x_mm, ys, seq.periods_y_mm, setup.screen.size_mm, full,
                                      noise_std=noise)
