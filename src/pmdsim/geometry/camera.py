@@ -186,6 +186,20 @@ def _radial_start(xd, yd, c):
 
 
 @numba.njit(cache=True)
+def _undistort_fallback(xd, yd, x, y, c, rational, prism, tol, max_iter):
+    """The second attempt of :func:`_undistort_one` where Newton from (xd, yd) ended at (x, y)
+    without a physical inverse: damped Newton from :func:`_radial_start`. Returns (x, y,
+    converged), the first attempt's (x, y) where this one fails too."""
+    x0, y0, found = _radial_start(xd, yd, c)
+    if not found:
+        return x, y, False
+    x1, y1, ok1 = _newton(xd, yd, x0, y0, c, rational, prism, tol, max_iter, True)
+    if ok1 and _physical(x1, y1, c, rational, prism):
+        return x1, y1, True
+    return x, y, False
+
+
+@numba.njit(cache=True)
 def _undistort_one(xd, yd, c, rational, prism, tol, max_iter):
     """Invert the distortion. Returns (x, y, converged).
 
@@ -197,28 +211,121 @@ def _undistort_one(xd, yd, c, rational, prism, tol, max_iter):
     orientation-preserving there (det J > 0), the radial factor and the rational model's
     denominator positive; beyond a fold-over there is no such inverse and the pixel is reported
     as not converged.
+
+    The kernels run the first attempt in lock-step over blocks of pixels
+    (:func:`_newton_lanes`), with the same arithmetic per pixel: this per-pixel form is its
+    definition (the tests compare the kernels with it bit for bit).
     """
     x, y, ok = _newton(xd, yd, xd, yd, c, rational, prism, tol, max_iter, False)
     if ok and _physical(x, y, c, rational, prism):
         return x, y, True
-    x0, y0, found = _radial_start(xd, yd, c)
-    if not found:
-        return x, y, False
-    x1, y1, ok1 = _newton(xd, yd, x0, y0, c, rational, prism, tol, max_iter, True)
-    if ok1 and _physical(x1, y1, c, rational, prism):
-        return x1, y1, True
-    return x, y, False
+    return _undistort_fallback(xd, yd, x, y, c, rational, prism, tol, max_iter)
+
+
+#: Pixels inverted in lock-step (:func:`_newton_lanes`): wide enough that the vector units carry
+#: several independent Newton chains at once (32 measured fastest of 4, 8, 16, 32;
+#: docs/benchmarks.md, "view rays after brown25c").
+_LANES = 32
+#: Pixels per parallel chunk of :func:`_undistort_kernel` and of :func:`_rays_kernel`'s pixel
+#: list (a sensor's rays go by rows).
+_CHUNK = 32 * _LANES
+# Rows of the lanes' work array w (7 × _LANES): inputs xd, yd; iterate x, y; residual rx, ry;
+# state (0 iterating / not converged, 1 converged, 2 stopped; after the run 1 = physical inverse).
+_XD, _YD, _X, _Y, _RX, _RY, _ST = (j * _LANES for j in range(7))
+
+# The distortion and its Jacobian inlined into the lanes' loops (numba IR), so that the loops
+# vectorise: called, they stay scalar calls. The same source, hence the same arithmetic.
+_distort_inline = numba.njit(inline="always")(_distort.py_func)
+_distort_jac_inline = numba.njit(inline="always")(_distort_jac.py_func)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _newton_lanes(w, c, rational, prism, tol, max_iter):
+    """Newton's first attempt of :func:`_undistort_one` for ``_LANES`` pixels in lock-step.
+
+    ``w`` (7 × _LANES,) holds the inputs xd, yd at ``_XD``, ``_YD``; on return x, y at ``_X``,
+    ``_Y`` and at ``_ST`` 1.0 where the attempt converged to a physical inverse, else 0.0 (those
+    pixels need :func:`_undistort_fallback` from x, y). Every pixel does exactly the arithmetic
+    of :func:`_newton` (undamped) and :func:`_physical`: all lanes compute every iteration, and
+    a lane that has stopped (converged, or a zero or non-finite determinant) keeps its values
+    through selects, so the results are bit-identical and the loops branch-free (they
+    vectorise). The iteration ends when no lane is iterating, or after ``max_iter``.
+    """
+    for k in range(_LANES):
+        fx, fy = _distort_inline(w[_XD + k], w[_YD + k], c, rational, prism)
+        w[_X + k] = w[_XD + k]
+        w[_Y + k] = w[_YD + k]
+        w[_RX + k] = fx - w[_XD + k]
+        w[_RY + k] = fy - w[_YD + k]
+        w[_ST + k] = 0.0
+    for _ in range(max_iter):
+        iterating = 0
+        for k in range(_LANES):
+            x = w[_X + k]
+            y = w[_Y + k]
+            rx = w[_RX + k]
+            ry = w[_RY + k]
+            a, b, cc, d, _num, _den = _distort_jac_inline(x, y, c, rational, prism)
+            det = a * d - b * cc
+            dx = (d * rx - b * ry) / det
+            dy = (-cc * rx + a * ry) / det
+            xn = x - dx
+            yn = y - dy
+            fx, fy = _distort_inline(xn, yn, c, rational, prism)
+            rxn = fx - w[_XD + k]
+            ryn = fy - w[_YD + k]
+            state = w[_ST + k]
+            live = state == 0.0
+            bad = (det == 0.0) | (not (abs(det) < np.inf))  # det == 0 or not finite
+            step = live & (not bad)
+            small = (abs(dx) <= tol) & (abs(dy) <= tol)
+            ok = (abs(rxn) <= tol) & (abs(ryn) <= tol)
+            w[_X + k] = xn if step else x
+            w[_Y + k] = yn if step else y
+            w[_RX + k] = rxn if step else rx
+            w[_RY + k] = ryn if step else ry
+            state = 2.0 if live & bad else state
+            state = (1.0 if ok else 2.0) if step & small else state
+            w[_ST + k] = state
+            iterating += 1 if step & (not small) else 0
+        if iterating == 0:
+            break
+    for k in range(_LANES):
+        a, b, cc, d, num, den = _distort_jac_inline(w[_X + k], w[_Y + k], c, rational, prism)
+        good = (w[_ST + k] == 1.0) & (den > 0.0) & (num / den > 0.0) & ((a * d - b * cc) > 0.0)
+        w[_ST + k] = 1.0 if good else 0.0
+
+
+@numba.njit(cache=True)
+def _lane_result(w, k, c, rational, prism, tol, max_iter):
+    """Lane ``k``'s inverse after :func:`_newton_lanes`, with :func:`_undistort_fallback` where
+    the first attempt failed: (x, y, converged) as :func:`_undistort_one` returns them."""
+    if w[_ST + k] == 1.0:
+        return w[_X + k], w[_Y + k], True
+    return _undistort_fallback(w[_XD + k], w[_YD + k], w[_X + k], w[_Y + k], c, rational, prism, tol, max_iter)
 
 
 @numba.njit(cache=True, parallel=True)
 def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
+    """:func:`_undistort_one` of the points ``xyd`` (N, 2) into ``out`` (N, 2) and ``ok`` (N,),
+    ``_LANES`` at a time (:func:`_newton_lanes`)."""
     c, rational, prism = _unpack(coeffs)
     n = xyd.shape[0]
-    for i in numba.prange(0, n):
-        x, y, conv = _undistort_one(xyd[i, 0], xyd[i, 1], c, rational, prism, tol, max_iter)
-        out[i, 0] = x
-        out[i, 1] = y
-        ok[i] = conv
+    for ch in numba.prange(0, (n + _CHUNK - 1) // _CHUNK):
+        w = np.empty(7 * _LANES)
+        hi = min(ch * _CHUNK + _CHUNK, n)
+        for s in range(ch * _CHUNK, hi, _LANES):
+            m = min(_LANES, hi - s)
+            for k in range(_LANES):
+                i = s + k if k < m else s  # lanes past the end repeat the block's first point
+                w[_XD + k] = xyd[i, 0]
+                w[_YD + k] = xyd[i, 1]
+            _newton_lanes(w, c, rational, prism, tol, max_iter)
+            for k in range(m):
+                x, y, conv = _lane_result(w, k, c, rational, prism, tol, max_iter)
+                out[s + k, 0] = x
+                out[s + k, 1] = y
+                ok[s + k] = conv
 
 
 @numba.njit(cache=True, parallel=True)
@@ -226,25 +333,47 @@ def _rays_kernel(uv, grid_w, fx, fy, ppx, ppy, coeffs, distorted, tol, max_iter,
     """View rays (x, y, 1) of pixels: ``uv`` (N, 2), or with ``grid_w`` > 0 the pixel centres
     of a sensor ``grid_w`` wide (u = i mod w, v = i div w; ``uv`` unused) — one pass, no
     pixel grid, normalised-coordinate or concatenated temporaries. Same arithmetic as
-    :meth:`Camera.pixel_to_normalized` + :func:`_undistort_one`."""
+    :meth:`Camera.pixel_to_normalized` + :func:`_undistort_one`; with distortion the pixels
+    are inverted ``_LANES`` at a time (:func:`_newton_lanes`), a sensor by rows."""
     c, rational, prism = _unpack(coeffs)
     n = d.shape[0]
-    for i in numba.prange(0, n):
-        if grid_w > 0:
-            u = float(i % grid_w)
-            v = float(i // grid_w)
-        else:
-            u = uv[i, 0]
-            v = uv[i, 1]
-        x = (u - ppx) / fx
-        y = (v - ppy) / fy
-        conv = True
-        if distorted:
-            x, y, conv = _undistort_one(x, y, c, rational, prism, tol, max_iter)
-        d[i, 0] = x
-        d[i, 1] = y
-        d[i, 2] = 1.0
-        ok[i] = conv
+    if not distorted:
+        for i in numba.prange(0, n):
+            if grid_w > 0:
+                u = float(i % grid_w)
+                v = float(i // grid_w)
+            else:
+                u = uv[i, 0]
+                v = uv[i, 1]
+            d[i, 0] = (u - ppx) / fx
+            d[i, 1] = (v - ppy) / fy
+            d[i, 2] = 1.0
+            ok[i] = True
+        return
+    chunk = grid_w if grid_w > 0 else _CHUNK
+    for ch in numba.prange(0, (n + chunk - 1) // chunk):
+        w = np.empty(7 * _LANES)
+        lo = ch * chunk
+        hi = min(lo + chunk, n)
+        for s in range(lo, hi, _LANES):
+            m = min(_LANES, hi - s)
+            for k in range(_LANES):
+                i = s + k if k < m else s  # lanes past the end repeat the block's first pixel
+                if grid_w > 0:
+                    u = float(i - lo)
+                    v = float(ch)
+                else:
+                    u = uv[i, 0]
+                    v = uv[i, 1]
+                w[_XD + k] = (u - ppx) / fx
+                w[_YD + k] = (v - ppy) / fy
+            _newton_lanes(w, c, rational, prism, tol, max_iter)
+            for k in range(m):
+                x, y, conv = _lane_result(w, k, c, rational, prism, tol, max_iter)
+                d[s + k, 0] = x
+                d[s + k, 1] = y
+                d[s + k, 2] = 1.0
+                ok[s + k] = conv
 
 
 @numba.njit(cache=True)
