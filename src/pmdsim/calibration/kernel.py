@@ -10,6 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .batch_rows import _BATCH, _batched_normal, _finish_normal, _gram_add
 from .model import _NB, _NC, _NJ, _NM
 
 
@@ -162,42 +163,6 @@ def _glass_correct(jac, gk, mir_k, e1, e2, cen_c, ext):
         ext[i, 3] = g0 * gk[21] + g1 * gk[22] + g2 * gk[23]
 
 
-#: Correspondences whose Jacobian rows are gathered before they are added to JᵀJ (2 rows each).
-_BATCH = 64
-
-
-@numba.njit(cache=True, fastmath={"reassoc", "contract", "nsz"})
-def _gram_add(bt, rows, acc):
-    """acc[i, j] += Σ_q bt[i, q]·bt[j, q] over q < ``rows``, for i ≤ j (upper triangle, in 2 × 2
-    tiles: ``bt.shape[0]`` must be even).
-
-    ``bt`` (C, R) holds the gathered Jacobian rows as columns (a transposed buffer), so that each
-    sum runs over contiguous memory; the 2 × 2 tiles reuse each loaded value twice. This is
-    JᵀJ of the batch at several times the speed of a rank-2 update per correspondence: the sums
-    vectorise (reassociation is allowed here only; the result depends on the batch layout, which
-    is fixed, not on the number of threads)."""
-    nc = bt.shape[0]
-    for i in range(0, nc, 2):
-        for j in range(i, nc, 2):
-            s00 = 0.0
-            s01 = 0.0
-            s10 = 0.0
-            s11 = 0.0
-            for q in range(rows):
-                a0 = bt[i, q]
-                a1 = bt[i + 1, q]
-                b0 = bt[j, q]
-                b1 = bt[j + 1, q]
-                s00 += a0 * b0
-                s01 += a0 * b1
-                s10 += a1 * b0
-                s11 += a1 * b1
-            acc[i, j] += s00
-            acc[i, j + 1] += s01
-            acc[i + 1, j] += s10
-            acc[i + 1, j + 1] += s11
-
-
 @numba.njit(cache=True)
 def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj, h_unit,
                want_normal, jtj, jtr, sandwich, slope, qstd, glass_on, gl, dwx, dwy, gsel, g_units):
@@ -224,6 +189,10 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
     gain the plate normal's terms (``dwx``, ``dwy``: the basis weights' derivatives), and the
     G = ``gsel.shape[0]`` free glass parameters (``gsel``: 0 thickness, 1 index; internal units
     ``g_units``) follow the screen heights."""
+    if want_normal and not glass_on and not sandwich:
+        ssr, nbad = _batched_normal(start, end, uv, q, intr[cam], rot[cam], cen[cam], mir[pose], e1[pose], e2[pose],
+                                    units, wx, wy, fi, fj, h_unit, jtj, jtr)
+        return ssr, 0.0, nbad
     nf = fi.shape[0]
     ng = gsel.shape[0]
     npar = _NB + nf + ng
@@ -310,12 +279,9 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
     if want_normal:
         if slot > 0:
             _gram_add(bt, 2 * slot, acc)
-        for i in range(npar):
-            jtr[i] = acc[i, npar]
-            for j in range(i, npar):
-                jtj[i, j] = acc[i, j]
-                jtj[j, i] = acc[i, j]
+        _finish_normal(acc, npar, jtj, jtr)
     return ssr, ssr_w, nbad
+
 
 
 @numba.njit(cache=True, parallel=True)
