@@ -39,6 +39,76 @@ _JIT = dict(cache=True, error_model="numpy")
 
 
 
+# ---------------------------------------------------------------- the model's terms
+# Shared by kernel._model_row (one correspondence) and _batch_rows (a loop over many): inlined
+# into both, each expression evaluated in the order written, so that the two give the same bits.
+@numba.njit(cache=True, inline="always")
+def _dot3(a0, a1, a2, b0, b1, b2):
+    """a0·b0 + a1·b1 + a2·b2, summed left to right."""
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@numba.njit(cache=True, inline="always")
+def _cross(h0, h1, h2, w0, w1, w2):
+    """h × w (3 components)."""
+    return h1 * w2 - h2 * w1, h2 * w0 - h0 * w2, h0 * w1 - h1 * w0
+
+
+@numba.njit(cache=True, inline="always")
+def _virtual_point(qx, qy, qz, nx, ny, nz, dd, cx, cy, cz):
+    """(s, w): the screen point's signed distance s = n·q − d from the mirror plane and
+    w = q − 2sn − c, its mirror image relative to the camera centre c (screen frame, mm)."""
+    s = _dot3(nx, ny, nz, qx, qy, qz) - dd
+    return s, qx - 2.0 * s * nx - cx, qy - 2.0 * s * ny - cy, qz - 2.0 * s * nz - cz
+
+
+@numba.njit(cache=True, inline="always")
+def _distorted(px, py, pz, k1, k2, p1, p2, k3):
+    """(1/z, x, y, r², radial factor, x_d, y_d) of the camera-frame point p: the normalised
+    point and its Brown–Conrady distortion."""
+    iz = 1.0 / pz
+    x = px * iz
+    y = py * iz
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return iz, x, y, r2, radial, xd, yd
+
+
+@numba.njit(cache=True, inline="always")
+def _h_matrix(x, y, r2, radial, iz, fx, fy, k1, k2, p1, p2, k3, r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """H = G Rᵀ = d(u, v)/d w (2 × 3, row-major), with G = d(u, v)/d p from d(x_d, y_d)/d(x, y)
+    and dx/dp = (1/z, 0, −x/z), dy/dp = (0, 1/z, −y/z); r_ij: R_screen_cam."""
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # = d(x_d)/dy = d(y_d)/dx
+    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    g00 = fx * a * iz
+    g01 = fx * b * iz
+    g02 = -fx * (a * x + b * y) * iz
+    g10 = fy * b * iz
+    g11 = fy * d * iz
+    g12 = -fy * (b * x + d * y) * iz
+    return (_dot3(g00, g01, g02, r00, r01, r02), _dot3(g00, g01, g02, r10, r11, r12),
+            _dot3(g00, g01, g02, r20, r21, r22), _dot3(g10, g11, g12, r00, r01, r02),
+            _dot3(g10, g11, g12, r10, r11, r12), _dot3(g10, g11, g12, r20, r21, r22))
+
+
+@numba.njit(cache=True, inline="always")
+def _mirror_terms(h00, h01, h02, h10, h11, h12, s, nx, ny, nz, e10, e11, e12, e20, e21, e22, qx, qy, qz):
+    """The mirror's columns through dq'/da = −2 (s e1 + (e1·q) n) and likewise b with e2:
+    (∂u/∂a, ∂v/∂a, ∂u/∂b, ∂v/∂b), and H n (2,) (dq'/dd = 2n; dq'/dq = I − 2 n nᵀ)."""
+    hn0 = _dot3(h00, h01, h02, nx, ny, nz)
+    hn1 = _dot3(h10, h11, h12, nx, ny, nz)
+    e1q = _dot3(e10, e11, e12, qx, qy, qz)
+    e2q = _dot3(e20, e21, e22, qx, qy, qz)
+    return (-2.0 * (s * _dot3(h00, h01, h02, e10, e11, e12) + e1q * hn0),
+            -2.0 * (s * _dot3(h10, h11, h12, e10, e11, e12) + e1q * hn1),
+            -2.0 * (s * _dot3(h00, h01, h02, e20, e21, e22) + e2q * hn0),
+            -2.0 * (s * _dot3(h10, h11, h12, e20, e21, e22) + e2q * hn1), hn0, hn1)
+
+
 @numba.njit(**_JIT)
 def _batch_rows(m, S, intr, rot, cen, mir, e1, e2, units):
     """Residuals and scaled Jacobian rows of the m ≤ _BATCH correspondences whose inputs are in
@@ -70,26 +140,17 @@ def _batch_rows(m, S, intr, rot, cen, mir, e1, e2, units):
         qx = S[_QX * B + i]
         qy = S[_QY * B + i]
         qz = S[_QZ * B + i]
-        s = nx * qx + ny * qy + nz * qz - dd
-        # Virtual (mirrored) screen point, p = Rᵀ w.
-        wx = qx - 2.0 * s * nx - cx
-        wy = qy - 2.0 * s * ny - cy
-        wz = qz - 2.0 * s * nz - cz
-        px = r00 * wx + r10 * wy + r20 * wz
-        py = r01 * wx + r11 * wy + r21 * wz
-        pz = r02 * wx + r12 * wy + r22 * wz
+        # The mirrored point, p = Rᵀ w, projection and distortion.
+        s, wx, wy, wz = _virtual_point(qx, qy, qz, nx, ny, nz, dd, cx, cy, cz)
+        px = _dot3(r00, r10, r20, wx, wy, wz)
+        py = _dot3(r01, r11, r21, wx, wy, wz)
+        pz = _dot3(r02, r12, r22, wx, wy, wz)
         S[_OK * B + i] = 1.0 if pz > 0.0 else 0.0
-        iz = 1.0 / pz
-        x = px * iz
-        y = py * iz
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        iz, x, y, r2, radial, xd, yd = _distorted(px, py, pz, k1, k2, p1, p2, k3)
         S[_RU * B + i] = fx * xd + ppx - S[_U * B + i]
         S[_RV * B + i] = fy * yd + ppy - S[_V * B + i]
-        # Intrinsics.
-        S[(_J0 + 0) * B + i] = xd * u0
+        # Intrinsics (columns 2 and 3 are constant).
+        S[_J0 * B + i] = xd * u0
         S[(_J0 + 3) * B + i] = yd * u1
         S[(_J0 + 8) * B + i] = fx * x * r2 * u4
         S[(_J0 + 9) * B + i] = fy * y * r2 * u4
@@ -99,49 +160,30 @@ def _batch_rows(m, S, intr, rot, cen, mir, e1, e2, units):
         S[(_J0 + 13) * B + i] = fy * (r2 + 2.0 * y * y) * u6
         S[(_J0 + 14) * B + i] = fx * (r2 + 2.0 * x * x) * u7
         S[(_J0 + 15) * B + i] = fy * 2.0 * x * y * u7
-        # d(xd, yd)/d(x, y); G = d(u, v)/d p; H = G Rᵀ = d(u, v)/d w.
-        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-        b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-        d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-        g00 = fx * a * iz
-        g01 = fx * b * iz
-        g02 = -fx * (a * x + b * y) * iz
-        g10 = fy * b * iz
-        g11 = fy * d * iz
-        g12 = -fy * (b * x + d * y) * iz
-        h00 = g00 * r00 + g01 * r01 + g02 * r02
-        h01 = g00 * r10 + g01 * r11 + g02 * r12
-        h02 = g00 * r20 + g01 * r21 + g02 * r22
-        h10 = g10 * r00 + g11 * r01 + g12 * r02
-        h11 = g10 * r10 + g11 * r11 + g12 * r12
-        h12 = g10 * r20 + g11 * r21 + g12 * r22
+        h00, h01, h02, h10, h11, h12 = _h_matrix(x, y, r2, radial, iz, fx, fy, k1, k2, p1, p2, k3, r00, r01, r02,
+                                                 r10, r11, r12, r20, r21, r22)
         # Rotation increment: d(u, v)_i/dδ = H_i × w; camera centre: −H.
-        S[(_J0 + 16) * B + i] = (h01 * wz - h02 * wy) * u8
-        S[(_J0 + 18) * B + i] = (h02 * wx - h00 * wz) * u9
-        S[(_J0 + 20) * B + i] = (h00 * wy - h01 * wx) * u10
-        S[(_J0 + 17) * B + i] = (h11 * wz - h12 * wy) * u8
-        S[(_J0 + 19) * B + i] = (h12 * wx - h10 * wz) * u9
-        S[(_J0 + 21) * B + i] = (h10 * wy - h11 * wx) * u10
+        ru8, ru9, ru10 = _cross(h00, h01, h02, wx, wy, wz)
+        rv8, rv9, rv10 = _cross(h10, h11, h12, wx, wy, wz)
+        S[(_J0 + 16) * B + i] = ru8 * u8
+        S[(_J0 + 17) * B + i] = rv8 * u8
+        S[(_J0 + 18) * B + i] = ru9 * u9
+        S[(_J0 + 19) * B + i] = rv9 * u9
+        S[(_J0 + 20) * B + i] = ru10 * u10
+        S[(_J0 + 21) * B + i] = rv10 * u10
         S[(_J0 + 22) * B + i] = -h00 * u11
-        S[(_J0 + 24) * B + i] = -h01 * u12
-        S[(_J0 + 26) * B + i] = -h02 * u13
         S[(_J0 + 23) * B + i] = -h10 * u11
+        S[(_J0 + 24) * B + i] = -h01 * u12
         S[(_J0 + 25) * B + i] = -h11 * u12
+        S[(_J0 + 26) * B + i] = -h02 * u13
         S[(_J0 + 27) * B + i] = -h12 * u13
-        # Mirror: dq'/dd = 2n, dq'/da = −2 (s e1 + (e1·q) n), likewise b with e2.
-        hn0 = h00 * nx + h01 * ny + h02 * nz
-        hn1 = h10 * nx + h11 * ny + h12 * nz
-        he10 = h00 * e10 + h01 * e11 + h02 * e12
-        he11 = h10 * e10 + h11 * e11 + h12 * e12
-        he20 = h00 * e20 + h01 * e21 + h02 * e22
-        he21 = h10 * e20 + h11 * e21 + h12 * e22
-        e1q = e10 * qx + e11 * qy + e12 * qz
-        e2q = e20 * qx + e21 * qy + e22 * qz
-        S[(_J0 + 28) * B + i] = -2.0 * (s * he10 + e1q * hn0) * u14
-        S[(_J0 + 29) * B + i] = -2.0 * (s * he11 + e1q * hn1) * u14
-        S[(_J0 + 30) * B + i] = -2.0 * (s * he20 + e2q * hn0) * u15
-        S[(_J0 + 31) * B + i] = -2.0 * (s * he21 + e2q * hn1) * u15
+        # Mirror: tilts a, b and distance d.
+        ma0, ma1, mb0, mb1, hn0, hn1 = _mirror_terms(h00, h01, h02, h10, h11, h12, s, nx, ny, nz, e10, e11, e12,
+                                                     e20, e21, e22, qx, qy, qz)
+        S[(_J0 + 28) * B + i] = ma0 * u14
+        S[(_J0 + 29) * B + i] = ma1 * u14
+        S[(_J0 + 30) * B + i] = mb0 * u15
+        S[(_J0 + 31) * B + i] = mb1 * u15
         S[(_J0 + 32) * B + i] = 2.0 * hn0 * u16
         S[(_J0 + 33) * B + i] = 2.0 * hn1 * u16
         # The screen point's height: dq'/dq = I − 2 n nᵀ.
