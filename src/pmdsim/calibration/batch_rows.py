@@ -297,7 +297,20 @@ def _batched_normal(start, end, uv, q, intr_c, rot_c, cen_c, mir_k, e1_k, e2_k, 
                 sf = wy[k0 + i, fj[f]] * wx[k0 + i, fi[f]]
                 bt[_NB + f, c0 + 2 * i] = S[_DZU * B + i] * h_unit * sf
                 bt[_NB + f, c0 + 2 * i + 1] = S[_DZV * B + i] * h_unit * sf
+        n_ok = 0
         for i in range(m):
+            n_ok += 1 if S[_OK * B + i] != 0.0 else 0  # an integer sum: vectorised
+        m_done = 0
+        if n_ok == m:  # all in front of the camera: nothing to squeeze out
+            for i in range(m):
+                ru = S[_RU * B + i]
+                rv = S[_RV * B + i]
+                ssr += ru * ru + rv * rv
+                bt[npar, c0 + 2 * i] = ru
+                bt[npar, c0 + 2 * i + 1] = rv
+            slot += m
+            m_done = m
+        for i in range(m_done, m):
             if S[_OK * B + i] == 0.0:
                 nbad += 1
                 continue
