@@ -200,7 +200,8 @@ def integration_counts(n_pixels: int) -> dict:
 
 
 def jtj_counts(n_corr: int, n_columns: int) -> dict:
-    """Bytes, flops, divisions of the calibration's JᵀJ and Jᵀr (``kernel._chunk_run``) over
+    """Bytes, flops, divisions of the calibration's JᵀJ and Jᵀr (``kernel._chunk_run`` →
+    ``batch_rows._batched_normal``: the rows vectorised across correspondences) over
     ``n_corr`` correspondences with ``n_columns`` parameter columns per block (17 for the
     planar screen: model.py's _NB, 14 camera + 3 mirror parameters).
 

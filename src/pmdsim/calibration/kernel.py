@@ -10,6 +10,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .batch_rows import (
+    _BATCH, _batched_normal, _cross, _distorted, _dot3, _finish_normal, _gram_add, _h_matrix, _mirror_terms,
+    _virtual_point,
+)
 from .model import _NB, _NC, _NJ, _NM
 
 
@@ -26,26 +30,16 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     Returns (ru, rv, ok) with ok False if the virtual point is not in front of the camera.
     """
     nx, ny, nz, dd = mir[0], mir[1], mir[2], mir[3]
-    s = nx * qx + ny * qy + nz * qz - dd
-    # Virtual (mirrored) screen point.
-    wx = qx - 2.0 * s * nx - cen[0]
-    wy = qy - 2.0 * s * ny - cen[1]
-    wz = qz - 2.0 * s * nz - cen[2]
-    # p = Rᵀ w.
-    px = rot[0, 0] * wx + rot[1, 0] * wy + rot[2, 0] * wz
-    py = rot[0, 1] * wx + rot[1, 1] * wy + rot[2, 1] * wz
-    pz = rot[0, 2] * wx + rot[1, 2] * wy + rot[2, 2] * wz
+    # Virtual (mirrored) screen point, p = Rᵀ w.
+    s, wx, wy, wz = _virtual_point(qx, qy, qz, nx, ny, nz, dd, cen[0], cen[1], cen[2])
+    px = _dot3(rot[0, 0], rot[1, 0], rot[2, 0], wx, wy, wz)
+    py = _dot3(rot[0, 1], rot[1, 1], rot[2, 1], wx, wy, wz)
+    pz = _dot3(rot[0, 2], rot[1, 2], rot[2, 2], wx, wy, wz)
     if not pz > 0.0:
         return 0.0, 0.0, False
     fx, fy, ppx, ppy = intr[0], intr[1], intr[2], intr[3]
     k1, k2, p1, p2, k3 = intr[4], intr[5], intr[6], intr[7], intr[8]
-    iz = 1.0 / pz
-    x = px * iz
-    y = py * iz
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    iz, x, y, r2, radial, xd, yd = _distorted(px, py, pz, k1, k2, p1, p2, k3)
     ru = fx * xd + ppx - u_obs
     rv = fy * yd + ppy - v_obs
     if not want_jac:
@@ -66,33 +60,13 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     jac[1, 6] = fy * (r2 + 2.0 * y * y)
     jac[0, 7] = fx * (r2 + 2.0 * x * x)
     jac[1, 7] = fy * 2.0 * x * y
-    # d(xd, yd)/d(x, y).
-    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-    a = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    b = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    c = b
-    d = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    # G = d(u, v)/d p (2 × 3); dx/dp = (1/z, 0, −x/z), dy/dp = (0, 1/z, −y/z).
-    g00 = fx * a * iz
-    g01 = fx * b * iz
-    g02 = -fx * (a * x + b * y) * iz
-    g10 = fy * c * iz
-    g11 = fy * d * iz
-    g12 = -fy * (c * x + d * y) * iz
-    # H = G Rᵀ = d(u, v)/d w (screen frame): H[i, k] = Σ_j G[i, j] R[k, j].
-    h00 = g00 * rot[0, 0] + g01 * rot[0, 1] + g02 * rot[0, 2]
-    h01 = g00 * rot[1, 0] + g01 * rot[1, 1] + g02 * rot[1, 2]
-    h02 = g00 * rot[2, 0] + g01 * rot[2, 1] + g02 * rot[2, 2]
-    h10 = g10 * rot[0, 0] + g11 * rot[0, 1] + g12 * rot[0, 2]
-    h11 = g10 * rot[1, 0] + g11 * rot[1, 1] + g12 * rot[1, 2]
-    h12 = g10 * rot[2, 0] + g11 * rot[2, 1] + g12 * rot[2, 2]
+    # H = d(u, v)/d w (screen frame).
+    h00, h01, h02, h10, h11, h12 = _h_matrix(x, y, r2, radial, iz, fx, fy, k1, k2, p1, p2, k3, rot[0, 0], rot[0, 1],
+                                             rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1],
+                                             rot[2, 2])
     # Rotation increment R ← exp([δ]×) R: dp/dδ = Rᵀ [w]×, so d(u, v)_i/dδ = H_i × w.
-    jac[0, 8] = h01 * wz - h02 * wy
-    jac[0, 9] = h02 * wx - h00 * wz
-    jac[0, 10] = h00 * wy - h01 * wx
-    jac[1, 8] = h11 * wz - h12 * wy
-    jac[1, 9] = h12 * wx - h10 * wz
-    jac[1, 10] = h10 * wy - h11 * wx
+    jac[0, 8], jac[0, 9], jac[0, 10] = _cross(h00, h01, h02, wx, wy, wz)
+    jac[1, 8], jac[1, 9], jac[1, 10] = _cross(h10, h11, h12, wx, wy, wz)
     # Camera centre: dp/dc = −Rᵀ.
     jac[0, 11] = -h00
     jac[0, 12] = -h01
@@ -101,18 +75,8 @@ def _model_row(u_obs, v_obs, qx, qy, qz, intr, rot, cen, mir, e1, e2, want_jac, 
     jac[1, 12] = -h11
     jac[1, 13] = -h12
     # Mirror: dq'/dd = 2n, dq'/da = −2 (s e1 + (e1·q) n), likewise b with e2.
-    hn0 = h00 * nx + h01 * ny + h02 * nz
-    hn1 = h10 * nx + h11 * ny + h12 * nz
-    he10 = h00 * e1[0] + h01 * e1[1] + h02 * e1[2]
-    he11 = h10 * e1[0] + h11 * e1[1] + h12 * e1[2]
-    he20 = h00 * e2[0] + h01 * e2[1] + h02 * e2[2]
-    he21 = h10 * e2[0] + h11 * e2[1] + h12 * e2[2]
-    e1q = e1[0] * qx + e1[1] * qy + e1[2] * qz
-    e2q = e2[0] * qx + e2[1] * qy + e2[2] * qz
-    jac[0, 14] = -2.0 * (s * he10 + e1q * hn0)
-    jac[1, 14] = -2.0 * (s * he11 + e1q * hn1)
-    jac[0, 15] = -2.0 * (s * he20 + e2q * hn0)
-    jac[1, 15] = -2.0 * (s * he21 + e2q * hn1)
+    jac[0, 14], jac[1, 14], jac[0, 15], jac[1, 15], hn0, hn1 = _mirror_terms(
+        h00, h01, h02, h10, h11, h12, s, nx, ny, nz, e1[0], e1[1], e1[2], e2[0], e2[1], e2[2], qx, qy, qz)
     jac[0, 16] = 2.0 * hn0
     jac[1, 16] = 2.0 * hn1
     # Screen point: dq'/dq = I − 2 n nᵀ, so d(u, v)/dq_i = H e_i − 2 n_i H n.
@@ -162,42 +126,6 @@ def _glass_correct(jac, gk, mir_k, e1, e2, cen_c, ext):
         ext[i, 3] = g0 * gk[21] + g1 * gk[22] + g2 * gk[23]
 
 
-#: Correspondences whose Jacobian rows are gathered before they are added to JᵀJ (2 rows each).
-_BATCH = 64
-
-
-@numba.njit(cache=True, fastmath={"reassoc", "contract", "nsz"})
-def _gram_add(bt, rows, acc):
-    """acc[i, j] += Σ_q bt[i, q]·bt[j, q] over q < ``rows``, for i ≤ j (upper triangle, in 2 × 2
-    tiles: ``bt.shape[0]`` must be even).
-
-    ``bt`` (C, R) holds the gathered Jacobian rows as columns (a transposed buffer), so that each
-    sum runs over contiguous memory; the 2 × 2 tiles reuse each loaded value twice. This is
-    JᵀJ of the batch at several times the speed of a rank-2 update per correspondence: the sums
-    vectorise (reassociation is allowed here only; the result depends on the batch layout, which
-    is fixed, not on the number of threads)."""
-    nc = bt.shape[0]
-    for i in range(0, nc, 2):
-        for j in range(i, nc, 2):
-            s00 = 0.0
-            s01 = 0.0
-            s10 = 0.0
-            s11 = 0.0
-            for q in range(rows):
-                a0 = bt[i, q]
-                a1 = bt[i + 1, q]
-                b0 = bt[j, q]
-                b1 = bt[j + 1, q]
-                s00 += a0 * b0
-                s01 += a0 * b1
-                s10 += a1 * b0
-                s11 += a1 * b1
-            acc[i, j] += s00
-            acc[i, j + 1] += s01
-            acc[i + 1, j] += s10
-            acc[i + 1, j + 1] += s11
-
-
 @numba.njit(cache=True)
 def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units, wx, wy, fi, fj, h_unit,
                want_normal, jtj, jtr, sandwich, slope, qstd, glass_on, gl, dwx, dwy, gsel, g_units):
@@ -224,6 +152,10 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
     gain the plate normal's terms (``dwx``, ``dwy``: the basis weights' derivatives), and the
     G = ``gsel.shape[0]`` free glass parameters (``gsel``: 0 thickness, 1 index; internal units
     ``g_units``) follow the screen heights."""
+    if want_normal and not glass_on and not sandwich:
+        ssr, nbad = _batched_normal(start, end, uv, q, intr[cam], rot[cam], cen[cam], mir[pose], e1[pose], e2[pose],
+                                    units, wx, wy, fi, fj, h_unit, jtj, jtr)
+        return ssr, 0.0, nbad
     nf = fi.shape[0]
     ng = gsel.shape[0]
     npar = _NB + nf + ng
@@ -310,12 +242,9 @@ def _chunk_run(start, end, cam, pose, uv, q, intr, rot, cen, mir, e1, e2, units,
     if want_normal:
         if slot > 0:
             _gram_add(bt, 2 * slot, acc)
-        for i in range(npar):
-            jtr[i] = acc[i, npar]
-            for j in range(i, npar):
-                jtj[i, j] = acc[i, j]
-                jtj[j, i] = acc[i, j]
+        _finish_normal(acc, npar, jtj, jtr)
     return ssr, ssr_w, nbad
+
 
 
 @numba.njit(cache=True, parallel=True)
