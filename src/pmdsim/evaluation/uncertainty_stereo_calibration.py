@@ -74,6 +74,24 @@ _RTOL = 1e-6
 THREADS = 1
 
 
+@numba.njit(cache=True, parallel=True)
+def _std_maps(var, S, h_um, g_urad):
+    """From the variances var (H, W, 3) (height mm², slopes): h_um (H, W) = sqrt(var₀)·1e3 and
+    g_urad (H, W, 2) = sqrt(var₁,₂)·1e6 on S, NaN off it — numpy's ``np.sqrt(var[..., 0]) * 1e3``
+    after ``var[~S] = nan`` bit for bit, in one pass without its temporaries."""
+    H, W = S.shape
+    for v in numba.prange(0, H):
+        for u in range(W):
+            if S[v, u]:
+                h_um[v, u] = np.sqrt(var[v, u, 0]) * 1e3
+                g_urad[v, u, 0] = np.sqrt(var[v, u, 1]) * 1e6
+                g_urad[v, u, 1] = np.sqrt(var[v, u, 2]) * 1e6
+            else:
+                h_um[v, u] = np.nan
+                g_urad[v, u, 0] = np.nan
+                g_urad[v, u, 1] = np.nan
+
+
 @contextmanager
 def _numba_threads(n: int):
     """Run the block with at most ``n`` numba threads (this thread's setting), restored after."""
@@ -378,8 +396,9 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
             var = interp(np.stack(fields[c]), o, o, s, H, W)
         else:
             var = np.zeros((H, W, 3))
-        var[~S] = np.nan
-        out[c] = CalibrationContribution(np.sqrt(var[..., 0]) * 1e3, np.sqrt(var[..., 1:]) * 1e6, names, len(axes), s)
+        h_um, g_urad = np.empty((H, W)), np.empty((H, W, 2))
+        _std_maps(np.ascontiguousarray(var), np.ascontiguousarray(S, dtype=np.bool_), h_um, g_urad)
+        out[c] = CalibrationContribution(h_um, g_urad, names, len(axes), s)
         node = lin.anchor_node[c]
         anchors[c] = np.where(node >= 0, np.sqrt(var_a[c][np.maximum(node, 0)]) * 1e3, np.nan)
     return StereoCalibrationContribution(out, anchors, names, len(axes), tuple(notes), time.perf_counter() - t0)

@@ -124,8 +124,8 @@ class _SubgridLinear:
     """One camera's anchored least-squares heights linearised on the subgrid of stride s, offset
     o (module docstring): δz_sub = N_sub⁻¹(−J_subᵀ δr(block means) + Σ w² e δa)."""
 
-    def __init__(self, view, rec, anchors_vu, s: int, o: int):
-        o_ref, d, q, _ = _view_arrays(view)
+    def __init__(self, view, rec, anchors_vu, s: int, o: int, arrays=None):
+        o_ref, d, q, _ = _view_arrays(view) if arrays is None else arrays
         S_full = np.asarray(rec.reconstructed, dtype=bool)
         H, W = S_full.shape
         self.shape, self.s, self.o = (H, W), s, o
@@ -201,7 +201,7 @@ class _SubgridLinear:
 
 
 def subgrid_height_std(views: dict, recs: dict, anchors_vu: dict, A: dict, noise: dict, seeds, *, samples: int,
-                       stride: int, offset: int) -> dict:
+                       stride: int, offset: int, arrays: dict | None = None) -> dict:
     """σ (H, W) of every camera's heights, mm, on the subgrid of ``stride`` (module docstring).
 
     Parameters
@@ -218,13 +218,16 @@ def subgrid_height_std(views: dict, recs: dict, anchors_vu: dict, A: dict, noise
         The estimator's seed per camera (evaluation order).
     samples, stride, offset
         K, s and o.
+    arrays : dict name → tuple, optional
+        Each camera's ``_view_arrays`` (o, d, q, valid) when the caller has them.
     """
     names = list(A)
     K = int(samples)
     n_chunks = (K + 31) // 32
     out = {}
     for c in recs:
-        lin = _SubgridLinear(views[c], recs[c], anchors_vu[c], int(stride), int(offset))
+        lin = _SubgridLinear(views[c], recs[c], anchors_vu[c], int(stride), int(offset),
+                             None if arrays is None else arrays[c])
         Az = np.ascontiguousarray(np.where(lin.S_full[..., None, None], np.nan_to_num(A[c]), 0.0))
         means = lin.block_means(Az, int(seeds[names.index(c)]), K)
         an = noise[c]
