@@ -53,7 +53,7 @@ from .stereo import (ANCHOR_WEIGHT, StereoReconstruction, _camera_arrays, _keys,
 from .uncertainty import (DEFAULT_RNG_SEED, DEFAULT_SAMPLES, NO_COVARIANCE_NOTE, SurfaceUncertainty,
                           UncertaintyError, _geometry, _jacobian_scaled, _ls_rhs, _sample_dg, _screen_tangents,
                           _word, _xi, combine, slope_jacobian)
-from .uncertainty_stereo_subgrid import default_noise_stride, subgrid_height_std
+from .uncertainty_stereo_subgrid import default_noise_stride, subgrid_noise_std
 
 __all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty",
            "stereo_with_uncertainty"]
@@ -379,9 +379,12 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
     tangents = {c: _tangents(setup, screen_model, decoded[c]) for c in views}
     arrays = {c: _view_arrays(views[c]) for c in views}  # once per camera (each a full-size copy)
-    A, g_noise, noise, lins = {}, {}, {}, {}
+    first = stereo.cameras[next(iter(views))].reconstruction.reconstructed.shape
+    s = default_noise_stride(first) if noise_stride is None else int(noise_stride)
+    if s < 1:
+        raise UncertaintyError(f"noise_stride must be ≥ 1, got {noise_stride!r}")
+    jac, noise = {}, {}
     for c, view in views.items():
-        reg = view.registration
         rec = stereo.cameras[c].reconstruction
         std = np.asarray(decoded[c].std_xy_mm, dtype=float)
         bad = _nonfinite_on(std, np.asarray(rec.reconstructed, dtype=bool))
@@ -389,23 +392,21 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
             raise UncertaintyError(f"camera {c!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
                                    f"pixel(s); no σ of the surface")
         # the Jacobian reads σ only on the reconstructed pixels, where it is finite: no NaN-free copy
-        A[c], g_noise[c] = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, tangents[c],
-                                            rec.reconstructed, std)
+        jac[c] = (view.registration.o_ref_mm, rec.p_sample_mm, view.registration.q_ref_mm, tangents[c], std)
         sc = stereo.cameras[c]
         noise[c] = anchor_noise(views, decoded, tangents, c, sc.anchor_pixels, sc.anchor_height_mm, arrays=arrays)
-    first = stereo.cameras[next(iter(views))].reconstruction.reconstructed.shape
-    s = default_noise_stride(first) if noise_stride is None else int(noise_stride)
-    if s < 1:
-        raise UncertaintyError(f"noise_stride must be ≥ 1, got {noise_stride!r}")
     if s == 1:
+        A, g_noise, lins = {}, {}, {}
         for c, view in views.items():
-            lins[c] = _AnchoredLinear(view, stereo.cameras[c].reconstruction, stereo.cameras[c].anchor_pixels)
+            rec = stereo.cameras[c].reconstruction
+            A[c], g_noise[c] = _jacobian_scaled(*jac[c][:4], rec.reconstructed, jac[c][4])
+            lins[c] = _AnchoredLinear(view, rec, stereo.cameras[c].anchor_pixels)
         h = stereo_height_std(lins, A, noise, samples=samples, rng_seed=rng_seed)
-    else:
-        h = subgrid_height_std(views, {c: stereo.cameras[c].reconstruction for c in views},
-                               {c: stereo.cameras[c].anchor_pixels for c in views}, A, noise,
-                               _seeds(rng_seed, len(A)), samples=int(samples), stride=s,
-                               offset=(int(stereo.stride_px) // 2) % s, arrays=arrays)
+    else:  # the slopes' σ and the subgrid's draws in one pass (no (H, W, 2, 2) array)
+        h, g_noise = subgrid_noise_std(views, {c: stereo.cameras[c].reconstruction for c in views},
+                                       {c: stereo.cameras[c].anchor_pixels for c in views}, jac, noise,
+                                       _seeds(rng_seed, len(jac)), samples=int(samples), stride=s,
+                                       offset=(int(stereo.stride_px) // 2) % s, arrays=arrays)
     cov = getattr(setup, "calibration_covariance", None)
     cal = None
     if cov is not None:
