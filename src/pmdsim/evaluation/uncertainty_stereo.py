@@ -407,6 +407,7 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
                                        {c: stereo.cameras[c].anchor_pixels for c in views}, jac, noise,
                                        _seeds(rng_seed, len(jac)), samples=int(samples), stride=s,
                                        offset=(int(stereo.stride_px) // 2) % s, arrays=arrays)
+    del arrays  # its pages serve the calibration part's arrays (fresh pages cost more than the arithmetic here)
     cov = getattr(setup, "calibration_covariance", None)
     cal = None
     if cov is not None:

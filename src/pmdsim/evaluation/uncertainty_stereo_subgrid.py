@@ -42,7 +42,8 @@ from .least_squares import _assemble_gauss_newton
 from .multigrid import _CGWork, _Multigrid, _pcg
 from .stereo import ANCHOR_WEIGHT, _view_arrays
 from .uncertainty import UncertaintyError, _geometry, _ls_rhs, _pixel_jacobian, _tangent_array, _word, _xi
-from .uncertainty_calibration import _accumulate, _fill
+from .uncertainty_calibration import _fill
+from .uncertainty_gram import _cell
 
 __all__ = ["MIN_NOISE_SUBGRID_PX", "default_noise_stride", "subgrid_noise_std"]
 
@@ -158,6 +159,29 @@ def _jacobian_block_means(o, p, q, T, S, sig, seed, n_chunks, K, row_block, col_
         _block_row_means(acc, cnt, K, i, out)
 
 
+@numba.njit(cache=True, parallel=True)
+def _interpolated_std(sd, S, o, s, out):
+    """out (H, W) = sqrt(x²), x the bilinear interpolation of the subgrid's σ sd (h, w) (no NaN;
+    node (i, j) is pixel (o + s·i, o + s·j), linear extrapolation beyond the outer nodes), NaN
+    off S: what ``np.sqrt(_accumulate(sd[None, ..., None] · (1, 1, 1), o, o, s, H, W)[..., 0])``
+    gives there, bit for bit (the same weights and sums; 0 + x² = x²), in one channel and one
+    pass."""
+    h, w = sd.shape
+    H, W = S.shape
+    for v in numba.prange(0, H):
+        i0, ay = _cell(v, o, s, h)
+        i1 = min(i0 + 1, h - 1)
+        for u in range(W):
+            if not S[v, u]:
+                out[v, u] = np.nan
+                continue
+            j0, ax = _cell(u, o, s, w)
+            j1 = min(j0 + 1, w - 1)
+            x = ((1 - ay) * (1 - ax) * sd[i0, j0] + (1 - ay) * ax * sd[i0, j1] + ay * (1 - ax) * sd[i1, j0]
+                 + ay * ax * sd[i1, j1])
+            out[v, u] = np.sqrt(x * x)
+
+
 @numba.njit(cache=True)
 def _anchor_draws(anchor, cam, pix, coef, seeds, K, n_chunks, out):
     """out (K, n): δa of every sample k from the linear terms δa_i = Σ_t coef_t·ξ_k(cam_t, pix_t)
@@ -259,14 +283,14 @@ class _SubgridLinear:
     def to_pixels(self, var_sub) -> np.ndarray:
         """σ (H, W) at every pixel from the subgrid's variances (h, w) (NaN off S): bilinear
         interpolation of σ after filling the subgrid pixels off S from their neighbours."""
-        sd = np.where(self.S, np.sqrt(var_sub), np.nan)[..., None] * np.ones(3)
+        sd = np.where(self.S, np.sqrt(var_sub), np.nan)[..., None]
         h, w = self.S.shape
         filled = _fill(np.ascontiguousarray(sd), h + w)
         if np.isnan(filled).any():
             raise UncertaintyError("the σ's subgrid holds no reconstructed pixel; no σ")
-        H, W = self.shape
-        var = _accumulate(np.ascontiguousarray(filled[None]), self.o, self.o, self.s, H, W)[..., 0]
-        return np.where(self.S_full, np.sqrt(var), np.nan)
+        out = np.empty(self.shape)
+        _interpolated_std(np.ascontiguousarray(filled[..., 0]), self.S_full, self.o, self.s, out)
+        return out
 
 
 def subgrid_noise_std(views: dict, recs: dict, anchors_vu: dict, jacobian: dict, noise: dict, seeds, *,
