@@ -57,7 +57,7 @@ from .surface_fit import sample_slopes
 from .uncertainty_calibration import (DEFAULT_STEP, CalibrationContribution, CalibrationUncertaintyError,
                                       _interpolated_squares, _strided, calibration_parameters,
                                       principal_axes)
-from .uncertainty_gram import interpolated_squares
+from .uncertainty_gram import interpolated_std_maps
 
 __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calibration_contribution",
            "stereo_calibration_parameters", "default_stereo_stride", "MIN_SUBGRID_PX"]
@@ -391,13 +391,12 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     for c in cams:
         S = np.asarray(stereo.cameras[c].reconstructed)
         H, W = S.shape
-        if axes:
-            interp = _interpolated_squares if s == 1 else interpolated_squares  # the latter: per-cell Gram matrices
-            var = interp(np.stack(fields[c]), o, o, s, H, W)
+        if axes and s > 1:  # per-cell Gram matrices, straight to the σ maps (no (H, W, 3) variances)
+            h_um, g_urad = interpolated_std_maps(np.stack(fields[c]), o, o, s, S)
         else:
-            var = np.zeros((H, W, 3))
-        h_um, g_urad = np.empty((H, W)), np.empty((H, W, 2))
-        _std_maps(np.ascontiguousarray(var), np.ascontiguousarray(S, dtype=np.bool_), h_um, g_urad)
+            var = _interpolated_squares(np.stack(fields[c]), o, o, s, H, W) if axes else np.zeros((H, W, 3))
+            h_um, g_urad = np.empty((H, W)), np.empty((H, W, 2))
+            _std_maps(np.ascontiguousarray(var), np.ascontiguousarray(S, dtype=np.bool_), h_um, g_urad)
         out[c] = CalibrationContribution(h_um, g_urad, names, len(axes), s)
         node = lin.anchor_node[c]
         anchors[c] = np.where(node >= 0, np.sqrt(var_a[c][np.maximum(node, 0)]) * 1e3, np.nan)
