@@ -22,7 +22,9 @@ the stereo evaluation itself. On large images the same estimator runs on every s
   correlations between a camera's slopes, its anchors and the partner's data stay propagated.
 * **All K samples' draws at once**: one pass over the pixels draws each pixel's random word once
   per 32 samples and adds its δg_k to its block's mean; the anchors' δa_k likewise (bit for bit
-  the per-sample draws). Each sample is then one multigrid-CG solve of the subgrid's system.
+  the per-sample draws). Each sample is then one multigrid-CG solve of the subgrid's system. The
+  same pass makes each pixel's A = J·diag(σ) and the slopes' σ (:func:`subgrid_noise_std`): the
+  (H, W, 2, 2) array of A is never stored (bit for bit the values it would hold).
 * **Back to every pixel**: σ of the subgrid, bilinearly interpolated (subgrid pixels that are
   not reconstructed filled from their neighbours first).
 
