@@ -169,10 +169,10 @@ def timing(a) -> None:
     st_ = _Stages()
     from pmdsim.evaluation import uncertainty_stereo_subgrid as sg
 
-    for name in ("_tangents", "_jacobian_scaled", "anchor_noise", "stereo_height_std", "subgrid_height_std"):
+    for name in ("_tangents", "_jacobian_scaled", "anchor_noise", "stereo_height_std", "subgrid_noise_std"):
         st_.wrap(us, name)
     st_.wrap(us._AnchoredLinear, "__init__", "linearisation (every pixel)")
-    for name in ("block_means", "sum_sq", "to_pixels"):
+    for name in ("jacobian_block_means", "sum_sq", "to_pixels"):
         st_.wrap(sg._SubgridLinear, name, "subgrid " + name)
     for rep in range(a.repeat):
         st_.reset()

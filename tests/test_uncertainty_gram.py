@@ -47,3 +47,19 @@ def test_nan_nodes_take_the_per_axis_path():
     assert np.array_equal(np.isnan(got), np.isnan(ref))
     m = np.isfinite(ref)
     np.testing.assert_allclose(got[m], ref[m], rtol=1e-12, atol=1e-14 * ref[m].max())
+
+
+def test_std_maps_are_the_square_roots_of_the_gram_squares():
+    """σ maps straight from the Gram matrices: numpy's square roots of interpolated_squares
+    (heights ×1e3, slopes ×1e6, NaN off S), bit for bit — also at the NaN cells' per-axis path."""
+    from pmdsim.evaluation.uncertainty_gram import interpolated_std_maps
+
+    rng = np.random.default_rng(5)
+    stack = rng.normal(size=(6, 30, 40, 3))
+    stack[:, 10:22, 15:27, :] = np.nan
+    S = rng.random((120, 160)) > 0.2
+    var = interpolated_squares(stack, 2, 1, 4, 120, 160)
+    var[~S] = np.nan
+    h, g = interpolated_std_maps(stack, 2, 1, 4, S)
+    np.testing.assert_array_equal(h, np.sqrt(var[..., 0]) * 1e3)
+    np.testing.assert_array_equal(g, np.sqrt(var[..., 1:]) * 1e6)

@@ -301,3 +301,13 @@ def test_what_stereo_sigma_cannot_use_is_refused_and_the_heights_stand(flat):
     for cam, c in res.cameras.items():
         assert c.uncertainty is None
         np.testing.assert_array_equal(c.reconstruction.p_sample_mm, ref.cameras[cam].reconstruction.p_sample_mm)
+
+
+def test_nonfinite_on_counts_what_numpy_counts():
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(23, 31, 2))
+    x[rng.random((23, 31)) < 0.1, 0] = np.nan
+    x[rng.random((23, 31)) < 0.1, 1] = np.inf
+    S = rng.random((23, 31)) > 0.3
+    assert US._nonfinite_on(x, S) == np.count_nonzero(~np.isfinite(x[S]).all(axis=-1)) > 0
+    assert US._nonfinite_on(np.ones((23, 31, 1)), S) == 0

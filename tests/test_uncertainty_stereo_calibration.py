@@ -221,3 +221,21 @@ def test_monte_carlo_over_calibrations(chain):
             ratio = np.sqrt(np.mean(obs[..., k][ok] ** 2) / np.mean(p[..., k][ok] ** 2))
             print(f"{c} {what}: observed / predicted σ {ratio:.3f}")
             assert abs(ratio - 1) < 3 / np.sqrt(2 * (n - 1)), (c, what, ratio)
+
+
+def test_std_maps_are_numpys_sqrt_and_scale_bit_for_bit():
+    """The calibration part's σ maps from its variances by one compiled pass against numpy's
+    ``var[~S] = nan; sqrt(var[..., 0]) * 1e3, sqrt(var[..., 1:]) * 1e6``."""
+    from pmdsim.evaluation.uncertainty_stereo_calibration import _std_maps
+
+    rng = np.random.default_rng(3)
+    var = rng.lognormal(-8, 3, size=(37, 53, 3))
+    var[5, 7, 1] = 0.0
+    var[6, 8, 2] = np.nan
+    S = rng.random((37, 53)) > 0.2
+    h, g = np.empty((37, 53)), np.empty((37, 53, 2))
+    _std_maps(var, S, h, g)
+    ref = var.copy()
+    ref[~S] = np.nan
+    np.testing.assert_array_equal(h, np.sqrt(ref[..., 0]) * 1e3)
+    np.testing.assert_array_equal(g, np.sqrt(ref[..., 1:]) * 1e6)

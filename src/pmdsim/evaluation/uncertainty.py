@@ -130,10 +130,44 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(f * f))) if f.size else 0.0
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _pixel_jacobian(o, p, q, T, v, u, tv, tu, sig, a, g):
+    """Pixel (v, u): a (2, 2) = J·diag(σ) with J = ∂g/∂(x_s, y_s) (module docstring), σ = sig[v, u]
+    (2,), and g (2,) = the slopes' σ sqrt(Σ_j a_ij²); the screen tangents T[tv, tu] (3, 2)."""
+    ax = o[0] - p[v, u, 0]
+    ay = o[1] - p[v, u, 1]
+    az = o[2] - p[v, u, 2]
+    la = np.sqrt(ax * ax + ay * ay + az * az)
+    bx = q[v, u, 0] - p[v, u, 0]
+    by = q[v, u, 1] - p[v, u, 1]
+    bz = q[v, u, 2] - p[v, u, 2]
+    lb = np.sqrt(bx * bx + by * by + bz * bz)
+    bx /= lb
+    by /= lb
+    bz /= lb
+    mx = ax / la + bx
+    my = ay / la + by
+    mz = az / la + bz
+    imz = 1.0 / mz
+    for j in range(2):
+        tx = T[tv, tu, 0, j]
+        ty = T[tv, tu, 1, j]
+        tz = T[tv, tu, 2, j]
+        bt = bx * tx + by * ty + bz * tz
+        # dm = (I − b̂b̂ᵀ) t / |b|; dg_x = (−dm_x + g_x·(−dm_z))/m_z … = −(dm_x − m_x/m_z dm_z)/m_z
+        dmx = (tx - bt * bx) / lb
+        dmy = (ty - bt * by) / lb
+        dmz = (tz - bt * bz) / lb
+        a[0, j] = (-dmx + mx * imz * dmz) * imz * sig[v, u, j]
+        a[1, j] = (-dmy + my * imz * dmz) * imz * sig[v, u, j]
+    for i in range(2):
+        g[i] = np.sqrt(a[i, 0] ** 2 + a[i, 1] ** 2)
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _jacobian_kernel(o, p, q, T, S, sig, A, gstd):
-    """Per pixel of S: A = J·diag(σ) (2, 2) with J = ∂g/∂(x_s, y_s) (module docstring) and the
-    slopes' σ = sqrt(Σ_j A_ij²); T (H, W, 3, 2) or (1, 1, 3, 2) the screen tangents. NaN off S."""
+    """Per pixel of S: A = J·diag(σ) (2, 2) and the slopes' σ (:func:`_pixel_jacobian`); T
+    (H, W, 3, 2) or (1, 1, 3, 2) the screen tangents. NaN off S."""
     H, W = S.shape
     per_pixel = 0 if T.shape[0] == 1 else 1
     for v in numba.prange(0, H):
@@ -144,47 +178,29 @@ def _jacobian_kernel(o, p, q, T, S, sig, A, gstd):
                     for j in range(2):
                         A[v, u, i, j] = np.nan
                 continue
-            ax = o[0] - p[v, u, 0]
-            ay = o[1] - p[v, u, 1]
-            az = o[2] - p[v, u, 2]
-            la = np.sqrt(ax * ax + ay * ay + az * az)
-            bx = q[v, u, 0] - p[v, u, 0]
-            by = q[v, u, 1] - p[v, u, 1]
-            bz = q[v, u, 2] - p[v, u, 2]
-            lb = np.sqrt(bx * bx + by * by + bz * bz)
-            bx /= lb
-            by /= lb
-            bz /= lb
-            mx = ax / la + bx
-            my = ay / la + by
-            mz = az / la + bz
-            imz = 1.0 / mz
-            tv = v * per_pixel
-            tu = u * per_pixel
-            for j in range(2):
-                tx = T[tv, tu, 0, j]
-                ty = T[tv, tu, 1, j]
-                tz = T[tv, tu, 2, j]
-                bt = bx * tx + by * ty + bz * tz
-                # dm = (I − b̂b̂ᵀ) t / |b|; dg_x = (−dm_x + g_x·(−dm_z))/m_z … = −(dm_x − m_x/m_z dm_z)/m_z
-                dmx = (tx - bt * bx) / lb
-                dmy = (ty - bt * by) / lb
-                dmz = (tz - bt * bz) / lb
-                A[v, u, 0, j] = (-dmx + mx * imz * dmz) * imz * sig[v, u, j]
-                A[v, u, 1, j] = (-dmy + my * imz * dmz) * imz * sig[v, u, j]
-            for i in range(2):
-                gstd[v, u, i] = np.sqrt(A[v, u, i, 0] ** 2 + A[v, u, i, 1] ** 2)
+            _pixel_jacobian(o, p, q, T, v, u, v * per_pixel, u * per_pixel, sig, A[v, u], gstd[v, u])
 
 
-def _jacobian_scaled(o, p, q, dq_dxy, S, sig):
+def _tangent_array(dq_dxy) -> np.ndarray:
+    """The screen tangents as the Jacobian kernels take them: (H, W, 3, 2), or (1, 1, 3, 2) for one
+    for every pixel — a (3, 2) array or a broadcast one (no full-size copy of it)."""
     T = np.asarray(dq_dxy, dtype=float)
     if T.ndim == 2:
         T = T[None, None]
+    elif T.strides[0] == 0 and T.strides[1] == 0:
+        T = T[:1, :1]
+    return np.ascontiguousarray(T)
+
+
+def _jacobian_scaled(o, p, q, dq_dxy, S, sig):
+    """A = J·diag(σ) (H, W, 2, 2) and the slopes' σ (H, W, 2) (:func:`_jacobian_kernel`); σ is read
+    on S only."""
+    T = _tangent_array(dq_dxy)
     H, W = S.shape
     A = np.empty((H, W, 2, 2))
     gstd = np.empty((H, W, 2))
     _jacobian_kernel(np.asarray(o, dtype=float), np.ascontiguousarray(p, dtype=float),
-                     np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(T), np.ascontiguousarray(S),
+                     np.ascontiguousarray(q, dtype=float), T, np.ascontiguousarray(S),
                      np.ascontiguousarray(sig, dtype=float), A, gstd)
     return A, gstd
 

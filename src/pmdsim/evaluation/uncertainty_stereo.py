@@ -53,7 +53,7 @@ from .stereo import (ANCHOR_WEIGHT, StereoReconstruction, _camera_arrays, _keys,
 from .uncertainty import (DEFAULT_RNG_SEED, DEFAULT_SAMPLES, NO_COVARIANCE_NOTE, SurfaceUncertainty,
                           UncertaintyError, _geometry, _jacobian_scaled, _ls_rhs, _sample_dg, _screen_tangents,
                           _word, _xi, combine, slope_jacobian)
-from .uncertainty_stereo_subgrid import default_noise_stride, subgrid_height_std
+from .uncertainty_stereo_subgrid import default_noise_stride, subgrid_noise_std
 
 __all__ = ["AnchorNoise", "anchor_noise", "stereo_height_std", "stereo_uncertainty", "with_uncertainty",
            "stereo_with_uncertainty"]
@@ -114,6 +114,22 @@ def _anchor_kernel(oA, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, p_out, q
 
 
 @numba.njit(cache=True)
+def _nonfinite_on(x, S):
+    """The number of pixels of S (H, W) where x (H, W, c) has a component that is not finite (one
+    pass, no masked copy of x)."""
+    H, W = S.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if S[v, u]:
+                for m in range(x.shape[2]):
+                    if not np.isfinite(x[v, u, m]):
+                        n += 1
+                        break
+    return n
+
+
+@numba.njit(cache=True)
 def _anchor_draw(anchor, cam, pix, coef, seeds, k, n_chunks, out):
     """δa of sample k (out, one per anchor) from the linear terms δa_i = Σ_t coef_t·ξ(cam_t, pix_t)."""
     out[:] = 0.0
@@ -158,7 +174,8 @@ def _tangents(setup, screen_model, decoded) -> np.ndarray:
     return np.broadcast_to(T, (H, W, 3, 2)) if T.ndim == 2 else T
 
 
-def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchors_vu, anchors_z) -> AnchorNoise:
+def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchors_vu, anchors_z, *,
+                 arrays: dict | None = None) -> AnchorNoise:
     """The anchors' linearised noise (:class:`AnchorNoise`, module docstring) of ``camera``.
 
     Parameters
@@ -174,10 +191,15 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
         The anchors' pixels (row, column) of ``camera``.
     anchors_z : ndarray (n,)
         Their heights, mm.
+    arrays : dict name → tuple, optional
+        Every camera's ``_view_arrays`` (o, d, q, valid) when the caller has them (each is a
+        full-size copy of the screen points; default: made here).
     """
     names = list(views)
     ci = names.index(camera)
-    o, d, q, _ = _view_arrays(views[camera])
+    if arrays is None:
+        arrays = {c: _view_arrays(views[c]) for c in names}
+    o, d, q, _ = arrays[camera]
     rows = np.ascontiguousarray(anchors_vu[:, 0], dtype=np.int64)
     cols = np.ascontiguousarray(anchors_vu[:, 1], dtype=np.int64)
     za = np.ascontiguousarray(anchors_z, dtype=np.float64)
@@ -186,7 +208,7 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
     for partner in names:
         if partner == camera:
             continue
-        oB, _, qB, okB = _view_arrays(views[partner])
+        oB, _, qB, okB = arrays[partner]
         RB, tB, camB = _camera_arrays(views[partner])
         out = (np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 2)), np.full(n, np.inf), np.zeros((n, 16), np.int64),
                np.zeros((n, 16)), np.zeros(n, dtype=np.bool_))
@@ -203,7 +225,7 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
             best[2 + j][take] = out[j][take]
     partners, _, p, qB_pt, J, _, idx, w, ok = best
     # A's own term: c_A = −(JᵀJ)⁻¹ Jᵀ G_A T_A diag(σ_A)
-    sA = np.nan_to_num(np.asarray(decoded[camera].std_xy_mm, dtype=float))[rows, cols]
+    sA = np.nan_to_num(np.asarray(decoded[camera].std_xy_mm, dtype=float)[rows, cols])
     GA = slope_jacobian(o, p[:, None], q[rows, cols][:, None], tangents[camera][rows, cols][:, None])[:, 0]
     jj = np.einsum("ni,ni->n", J, J)
     inv = np.where(ok & (jj > 0), 1.0 / np.where(jj > 0, jj, 1.0), 0.0)
@@ -222,7 +244,8 @@ def anchor_noise(views: dict, decoded: dict, tangents: dict, camera: str, anchor
         GB = np.concatenate([slope_jacobian(oB, p[sel, None], qB_pt[sel, None], E1)[:, 0],
                              slope_jacobian(oB, p[sel, None], qB_pt[sel, None], E2)[:, 0, :, :1]], axis=-1)  # (m, 2, 3)
         HB, WB = decoded[partner].valid.shape
-        TB = tangents[partner].reshape(HB * WB, 3, 2)[idx[sel]]  # (m, 16, 3, 2)
+        iB = idx[sel]
+        TB = tangents[partner][iB // WB, iB % WB]  # (m, 16, 3, 2); a reshape would copy a broadcast plane's
         sB = np.asarray(decoded[partner].std_xy_mm, dtype=float).reshape(HB * WB, 2)[idx[sel]]
         # an interpolation pixel without σ leaves the anchor without σ (noted), not with a smaller one
         ok[sel[~(np.isfinite(sB).all(axis=-1) | (w[sel] == 0.0)).all(axis=1)]] = False
@@ -355,33 +378,36 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
     if int(samples) < 2:
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
     tangents = {c: _tangents(setup, screen_model, decoded[c]) for c in views}
-    A, g_noise, noise, lins = {}, {}, {}, {}
-    for c, view in views.items():
-        reg = view.registration
-        rec = stereo.cameras[c].reconstruction
-        std = np.asarray(decoded[c].std_xy_mm, dtype=float)
-        bad = int(np.count_nonzero(~np.isfinite(std[rec.reconstructed]).all(axis=-1)))
-        if bad:
-            raise UncertaintyError(f"camera {c!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
-                                   f"pixel(s); no σ of the surface")
-        std = np.nan_to_num(std)  # outside the reconstructed pixels: unused
-        A[c], g_noise[c] = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, tangents[c],
-                                            rec.reconstructed, std)
-        sc = stereo.cameras[c]
-        noise[c] = anchor_noise(views, decoded, tangents, c, sc.anchor_pixels, sc.anchor_height_mm)
+    arrays = {c: _view_arrays(views[c]) for c in views}  # once per camera (each a full-size copy)
     first = stereo.cameras[next(iter(views))].reconstruction.reconstructed.shape
     s = default_noise_stride(first) if noise_stride is None else int(noise_stride)
     if s < 1:
         raise UncertaintyError(f"noise_stride must be ≥ 1, got {noise_stride!r}")
+    jac, noise = {}, {}
+    for c, view in views.items():
+        rec = stereo.cameras[c].reconstruction
+        std = np.asarray(decoded[c].std_xy_mm, dtype=float)
+        bad = _nonfinite_on(std, np.asarray(rec.reconstructed, dtype=bool))
+        if bad:
+            raise UncertaintyError(f"camera {c!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
+                                   f"pixel(s); no σ of the surface")
+        # the Jacobian reads σ only on the reconstructed pixels, where it is finite: no NaN-free copy
+        jac[c] = (view.registration.o_ref_mm, rec.p_sample_mm, view.registration.q_ref_mm, tangents[c], std)
+        sc = stereo.cameras[c]
+        noise[c] = anchor_noise(views, decoded, tangents, c, sc.anchor_pixels, sc.anchor_height_mm, arrays=arrays)
     if s == 1:
+        A, g_noise, lins = {}, {}, {}
         for c, view in views.items():
-            lins[c] = _AnchoredLinear(view, stereo.cameras[c].reconstruction, stereo.cameras[c].anchor_pixels)
+            rec = stereo.cameras[c].reconstruction
+            A[c], g_noise[c] = _jacobian_scaled(*jac[c][:4], rec.reconstructed, jac[c][4])
+            lins[c] = _AnchoredLinear(view, rec, stereo.cameras[c].anchor_pixels)
         h = stereo_height_std(lins, A, noise, samples=samples, rng_seed=rng_seed)
-    else:
-        h = subgrid_height_std(views, {c: stereo.cameras[c].reconstruction for c in views},
-                               {c: stereo.cameras[c].anchor_pixels for c in views}, A, noise,
-                               _seeds(rng_seed, len(A)), samples=int(samples), stride=s,
-                               offset=(int(stereo.stride_px) // 2) % s)
+    else:  # the slopes' σ and the subgrid's draws in one pass (no (H, W, 2, 2) array)
+        h, g_noise = subgrid_noise_std(views, {c: stereo.cameras[c].reconstruction for c in views},
+                                       {c: stereo.cameras[c].anchor_pixels for c in views}, jac, noise,
+                                       _seeds(rng_seed, len(jac)), samples=int(samples), stride=s,
+                                       offset=(int(stereo.stride_px) // 2) % s, arrays=arrays)
+    del arrays  # its pages serve the calibration part's arrays (fresh pages cost more than the arithmetic here)
     cov = getattr(setup, "calibration_covariance", None)
     cal = None
     if cov is not None:
@@ -395,7 +421,7 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
     out = {}
     for c in views:
         S = np.asarray(stereo.cameras[c].reconstruction.reconstructed, dtype=bool)
-        if not np.isfinite(h[c][S]).all():
+        if _nonfinite_on(h[c][..., None], S):
             raise UncertaintyError(f"camera {c!r}: the height σ is not finite at some reconstructed pixel")
         a_std = noise[c].std_mm
         fin = a_std[np.isfinite(a_std)]
@@ -420,12 +446,14 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
             g_cal = np.where(S[..., None], 0.0, np.nan) * np.ones(S.shape + (2,))
             h_cal = np.where(S, 0.0, np.nan)
             a_cal = np.zeros(a_std.size)
-        else:
-            g_cal = np.where(S[..., None], cal.cameras[c].slope_std_urad, np.nan)
-            h_cal = np.where(S, cal.cameras[c].height_std_um, np.nan)
+        else:  # NaN off S already (stereo_calibration_contribution)
+            g_cal = cal.cameras[c].slope_std_urad
+            h_cal = cal.cameras[c].height_std_um
             a_cal = cal.anchor_height_std_um[c]
-        h_um = h[c] * 1e3
-        g_urad = g_noise[c] * 1e6
+        h_um = h[c]  # in place: the arrays are this function's own (the values of h[c] * 1e3)
+        h_um *= 1e3
+        g_urad = g_noise[c]
+        g_urad *= 1e6
         unc = SurfaceUncertainty(slope_std_urad=combine(g_urad, g_cal), height_std_um=combine(h_um, h_cal),
                                  slope_std_noise_urad=g_urad, height_std_noise_um=h_um,
                                  slope_std_calibration_urad=g_cal, height_std_calibration_um=h_cal,

@@ -57,7 +57,7 @@ from .surface_fit import sample_slopes
 from .uncertainty_calibration import (DEFAULT_STEP, CalibrationContribution, CalibrationUncertaintyError,
                                       _interpolated_squares, _strided, calibration_parameters,
                                       principal_axes)
-from .uncertainty_gram import interpolated_squares
+from .uncertainty_gram import interpolated_std_maps
 
 __all__ = ["StereoCalibrationContribution", "StereoLinearisation", "stereo_calibration_contribution",
            "stereo_calibration_parameters", "default_stereo_stride", "MIN_SUBGRID_PX"]
@@ -72,6 +72,24 @@ _RTOL = 1e-6
 #: against 1.27 s with one (wall 3.87 s against 1.39 s; docs/benchmarks.md "Uncertainty: stereo
 #: calibration part at full resolution").
 THREADS = 1
+
+
+@numba.njit(cache=True, parallel=True)
+def _std_maps(var, S, h_um, g_urad):
+    """From the variances var (H, W, 3) (height mm², slopes): h_um (H, W) = sqrt(var₀)·1e3 and
+    g_urad (H, W, 2) = sqrt(var₁,₂)·1e6 on S, NaN off it — numpy's ``np.sqrt(var[..., 0]) * 1e3``
+    after ``var[~S] = nan`` bit for bit, in one pass without its temporaries."""
+    H, W = S.shape
+    for v in numba.prange(0, H):
+        for u in range(W):
+            if S[v, u]:
+                h_um[v, u] = np.sqrt(var[v, u, 0]) * 1e3
+                g_urad[v, u, 0] = np.sqrt(var[v, u, 1]) * 1e6
+                g_urad[v, u, 1] = np.sqrt(var[v, u, 2]) * 1e6
+            else:
+                h_um[v, u] = np.nan
+                g_urad[v, u, 0] = np.nan
+                g_urad[v, u, 1] = np.nan
 
 
 @contextmanager
@@ -373,13 +391,13 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     for c in cams:
         S = np.asarray(stereo.cameras[c].reconstructed)
         H, W = S.shape
-        if axes:
-            interp = _interpolated_squares if s == 1 else interpolated_squares  # the latter: per-cell Gram matrices
-            var = interp(np.stack(fields[c]), o, o, s, H, W)
+        if axes and s > 1:  # per-cell Gram matrices, straight to the σ maps (no (H, W, 3) variances)
+            h_um, g_urad = interpolated_std_maps(np.stack(fields[c]), o, o, s, S)
         else:
-            var = np.zeros((H, W, 3))
-        var[~S] = np.nan
-        out[c] = CalibrationContribution(np.sqrt(var[..., 0]) * 1e3, np.sqrt(var[..., 1:]) * 1e6, names, len(axes), s)
+            var = _interpolated_squares(np.stack(fields[c]), o, o, s, H, W) if axes else np.zeros((H, W, 3))
+            h_um, g_urad = np.empty((H, W)), np.empty((H, W, 2))
+            _std_maps(np.ascontiguousarray(var), np.ascontiguousarray(S, dtype=np.bool_), h_um, g_urad)
+        out[c] = CalibrationContribution(h_um, g_urad, names, len(axes), s)
         node = lin.anchor_node[c]
         anchors[c] = np.where(node >= 0, np.sqrt(var_a[c][np.maximum(node, 0)]) * 1e3, np.nan)
     return StereoCalibrationContribution(out, anchors, names, len(axes), tuple(notes), time.perf_counter() - t0)
