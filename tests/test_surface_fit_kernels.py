@@ -118,3 +118,35 @@ def test_piston_tilt_matches_lstsq_with_mask():
     line = np.stack([x, 2 * x, z], -1)
     with pytest.raises(sf.ComputationError):
         sf.remove_piston_tilt(line, np.ones(x.shape, bool))
+
+
+@pytest.mark.parametrize("quantise", [False, True])
+def test_one_pass_median_and_mad(quantise):
+    """The one-pass median and MAD (surface_fit_select) are numpy's medians exactly, with their
+    two middle values: with brackets from a nearby fit's medians (the IRLS's next iteration), with
+    ties (quantised slopes); None where a bracket misses a rank or holds too many values."""
+    from pmdsim.evaluation.surface_fit_select import median_and_mad
+
+    x, y, gx, gy = _slopes(60_001, seed=21)
+    if quantise:
+        gx = np.round(gx, 6)  # many equal residuals
+    coef = np.array([2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3])
+    r = np.concatenate([gx - (2 * coef[0] * x + coef[1] * y + coef[3]), gy - (coef[1] * x + 2 * coef[2] * y + coef[4])])
+    n = r.size
+    srt = np.sort(r)
+    med = np.median(r)
+    dev = np.sort(np.abs(r - med))
+    mad = np.median(np.abs(r - med))
+    k1, k2 = (n - 1) // 2, n // 2
+    buf_r, buf_z = np.empty(8192), np.empty(8192)
+    for width in (0.0, 1e-8, 1e-7):
+        got = median_and_mad(x, y, gx, gy, coef, (srt[k1] - width, srt[k2] + width),
+                             (max(dev[k1] - 2 * width, 0.0), dev[k2] + 2 * width), buf_r, buf_z)
+        assert got == ((med, srt[k1], srt[k2]), (mad, dev[k1], dev[k2]))
+        ref = tuple(sf._median(x, y, gx, gy, coef, mode, centre, buf_r, np.empty(sf._N_BINS_SELECT, np.int64),
+                               ranks=True) for mode, centre in ((0, 0.0), (1, med)))
+        assert got == ref
+    # a bracket above the median, a deviations' bracket missing the MAD, one holding every value
+    assert median_and_mad(x, y, gx, gy, coef, (srt[k2] + 1e-9, srt[k2] + 1e-6), (dev[k1], dev[k2]), buf_r, buf_z) is None
+    assert median_and_mad(x, y, gx, gy, coef, (srt[k1], srt[k2]), (dev[k2] + 1e-9, dev[k2] + 1e-8), buf_r, buf_z) is None
+    assert median_and_mad(x, y, gx, gy, coef, (srt[0], srt[-1]), (0.0, dev[-1]), buf_r, buf_z) is None

@@ -373,10 +373,12 @@ def _pick(vals, below, k1, k2, lo, hi):
     return part[k1 - below], part[k2 - below]
 
 
-def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None):
+def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=False):
     """Exact median (numpy's: mean of the two middle values for an even count) of the 2M
     residuals (``mode`` 0) or of their absolute deviations from ``centre`` (``mode`` 1).
-    ``bracket``: (lo, hi) known to hold the median (the Lipschitz bound above), or None."""
+    ``bracket``: (lo, hi) expected to hold the two middle values (the Lipschitz bound above), or
+    None (a wrong bracket costs passes, not exactness). ``ranks``: return (median, lower middle
+    value, upper middle value) — what the next iteration's bracket is built from."""
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     got = None
@@ -410,7 +412,8 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None):
         vals = np.partition(_all_values(x, y, gx, gy, coef, mode, centre), (k1, k2))
         got = vals[k1], vals[k2]
     v1, v2 = got
-    return float(v1) if n % 2 else float((v1 + v2) / 2.0)
+    med = float(v1) if n % 2 else float((v1 + v2) / 2.0)
+    return (med, float(v1), float(v2)) if ranks else med
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
@@ -554,17 +557,34 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         y -= yc
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, np.zeros(5), 1.0, False))
     if robust:
-        buf = np.empty(min(2 * n, max(4096, (2 * n) // 64)))
+        from .surface_fit_select import median_and_mad
+
+        buf = np.empty(min(2 * n, max(4096, (2 * n) // 16)))
         hist = np.empty(_N_BINS_SELECT, np.int64)
         ax, ay = float(np.max(np.abs(x))), float(np.max(np.abs(y)))
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
+        m1 = m2 = d1 = d2 = 0.0  # the two middle values of the residuals and of their deviations
         scale = 0.0
+        buf_z = np.empty(buf.size)
+        stride = max(1, n // _SAMPLE_POINTS)
         for _ in range(max_iter):
-            med = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
-                          None if delta is None else (med - delta, med + delta))
-            mad = _median(x, y, gx, gy, coef, 1, med, buf, hist,
-                          None if delta is None else (max(mad - 2.0 * delta, 0.0), mad + 2.0 * delta))
+            # Each order statistic moves by at most delta (the deviations by 2·delta): the next
+            # brackets hold the two middle values, not only their mean (adjacent order
+            # statistics of 9 M values lie ~1e-10 apart, wider than delta near convergence).
+            both = None
+            if delta is not None:  # both medians from one pass (surface_fit_select), if the brackets allow
+                both = median_and_mad(x, y, gx, gy, coef, (m1 - delta, m2 + delta),
+                                      (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta), buf, buf_z,
+                                      sample=np.sort(_sample_values(x, y, gx, gy, coef, 0, 0.0, stride)))
+            if both is not None:
+                (med, m1, m2), (mad, d1, d2) = both
+            else:
+                med, m1, m2 = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
+                                      None if delta is None else (m1 - delta, m2 + delta), ranks=True)
+                mad, d1, d2 = _median(x, y, gx, gy, coef, 1, med, buf, hist,
+                                      None if delta is None else (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta),
+                                      ranks=True)
             s = mad / _MAD_TO_SIGMA
             scale = _TUKEY_C * s if s > 0 else 0.0
             if not s > 0:
