@@ -150,3 +150,44 @@ def test_one_pass_median_and_mad(quantise):
     assert median_and_mad(x, y, gx, gy, coef, (srt[k2] + 1e-9, srt[k2] + 1e-6), (dev[k1], dev[k2]), buf_r, buf_z) is None
     assert median_and_mad(x, y, gx, gy, coef, (srt[k1], srt[k2]), (dev[k2] + 1e-9, dev[k2] + 1e-8), buf_r, buf_z) is None
     assert median_and_mad(x, y, gx, gy, coef, (srt[0], srt[-1]), (0.0, dev[-1]), buf_r, buf_z) is None
+
+
+def test_sandwich_sums_match_entry_loop_and_matmul():
+    """The σ sandwich's N = Σ w AᵢᵀAᵢ and B = Σ (wσ)² AᵢᵀAᵢ: bit for bit the entry-by-entry sums
+    (w·A_a)·A_b over the points in order (plain Python floats), and AᵀWA, AᵀW²Σ²A by numpy matmul
+    on the explicit (2M, 5) design to 1e-12 relative; with zero weights (residuals beyond the
+    scale), a point at x = 0 exactly and non-finite points skipped."""
+    rng = np.random.default_rng(31)
+    m = 400
+    xy = np.stack([rng.uniform(-50, 50, m), rng.uniform(-40, 40, m)], -1)
+    res = rng.normal(0, 1e-4, (m, 2))
+    res[::17] = 5e-3  # beyond the scale: weight 0
+    sig = rng.uniform(1e-6, 3e-6, (m, 2))
+    xc, yc = 3.0, -2.0
+    xy[5, 0] = xc  # x − xc = 0 exactly
+    res[9, 1] = np.nan
+    sig[11, 0] = np.inf
+    scale = 4.685 * 1e-4
+    N, B = sf._sandwich_sums(xy, res, sig, xc, yc, scale)
+    Nr, Br = [[0.0] * 5 for _ in range(5)], [[0.0] * 5 for _ in range(5)]
+    rows, wts, wbs = [], [], []
+    for i in range(m):
+        if not np.isfinite(res[i].sum() + sig[i].sum() + xy[i].sum()):
+            continue
+        x, y = float(xy[i, 0]) - xc, float(xy[i, 1]) - yc
+        for comp, row in ((0, [2 * x, y, 0.0, 1.0, 0.0]), (1, [0.0, x, 2 * y, 0.0, 1.0])):
+            u = float(res[i, comp]) / scale
+            w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            wb = (w * float(sig[i, comp])) ** 2
+            rows.append(row), wts.append(w), wbs.append(wb)
+            for a in range(5):
+                for b in range(5):
+                    if w != 0.0 and row[a] != 0.0:
+                        Nr[a][b] += w * row[a] * row[b]
+                        Br[a][b] += wb * row[a] * row[b]
+    assert np.array_equal(N, np.array(Nr)) and np.array_equal(B, np.array(Br))
+    assert not np.signbit(N).any() or np.array_equal(np.signbit(N), np.signbit(np.array(Nr)))
+    A, w, wb = np.array(rows), np.array(wts), np.array(wbs)
+    assert (w == 0).sum() >= 40 and len(rows) == 2 * (m - 2)
+    np.testing.assert_allclose(N, A.T @ (w[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(N).max())
+    np.testing.assert_allclose(B, A.T @ (wb[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(B).max())

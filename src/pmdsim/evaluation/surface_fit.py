@@ -165,34 +165,56 @@ def _centre(xy, res, sig):
 @numba.njit(cache=True)
 def _sandwich_sums(xy, res, sig, xc, yc, scale):
     """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
-    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0)."""
-    N = np.zeros((5, 5))
-    B = np.zeros((5, 5))
-    row = np.zeros(5)
+    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0).
+
+    Each entry (a, b) sums (w·A_a)·A_b over the points in order, g_x row before g_y row, in a
+    scalar (not a memory round trip per term); the design's zeros and ones are not multiplied
+    (w·1 = w, and ±0 terms leave a sum that starts at +0 unchanged): the sums of the
+    entry-by-entry loop bit for bit."""
+    n00 = n01 = n03 = n10 = n11 = n13 = n30 = n31 = n33 = 0.0
+    n12 = n14 = n21 = n22 = n24 = n41 = n42 = n44 = 0.0
+    b00 = b01 = b03 = b10 = b11 = b13 = b30 = b31 = b33 = 0.0
+    b12 = b14 = b21 = b22 = b24 = b41 = b42 = b44 = 0.0
     for i in range(xy.shape[0]):
         if not np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
             continue
         x = xy[i, 0] - xc
         y = xy[i, 1] - yc
-        for comp in range(2):
-            w = 1.0
-            if scale > 0:
-                u = res[i, comp] / scale
-                w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
-            if w == 0.0:
-                continue
-            if comp == 0:
-                row[0] = 2 * x; row[1] = y; row[2] = 0.0; row[3] = 1.0; row[4] = 0.0  # noqa: E702
-            else:
-                row[0] = 0.0; row[1] = x; row[2] = 2 * y; row[3] = 0.0; row[4] = 1.0  # noqa: E702
-            wb = (w * sig[i, comp]) ** 2
-            for a in range(5):
-                ra = row[a]
-                if ra == 0.0:
-                    continue
-                for b in range(5):
-                    N[a, b] += w * ra * row[b]
-                    B[a, b] += wb * ra * row[b]
+        w0 = 1.0
+        w1 = 1.0
+        if scale > 0:
+            u = res[i, 0] / scale
+            w0 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            u = res[i, 1] / scale
+            w1 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+        # g_x row: A_0 = 2x, A_1 = y, A_3 = 1
+        r0 = 2 * x
+        wb = (w0 * sig[i, 0]) ** 2
+        t0, t1 = w0 * r0, w0 * y
+        n00 += t0 * r0; n01 += t0 * y; n03 += t0  # noqa: E702
+        n10 += t1 * r0; n11 += t1 * y; n13 += t1  # noqa: E702
+        n30 += w0 * r0; n31 += w0 * y; n33 += w0  # noqa: E702
+        t0, t1 = wb * r0, wb * y
+        b00 += t0 * r0; b01 += t0 * y; b03 += t0  # noqa: E702
+        b10 += t1 * r0; b11 += t1 * y; b13 += t1  # noqa: E702
+        b30 += wb * r0; b31 += wb * y; b33 += wb  # noqa: E702
+        # g_y row: A_1 = x, A_2 = 2y, A_4 = 1
+        r2 = 2 * y
+        wb = (w1 * sig[i, 1]) ** 2
+        t1, t2 = w1 * x, w1 * r2
+        n11 += t1 * x; n12 += t1 * r2; n14 += t1  # noqa: E702
+        n21 += t2 * x; n22 += t2 * r2; n24 += t2  # noqa: E702
+        n41 += w1 * x; n42 += w1 * r2; n44 += w1  # noqa: E702
+        t1, t2 = wb * x, wb * r2
+        b11 += t1 * x; b12 += t1 * r2; b14 += t1  # noqa: E702
+        b21 += t2 * x; b22 += t2 * r2; b24 += t2  # noqa: E702
+        b41 += wb * x; b42 += wb * r2; b44 += wb  # noqa: E702
+    N = np.zeros((5, 5))
+    B = np.zeros((5, 5))
+    for M, v in ((N, (n00, n01, n03, n10, n11, n13, n30, n31, n33, n12, n14, n21, n22, n24, n41, n42, n44)),
+                 (B, (b00, b01, b03, b10, b11, b13, b30, b31, b33, b12, b14, b21, b22, b24, b41, b42, b44))):
+        M[0, 0], M[0, 1], M[0, 3], M[1, 0], M[1, 1], M[1, 3], M[3, 0], M[3, 1], M[3, 3] = v[:9]
+        M[1, 2], M[1, 4], M[2, 1], M[2, 2], M[2, 4], M[4, 1], M[4, 2], M[4, 4] = v[9:]
     return N, B
 
 
