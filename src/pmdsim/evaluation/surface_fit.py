@@ -162,19 +162,28 @@ def _centre(xy, res, sig):
     return sx / n, sy / n
 
 
+@numba.njit(cache=True, inline="always")
+def _row_terms(acc, w, p, q):
+    """``acc`` (9 sums) plus the terms of one design row with nonzero entries (p, q, 1) and weight
+    w: (w·p)·p, (w·p)·q, w·p, (w·q)·p, (w·q)·q, w·q, w·p, w·q, w — entries (p, p), (p, q), (p, 1),
+    (q, p), (q, q), (q, 1), (1, p), (1, q), (1, 1) of w·AᵢᵀAᵢ as (w·A_a)·A_b (w·1 = w exactly)."""
+    tp = w * p
+    tq = w * q
+    return (acc[0] + tp * p, acc[1] + tp * q, acc[2] + tp, acc[3] + tq * p, acc[4] + tq * q, acc[5] + tq,
+            acc[6] + w * p, acc[7] + w * q, acc[8] + w)
+
+
 @numba.njit(cache=True)
 def _sandwich_sums(xy, res, sig, xc, yc, scale):
     """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
     [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0).
 
     Each entry (a, b) sums (w·A_a)·A_b over the points in order, g_x row before g_y row, in a
-    scalar (not a memory round trip per term); the design's zeros and ones are not multiplied
-    (w·1 = w, and ±0 terms leave a sum that starts at +0 unchanged): the sums of the
-    entry-by-entry loop bit for bit."""
-    n00 = n01 = n03 = n10 = n11 = n13 = n30 = n31 = n33 = 0.0
-    n12 = n14 = n21 = n22 = n24 = n41 = n42 = n44 = 0.0
-    b00 = b01 = b03 = b10 = b11 = b13 = b30 = b31 = b33 = 0.0
-    b12 = b14 = b21 = b22 = b24 = b41 = b42 = b44 = 0.0
+    scalar (not a memory round trip per term); the design's zeros are not multiplied (±0 terms
+    leave a sum that starts at +0 unchanged): the sums of the entry-by-entry loop bit for bit
+    (tests/test_surface_fit_kernels.py)."""
+    z = (0.0,) * 9
+    nx = ny = bx = by = z  # entries of (2x, y, 1) of the g_x rows and of (x, 2y, 1) of the g_y rows
     for i in range(xy.shape[0]):
         if not np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
             continue
@@ -187,35 +196,21 @@ def _sandwich_sums(xy, res, sig, xc, yc, scale):
             w0 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
             u = res[i, 1] / scale
             w1 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
-        # g_x row: A_0 = 2x, A_1 = y, A_3 = 1
-        r0 = 2 * x
-        wb = (w0 * sig[i, 0]) ** 2
-        t0, t1 = w0 * r0, w0 * y
-        n00 += t0 * r0; n01 += t0 * y; n03 += t0  # noqa: E702
-        n10 += t1 * r0; n11 += t1 * y; n13 += t1  # noqa: E702
-        n30 += w0 * r0; n31 += w0 * y; n33 += w0  # noqa: E702
-        t0, t1 = wb * r0, wb * y
-        b00 += t0 * r0; b01 += t0 * y; b03 += t0  # noqa: E702
-        b10 += t1 * r0; b11 += t1 * y; b13 += t1  # noqa: E702
-        b30 += wb * r0; b31 += wb * y; b33 += wb  # noqa: E702
-        # g_y row: A_1 = x, A_2 = 2y, A_4 = 1
-        r2 = 2 * y
-        wb = (w1 * sig[i, 1]) ** 2
-        t1, t2 = w1 * x, w1 * r2
-        n11 += t1 * x; n12 += t1 * r2; n14 += t1  # noqa: E702
-        n21 += t2 * x; n22 += t2 * r2; n24 += t2  # noqa: E702
-        n41 += w1 * x; n42 += w1 * r2; n44 += w1  # noqa: E702
-        t1, t2 = wb * x, wb * r2
-        b11 += t1 * x; b12 += t1 * r2; b14 += t1  # noqa: E702
-        b21 += t2 * x; b22 += t2 * r2; b24 += t2  # noqa: E702
-        b41 += wb * x; b42 += wb * r2; b44 += wb  # noqa: E702
-    N = np.zeros((5, 5))
-    B = np.zeros((5, 5))
-    for M, v in ((N, (n00, n01, n03, n10, n11, n13, n30, n31, n33, n12, n14, n21, n22, n24, n41, n42, n44)),
-                 (B, (b00, b01, b03, b10, b11, b13, b30, b31, b33, b12, b14, b21, b22, b24, b41, b42, b44))):
-        M[0, 0], M[0, 1], M[0, 3], M[1, 0], M[1, 1], M[1, 3], M[3, 0], M[3, 1], M[3, 3] = v[:9]
-        M[1, 2], M[1, 4], M[2, 1], M[2, 2], M[2, 4], M[4, 1], M[4, 2], M[4, 4] = v[9:]
-    return N, B
+        # (1, 1) (the y·y of g_x, then the x·x of g_y) is one sum: slot 4 of the g_x terms, 0 of the g_y terms
+        nx = _row_terms(nx, w0, 2 * x, y)
+        ny = _row_terms((nx[4],) + ny[1:], w1, x, 2 * y)
+        nx = nx[:4] + (ny[0],) + nx[5:]
+        bx = _row_terms(bx, (w0 * sig[i, 0]) ** 2, 2 * x, y)
+        by = _row_terms((bx[4],) + by[1:], (w1 * sig[i, 1]) ** 2, x, 2 * y)
+        bx = bx[:4] + (by[0],) + bx[5:]
+    out = (np.zeros((5, 5)), np.zeros((5, 5)))
+    for M, tx, ty in ((out[0], nx, ny), (out[1], bx, by)):
+        for k, (a, b) in enumerate(((0, 0), (0, 1), (0, 3), (1, 0), (1, 1), (1, 3), (3, 0), (3, 1), (3, 3))):
+            M[a, b] = tx[k]
+        for k, (a, b) in enumerate(((1, 1), (1, 2), (1, 4), (2, 1), (2, 2), (2, 4), (4, 1), (4, 2), (4, 4))):
+            if k:
+                M[a, b] = ty[k]
+    return out
 
 
 def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> ParaboloidFit:
