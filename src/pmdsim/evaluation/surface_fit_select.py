@@ -104,7 +104,7 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     bracket, dev_bracket : (lo, hi)
         Expected to hold the two middle residuals and the two middle deviations.
     buf_r, buf_z : (K,) float64
-        Scratch buffers.
+        Scratch buffers (the deviations kept are written over ``buf_r``).
     sample : (S,) float64, sorted, optional
         Every k-th residual: a pass expected to overflow a buffer is not started (None returned).
     """
@@ -124,7 +124,7 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     below, n_r, sure, n_z = _collect_both(x, y, gx, gy, coef, lo, hi, dlo, dhi, buf_r, buf_z)
-    if n_r > buf_r.size or n_z > buf_z.size:
+    if n_r > buf_r.size or n_z > min(buf_z.size, buf_r.size):  # (the deviations are written over buf_r)
         return None
     got = _pick(buf_r[:n_r], below, k1, k2, lo, hi)
     if got is None:
