@@ -191,3 +191,21 @@ def test_sandwich_sums_match_entry_loop_and_matmul():
     assert (w == 0).sum() >= 40 and len(rows) == 2 * (m - 2)
     np.testing.assert_allclose(N, A.T @ (w[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(N).max())
     np.testing.assert_allclose(B, A.T @ (wb[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(B).max())
+
+
+def test_overwrite_slopes_gives_the_same_fit():
+    """``overwrite_slopes``: the same coefficients and residuals bit for bit (the residuals are
+    g − A·c of the lstsq IRLS reference to 1e-12), written over the (2, M) slope rows; without it
+    the slopes are left unchanged."""
+    x, y, gx, gy = _slopes(20_000, seed=41)
+    xy, g_rows = np.stack([x, y]), np.stack([gx, gy])
+    keep = g_rows.copy()
+    plain = fit_paraboloid_slopes(xy.T, g_rows.T, np.ones(x.size, bool), camera_z_mm=-1.0)
+    assert np.array_equal(g_rows, keep)
+    over = fit_paraboloid_slopes(xy.T, g_rows.T, np.ones(x.size, bool), camera_z_mm=-1.0, overwrite_slopes=True)
+    assert over.coefficients == plain.coefficients and over.scale == plain.scale
+    assert np.array_equal(over.residual_slopes, plain.residual_slopes)
+    assert np.shares_memory(over.residual_slopes, g_rows) and np.array_equal(g_rows.T, plain.residual_slopes)
+    ref, _ = _lstsq_irls(x, y, gx, gy)
+    res = np.stack([gx - (2 * ref[0] * x + ref[1] * y + ref[3]), gy - (ref[1] * x + 2 * ref[2] * y + ref[4])], -1)
+    np.testing.assert_allclose(over.residual_slopes, res, rtol=0, atol=1e-12)

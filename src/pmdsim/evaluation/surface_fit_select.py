@@ -31,7 +31,7 @@ _BLOCK = 256  # points counted before a block is re-read for its values to copy
 
 
 @numba.njit(cache=True, fastmath=False)
-def _collect_both(x, y, gx, gy, coef, lo, hi, dlo, dhi, buf_r, buf_z):
+def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     """One pass over the 2M residuals r: the number < lo and those in [lo, hi] (to ``buf_r``);
     the number with hi − dlo < r < lo + dlo and the others in [lo − dhi, hi + dhi] (to
     ``buf_z``), as many as fit (the latter two classes' bounds moved inwards, resp. outwards, by
@@ -52,7 +52,7 @@ def _collect_both(x, y, gx, gy, coef, lo, hi, dlo, dhi, buf_r, buf_z):
         stop = min(start + _BLOCK, x.size)
         cnt = 0  # values to copy in this block
         for i in range(start, stop):
-            r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, 0, 0.0)
+            r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0)
             below += (r0 < lo) + (r1 < lo)
             s0 = (r0 > slo) * (r0 < shi)
             s1 = (r1 > slo) * (r1 < shi)
@@ -61,7 +61,7 @@ def _collect_both(x, y, gx, gy, coef, lo, hi, dlo, dhi, buf_r, buf_z):
                     + (r0 >= zlo) * (r0 <= zhi) * (1 - s0) + (r1 >= zlo) * (r1 <= zhi) * (1 - s1))
         if cnt:
             for i in range(start, stop):
-                for r in _pair(x, y, gx, gy, i, a2, b, c2, d, e, 0, 0.0):
+                for r in _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0):
                     if lo <= r <= hi:
                         if n_r < cap_r:
                             buf_r[n_r] = r
@@ -89,7 +89,7 @@ def _deviations(z, centre, dlo, dhi, out):
     return below, inside
 
 
-def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sample=None):
+def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sample=None, origin=(0.0, 0.0)):
     """(median, lower and upper middle values) of the 2M residuals at ``coef`` and the same of
     their absolute deviations from that median — as two calls of
     :func:`pmdsim.evaluation.surface_fit._median` with ``ranks=True`` — from one pass, or None
@@ -107,6 +107,8 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
         Scratch buffers (the deviations kept are written over ``buf_r``).
     sample : (S,) float64, sorted, optional
         Every k-th residual: a pass expected to overflow a buffer is not started (None returned).
+    origin : (xc, yc)
+        The residuals are those at (x − xc, y − yc).
     """
     lo, hi = bracket
     dlo, dhi = dev_bracket
@@ -123,7 +125,7 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
             return None
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
-    below, n_r, sure, n_z = _collect_both(x, y, gx, gy, coef, lo, hi, dlo, dhi, buf_r, buf_z)
+    below, n_r, sure, n_z = _collect_both(x, y, gx, gy, float(origin[0]), float(origin[1]), coef, lo, hi, dlo, dhi, buf_r, buf_z)
     if n_r > buf_r.size or n_z > min(buf_z.size, buf_r.size):  # (the deviations are written over buf_r)
         return None
     got = _pick(buf_r[:n_r], below, k1, k2, lo, hi)
