@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from ..errors import ComputationError
+from ..geometry.kernel_args import readonly
 
 __all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary",
            "with_uncertainty"]
@@ -581,6 +582,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         x -= xc
         y -= yc
         ox = oy = 0.0
+    # read-only views for the kernels: one argument type whatever the caller's arrays (the
+    # residuals are written through the writable arrays at the end)
+    xw, yw, gxw, gyw = x, y, gx, gy
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, np.zeros(5), 1.0, False))
     if robust:
         from .surface_fit_select import median_and_mad
@@ -631,11 +636,11 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     e0 = e - b * xc - 2 * c * yc
     if n == ok.size:
         rows = g.T if (overwrite_slopes and g.ndim == 2 and g.shape[1] == 2 and g.T.flags.c_contiguous
-                       and np.may_share_memory(gx, g)) else np.empty((2, n))
+                       and g.flags.writeable and np.may_share_memory(gxw, g)) else np.empty((2, n))
         rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, rows[0], rows[1])  # g − A·c
         res = rows.T.reshape(g.shape)  # a view of the (2, M) rows rx, ry (or ``slopes`` itself)
     else:
-        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, x, y)  # over the centred copies
+        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, xw, yw)  # over the centred copies
         res = np.full(g.shape, np.nan)
         res[ok, 0] = rx
         res[ok, 1] = ry
