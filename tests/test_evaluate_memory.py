@@ -117,14 +117,24 @@ def test_combined_sigma_shares_the_noise_map_only_when_equal():
 
 
 def test_residuals_in_place_equal_numpy():
-    """The paraboloid's final residuals written over the centred coordinates equal numpy's
-    g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e) bit for bit."""
+    """The paraboloid's final residuals written over the centred coordinates (origin 0), or over
+    the slopes with the coordinates centred on the fly (origin xc, yc), equal numpy's
+    g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e) at the centred x, y bit for bit."""
     rng = np.random.default_rng(3)
     x, y, gx, gy = (rng.normal(size=10_001) for _ in range(4))
     a, b, c, d, e = 1.7e-3, -2.1e-4, 9.3e-4, 3.1e-2, -4.4e-3
     rx_ref = gx - (2.0 * a * x + b * y + d)
     ry_ref = gy - (b * x + 2.0 * c * y + e)
     xw, yw = x.copy(), y.copy()
-    rx, ry = _residuals(xw, yw, gx, gy, a, b, c, d, e, in_place=True)
+    rx, ry = _residuals(xw, yw, gx, gy, 0.0, 0.0, a, b, c, d, e, xw, yw)
     assert rx is xw and ry is yw
+    assert np.array_equal(rx, rx_ref) and np.array_equal(ry, ry_ref)
+    xc, yc = 12.5, -7.25
+    xu, yu = x + 12.5, y - 7.25
+    cx, cy = xu - xc, yu - yc
+    rx_ref = gx - (2.0 * a * cx + b * cy + d)
+    ry_ref = gy - (b * cx + 2.0 * c * cy + e)
+    gxw, gyw = gx.copy(), gy.copy()
+    rx, ry = _residuals(xu, yu, gxw, gyw, xc, yc, a, b, c, d, e, gxw, gyw)
+    assert rx is gxw and ry is gyw
     assert np.array_equal(rx, rx_ref) and np.array_equal(ry, ry_ref)

@@ -187,3 +187,33 @@ def test_height_map_writer_opens_with_named_dims(tmp_path):
     assert g["height"].dims == ("y_mm", "x_mm") and g["height"].attrs["units"] == "um"
     np.testing.assert_allclose(g["height"].values, z * 1e3)  # µm as declared
     np.testing.assert_array_equal(g["x_mm"].values, x)
+
+
+def test_all_zero_maps_read_back_identical_without_written_chunks(tmp_path):
+    """Maps of all-zero bits (0.0, False, 0) are stored without written chunks (HDF5's fill value
+    0) and read back equal, with the same chunking and filters as written maps and +0.0 signs;
+    −0.0, NaN and True are written as usual. xarray (h5netcdf) reads the same numbers."""
+    rng = np.random.default_rng(3)
+    maps = {"zero_um": np.zeros((70, 9)), "zero_xy_mm": np.zeros((70, 9, 2)), "off": np.zeros((70, 9), bool),
+            "code": np.zeros((70, 9), np.uint8), "negzero_um": np.full((70, 9), -0.0),
+            "nan_um": np.full((70, 9), np.nan), "on": np.ones((70, 9), bool), "noise_um": rng.normal(size=(70, 9)),
+            "late_um": np.zeros((70, 9))}
+    maps["late_um"][69, 8] = 1e-300  # zero up to the last element
+    path = tmp_path / "z.h5"
+    with h5py.File(path, "w") as f:
+        g = f.create_group("cam")
+        for name, a in maps.items():
+            hdf5._put(g, name, a, units=hdf5._units_of(name), long_name=name)
+    unwritten = {"zero_um", "zero_xy_mm", "off", "code"}
+    with h5py.File(path) as f:
+        for name, a in maps.items():
+            d = f["cam"][name]
+            got = d[()]
+            assert got.dtype == a.dtype and got.shape == a.shape
+            assert np.array_equal(got, a, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(a)), name
+            assert (d.id.get_storage_size() == 0) == (name in unwritten), name
+            assert d.chunks == (64,) + a.shape[1:], name
+            assert d.compression == ("gzip" if a.dtype.kind in "biu" else None), name
+    ds = check_file(path)["/cam"]
+    np.testing.assert_array_equal(ds["zero_xy_mm"].values, maps["zero_xy_mm"])
+    np.testing.assert_array_equal(ds["off"].values, maps["off"])

@@ -118,3 +118,94 @@ def test_piston_tilt_matches_lstsq_with_mask():
     line = np.stack([x, 2 * x, z], -1)
     with pytest.raises(sf.ComputationError):
         sf.remove_piston_tilt(line, np.ones(x.shape, bool))
+
+
+@pytest.mark.parametrize("quantise", [False, True])
+def test_one_pass_median_and_mad(quantise):
+    """The one-pass median and MAD (surface_fit_select) are numpy's medians exactly, with their
+    two middle values: with brackets from a nearby fit's medians (the IRLS's next iteration), with
+    ties (quantised slopes); None where a bracket misses a rank or holds too many values."""
+    from pmdsim.evaluation.surface_fit_select import median_and_mad
+
+    x, y, gx, gy = _slopes(60_001, seed=21)
+    if quantise:
+        gx = np.round(gx, 6)  # many equal residuals
+    coef = np.array([2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3])
+    r = np.concatenate([gx - (2 * coef[0] * x + coef[1] * y + coef[3]), gy - (coef[1] * x + 2 * coef[2] * y + coef[4])])
+    n = r.size
+    srt = np.sort(r)
+    med = np.median(r)
+    dev = np.sort(np.abs(r - med))
+    mad = np.median(np.abs(r - med))
+    k1, k2 = (n - 1) // 2, n // 2
+    buf_r, buf_z = np.empty(8192), np.empty(8192)
+    for width in (0.0, 1e-8, 1e-7):
+        got = median_and_mad(x, y, gx, gy, coef, (srt[k1] - width, srt[k2] + width),
+                             (max(dev[k1] - 2 * width, 0.0), dev[k2] + 2 * width), buf_r, buf_z)
+        assert got == ((med, srt[k1], srt[k2]), (mad, dev[k1], dev[k2]))
+        ref = tuple(sf._median(x, y, gx, gy, coef, mode, centre, buf_r, np.empty(sf._N_BINS_SELECT, np.int64),
+                               ranks=True) for mode, centre in ((0, 0.0), (1, med)))
+        assert got == ref
+    # a bracket above the median, a deviations' bracket missing the MAD, one holding every value
+    assert median_and_mad(x, y, gx, gy, coef, (srt[k2] + 1e-9, srt[k2] + 1e-6), (dev[k1], dev[k2]), buf_r, buf_z) is None
+    assert median_and_mad(x, y, gx, gy, coef, (srt[k1], srt[k2]), (dev[k2] + 1e-9, dev[k2] + 1e-8), buf_r, buf_z) is None
+    assert median_and_mad(x, y, gx, gy, coef, (srt[0], srt[-1]), (0.0, dev[-1]), buf_r, buf_z) is None
+
+
+def test_sandwich_sums_match_entry_loop_and_matmul():
+    """The σ sandwich's N = Σ w AᵢᵀAᵢ and B = Σ (wσ)² AᵢᵀAᵢ: bit for bit the entry-by-entry sums
+    (w·A_a)·A_b over the points in order (plain Python floats), and AᵀWA, AᵀW²Σ²A by numpy matmul
+    on the explicit (2M, 5) design to 1e-12 relative; with zero weights (residuals beyond the
+    scale), a point at x = 0 exactly and non-finite points skipped."""
+    rng = np.random.default_rng(31)
+    m = 400
+    xy = np.stack([rng.uniform(-50, 50, m), rng.uniform(-40, 40, m)], -1)
+    res = rng.normal(0, 1e-4, (m, 2))
+    res[::17] = 5e-3  # beyond the scale: weight 0
+    sig = rng.uniform(1e-6, 3e-6, (m, 2))
+    xc, yc = 3.0, -2.0
+    xy[5, 0] = xc  # x − xc = 0 exactly
+    res[9, 1] = np.nan
+    sig[11, 0] = np.inf
+    scale = 4.685 * 1e-4
+    N, B = sf._sandwich_sums(xy, res, sig, xc, yc, scale)
+    Nr, Br = [[0.0] * 5 for _ in range(5)], [[0.0] * 5 for _ in range(5)]
+    rows, wts, wbs = [], [], []
+    for i in range(m):
+        if not np.isfinite(res[i].sum() + sig[i].sum() + xy[i].sum()):
+            continue
+        x, y = float(xy[i, 0]) - xc, float(xy[i, 1]) - yc
+        for comp, row in ((0, [2 * x, y, 0.0, 1.0, 0.0]), (1, [0.0, x, 2 * y, 0.0, 1.0])):
+            u = float(res[i, comp]) / scale
+            w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            wb = (w * float(sig[i, comp])) ** 2
+            rows.append(row), wts.append(w), wbs.append(wb)
+            for a in range(5):
+                for b in range(5):
+                    if w != 0.0 and row[a] != 0.0:
+                        Nr[a][b] += w * row[a] * row[b]
+                        Br[a][b] += wb * row[a] * row[b]
+    assert np.array_equal(N, np.array(Nr)) and np.array_equal(B, np.array(Br))
+    assert not np.signbit(N).any() or np.array_equal(np.signbit(N), np.signbit(np.array(Nr)))
+    A, w, wb = np.array(rows), np.array(wts), np.array(wbs)
+    assert (w == 0).sum() >= 40 and len(rows) == 2 * (m - 2)
+    np.testing.assert_allclose(N, A.T @ (w[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(N).max())
+    np.testing.assert_allclose(B, A.T @ (wb[:, None] * A), rtol=1e-12, atol=1e-12 * np.abs(B).max())
+
+
+def test_overwrite_slopes_gives_the_same_fit():
+    """``overwrite_slopes``: the same coefficients and residuals bit for bit (the residuals are
+    g − A·c of the lstsq IRLS reference to 1e-12), written over the (2, M) slope rows; without it
+    the slopes are left unchanged."""
+    x, y, gx, gy = _slopes(20_000, seed=41)
+    xy, g_rows = np.stack([x, y]), np.stack([gx, gy])
+    keep = g_rows.copy()
+    plain = fit_paraboloid_slopes(xy.T, g_rows.T, np.ones(x.size, bool), camera_z_mm=-1.0)
+    assert np.array_equal(g_rows, keep)
+    over = fit_paraboloid_slopes(xy.T, g_rows.T, np.ones(x.size, bool), camera_z_mm=-1.0, overwrite_slopes=True)
+    assert over.coefficients == plain.coefficients and over.scale == plain.scale
+    assert np.array_equal(over.residual_slopes, plain.residual_slopes)
+    assert np.shares_memory(over.residual_slopes, g_rows) and np.array_equal(g_rows.T, plain.residual_slopes)
+    ref, _ = _lstsq_irls(x, y, gx, gy)
+    res = np.stack([gx - (2 * ref[0] * x + ref[1] * y + ref[3]), gy - (ref[1] * x + 2 * ref[2] * y + ref[4])], -1)
+    np.testing.assert_allclose(over.residual_slopes, res, rtol=0, atol=1e-12)

@@ -483,10 +483,11 @@ def _noise_pass(items, tested):
     if not usable or np.count_nonzero(mask) < _MIN_NOISE_PIXELS:
         return mask, None
     idx = _noise_idx(mask)
-    if integer:
+    if integer:  # A and RSS at the sampled pixels only (bit for bit the maps' values there)
+        from .consistency_sample import stack_at_pixels
+
         for it in usable:
-            st = _item_stats(it)
-            kept.append((st[0].ravel()[idx], st[3].ravel()[idx], it["n"] - 3))
+            kept.append((*stack_at_pixels(it["stack"], idx), it["n"] - 3))
     else:
         kept = [(a.ravel()[idx], r.ravel()[idx], nu) for a, r, nu in kept]
     return mask, _noise_model(kept)

@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from ..errors import ComputationError
+from ..geometry.kernel_args import readonly
 
 __all__ = ["ParaboloidFit", "sample_slopes", "remove_piston_tilt", "fit_paraboloid_slopes", "surface_fit_summary",
            "with_uncertainty"]
@@ -162,38 +163,55 @@ def _centre(xy, res, sig):
     return sx / n, sy / n
 
 
+@numba.njit(cache=True, inline="always")
+def _row_terms(acc, w, p, q):
+    """``acc`` (9 sums) plus the terms of one design row with nonzero entries (p, q, 1) and weight
+    w: (w·p)·p, (w·p)·q, w·p, (w·q)·p, (w·q)·q, w·q, w·p, w·q, w — entries (p, p), (p, q), (p, 1),
+    (q, p), (q, q), (q, 1), (1, p), (1, q), (1, 1) of w·AᵢᵀAᵢ as (w·A_a)·A_b (w·1 = w exactly)."""
+    tp = w * p
+    tq = w * q
+    return (acc[0] + tp * p, acc[1] + tp * q, acc[2] + tp, acc[3] + tq * p, acc[4] + tq * q, acc[5] + tq,
+            acc[6] + w * p, acc[7] + w * q, acc[8] + w)
+
+
 @numba.njit(cache=True)
 def _sandwich_sums(xy, res, sig, xc, yc, scale):
     """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
-    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0)."""
-    N = np.zeros((5, 5))
-    B = np.zeros((5, 5))
-    row = np.zeros(5)
+    [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0).
+
+    Each entry (a, b) sums (w·A_a)·A_b over the points in order, g_x row before g_y row, in a
+    scalar (not a memory round trip per term); the design's zeros are not multiplied (±0 terms
+    leave a sum that starts at +0 unchanged): the sums of the entry-by-entry loop bit for bit
+    (tests/test_surface_fit_kernels.py)."""
+    z = (0.0,) * 9
+    nx = ny = bx = by = z  # entries of (2x, y, 1) of the g_x rows and of (x, 2y, 1) of the g_y rows
     for i in range(xy.shape[0]):
         if not np.isfinite(res[i, 0] + res[i, 1] + sig[i, 0] + sig[i, 1] + xy[i, 0] + xy[i, 1]):
             continue
         x = xy[i, 0] - xc
         y = xy[i, 1] - yc
-        for comp in range(2):
-            w = 1.0
-            if scale > 0:
-                u = res[i, comp] / scale
-                w = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
-            if w == 0.0:
-                continue
-            if comp == 0:
-                row[0] = 2 * x; row[1] = y; row[2] = 0.0; row[3] = 1.0; row[4] = 0.0  # noqa: E702
-            else:
-                row[0] = 0.0; row[1] = x; row[2] = 2 * y; row[3] = 0.0; row[4] = 1.0  # noqa: E702
-            wb = (w * sig[i, comp]) ** 2
-            for a in range(5):
-                ra = row[a]
-                if ra == 0.0:
-                    continue
-                for b in range(5):
-                    N[a, b] += w * ra * row[b]
-                    B[a, b] += wb * ra * row[b]
-    return N, B
+        w0 = 1.0
+        w1 = 1.0
+        if scale > 0:
+            u = res[i, 0] / scale
+            w0 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+            u = res[i, 1] / scale
+            w1 = (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+        # (1, 1) (the y·y of g_x, then the x·x of g_y) is one sum: slot 4 of the g_x terms, 0 of the g_y terms
+        nx = _row_terms(nx, w0, 2 * x, y)
+        ny = _row_terms((nx[4],) + ny[1:], w1, x, 2 * y)
+        nx = nx[:4] + (ny[0],) + nx[5:]
+        bx = _row_terms(bx, (w0 * sig[i, 0]) ** 2, 2 * x, y)
+        by = _row_terms((bx[4],) + by[1:], (w1 * sig[i, 1]) ** 2, x, 2 * y)
+        bx = bx[:4] + (by[0],) + bx[5:]
+    out = (np.zeros((5, 5)), np.zeros((5, 5)))
+    for M, tx, ty in ((out[0], nx, ny), (out[1], bx, by)):
+        for k, (a, b) in enumerate(((0, 0), (0, 1), (0, 3), (1, 0), (1, 1), (1, 3), (3, 0), (3, 1), (3, 3))):
+            M[a, b] = tx[k]
+        for k, (a, b) in enumerate(((1, 1), (1, 2), (1, 4), (2, 1), (2, 2), (2, 4), (4, 1), (4, 2), (4, 4))):
+            if k:
+                M[a, b] = ty[k]
+    return out
 
 
 def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float) -> ParaboloidFit:
@@ -255,18 +273,15 @@ _N_BINS_SELECT = 8192
 
 
 @numba.njit(cache=True, fastmath=False)
-def _sample_values(x, y, gx, gy, coef, mode, centre, stride):
-    """The residuals (``mode`` 1: their |r − centre|) of every ``stride``-th point, both rows."""
+def _sample_values(x, y, gx, gy, xc, yc, coef, mode, centre, stride):
+    """The residuals (``mode`` 1: their |r − centre|) of every ``stride``-th point, both rows
+    (at x − xc, y − yc: the centred coordinates, here and in the kernels below)."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     k = (x.size + stride - 1) // stride
     out = np.empty(2 * k)
     j = 0
     for i in range(0, x.size, stride):
-        r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
-        r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
-        if mode == 1:
-            r0 = abs(r0 - centre)
-            r1 = abs(r1 - centre)
+        r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
         out[j] = r0
         out[j + 1] = r1
         j += 2
@@ -274,10 +289,12 @@ def _sample_values(x, y, gx, gy, coef, mode, centre, stride):
 
 
 @numba.njit(cache=True, fastmath=False, inline="always")
-def _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre):
-    """The two residuals of point i (``mode`` 1: their |r − centre|)."""
-    r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
-    r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
+def _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre):
+    """The two residuals of point i (``mode`` 1: their |r − centre|), at (x − xc, y − yc)."""
+    xi = x[i] - xc
+    yi = y[i] - yc
+    r0 = gx[i] - (a2 * xi + b * yi + d)
+    r1 = gy[i] - (b * xi + c2 * yi + e)
     if mode == 1:
         r0 = abs(r0 - centre)
         r1 = abs(r1 - centre)
@@ -299,7 +316,7 @@ def _take(v, lo, hi, inv, nbins, kb):
 
 
 @numba.njit(cache=True, fastmath=False)
-def _collect(x, y, gx, gy, coef, mode, centre, lo, hi, nbins, kb, buf):
+def _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, nbins, kb, buf):
     """One pass over the 2M values (residuals, or ``mode`` 1: |r − centre|): the number of
     values < lo, and the values in [lo, hi] whose bin (``nbins`` equal bins over [lo, hi]) is
     ``kb`` or ``kb + 1`` copied to ``buf`` (as many as fit). Returns (below, inside); inside >
@@ -316,12 +333,12 @@ def _collect(x, y, gx, gy, coef, mode, centre, lo, hi, nbins, kb, buf):
         stop = min(start + bs, m)
         cnt = 0
         for i in range(start, stop):
-            r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+            r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
             below += (r0 < lo) + (r1 < lo)
             cnt += _take(r0, lo, hi, inv, nbins, kb) + _take(r1, lo, hi, inv, nbins, kb)
         if cnt:
             for i in range(start, stop):
-                r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+                r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
                 if _take(r0, lo, hi, inv, nbins, kb):
                     if inside < cap:
                         buf[inside] = r0
@@ -334,7 +351,7 @@ def _collect(x, y, gx, gy, coef, mode, centre, lo, hi, nbins, kb, buf):
 
 
 @numba.njit(cache=True, fastmath=False)
-def _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist):
+def _histogram(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist):
     """One pass: the number of values < lo, and the histogram (``hist.size`` bins) of those in [lo, hi]."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     nbins = hist.size
@@ -342,7 +359,7 @@ def _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist):
     inv = nbins / (hi - lo)
     below = 0
     for i in range(x.size):
-        r0, r1 = _pair(x, y, gx, gy, i, a2, b, c2, d, e, mode, centre)
+        r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
         below += (r0 < lo) + (r1 < lo)
         hist[_bin(r0, lo, inv, nbins)] += (r0 >= lo) * (r0 <= hi)
         hist[_bin(r1, lo, inv, nbins)] += (r1 >= lo) * (r1 <= hi)
@@ -350,15 +367,11 @@ def _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist):
 
 
 @numba.njit(cache=True, fastmath=False)
-def _all_values(x, y, gx, gy, coef, mode, centre):
+def _all_values(x, y, gx, gy, xc, yc, coef, mode, centre):
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     out = np.empty(2 * x.size)
     for i in range(x.size):
-        r0 = gx[i] - (a2 * x[i] + b * y[i] + d)
-        r1 = gy[i] - (b * x[i] + c2 * y[i] + e)
-        if mode == 1:
-            r0 = abs(r0 - centre)
-            r1 = abs(r1 - centre)
+        r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
         out[2 * i] = r0
         out[2 * i + 1] = r1
     return out
@@ -373,22 +386,26 @@ def _pick(vals, below, k1, k2, lo, hi):
     return part[k1 - below], part[k2 - below]
 
 
-def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None):
+def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=False, origin=(0.0, 0.0)):
     """Exact median (numpy's: mean of the two middle values for an even count) of the 2M
     residuals (``mode`` 0) or of their absolute deviations from ``centre`` (``mode`` 1).
-    ``bracket``: (lo, hi) known to hold the median (the Lipschitz bound above), or None."""
+    ``bracket``: (lo, hi) expected to hold the two middle values (the Lipschitz bound above), or
+    None (a wrong bracket costs passes, not exactness). ``ranks``: return (median, lower middle
+    value, upper middle value) — what the next iteration's bracket is built from. ``origin``: (xc, yc), the
+    residuals at (x − xc, y − yc)."""
+    xc, yc = float(origin[0]), float(origin[1])
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     got = None
     stride = max(1, x.size // _SAMPLE_POINTS)
-    s = np.sort(_sample_values(x, y, gx, gy, coef, mode, centre, stride))
+    s = np.sort(_sample_values(x, y, gx, gy, xc, yc, coef, mode, centre, stride))
     ns = s.size
     if bracket is not None and bracket[0] <= bracket[1]:
         lo, hi = bracket
         # The sample tells how many values the bracket holds: one pass if they fit the buffer.
         expected = (np.searchsorted(s, hi, side="right") - np.searchsorted(s, lo)) / ns * n
         if expected <= 0.5 * buf.size:
-            below, inside = _collect(x, y, gx, gy, coef, mode, centre, lo, hi, 1, 0, buf)
+            below, inside = _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, 1, 0, buf)
             if inside <= buf.size:
                 got = _pick(buf[:inside], below, k1, k2, lo, hi)
     if got is None:
@@ -398,26 +415,27 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None):
         lo = s[i_lo] if i_lo >= 0 else -np.inf
         hi = s[i_hi] if i_hi < ns else np.inf
         if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
-            below = _histogram(x, y, gx, gy, coef, mode, centre, lo, hi, hist)
+            below = _histogram(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist)
             cum = below + np.cumsum(hist)
             if below <= k1 and k2 < cum[-1]:
                 kb = int(np.searchsorted(cum, k1, side="right"))  # the bin holding rank k1
                 first = cum[kb - 1] if kb > 0 else below
-                _, inside = _collect(x, y, gx, gy, coef, mode, centre, lo, hi, hist.size, kb, buf)
+                _, inside = _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist.size, kb, buf)
                 if inside <= buf.size:
                     got = _pick(buf[:inside], first, k1, k2, lo, hi)
     if got is None:  # the sample misled the bracket: select among all values
-        vals = np.partition(_all_values(x, y, gx, gy, coef, mode, centre), (k1, k2))
+        vals = np.partition(_all_values(x, y, gx, gy, xc, yc, coef, mode, centre), (k1, k2))
         got = vals[k1], vals[k2]
     v1, v2 = got
-    return float(v1) if n % 2 else float((v1 + v2) / 2.0)
+    med = float(v1) if n % 2 else float((v1 + v2) / 2.0)
+    return (med, float(v1), float(v2)) if ranks else med
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
-def _weighted_sums(x, y, gx, gy, coef, scale, robust):
+def _weighted_sums(x, y, gx, gy, xc, yc, coef, scale, robust):
     """Σ w·(x², xy, y², x, y, 1, g·x, g·y, g) over the g_x rows (first 9) and the g_y rows (last
     9), w the bisquare weights (1 − (r/scale)²)² (0 beyond) of the residuals at ``coef``, or 1
-    if not ``robust``."""
+    if not ``robust``; at (x − xc, y − yc)."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     out = np.zeros(18)
     bs = 4096
@@ -426,8 +444,8 @@ def _weighted_sums(x, y, gx, gy, coef, scale, robust):
         s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
         t0 = t1 = t2 = t3 = t4 = t5 = t6 = t7 = t8 = 0.0
         for i in range(start, min(start + bs, m)):
-            xi = x[i]
-            yi = y[i]
+            xi = x[i] - xc
+            yi = y[i] - yc
             gxi = gx[i]
             gyi = gy[i]
             wx = 1.0
@@ -488,28 +506,36 @@ def _solve_normal(s) -> np.ndarray:
 
 
 @numba.njit(cache=True, fastmath=False)
-def _residual_kernel(x, y, gx, gy, a2, b, c2, d, e, rx, ry):
+def _residual_kernel(x, y, gx, gy, xc, yc, a2, b, c2, d, e, rx, ry):
     for i in range(0, x.size):
-        xi = x[i]  # read before writing: rx, ry may be x, y (in place)
-        yi = y[i]
-        rx[i] = gx[i] - (a2 * xi + b * yi + d)
-        ry[i] = gy[i] - (b * xi + c2 * yi + e)
+        xi = x[i] - xc  # read before writing: rx, ry may be x, y or gx, gy (in place)
+        yi = y[i] - yc
+        gxi = gx[i]
+        gyi = gy[i]
+        rx[i] = gxi - (a2 * xi + b * yi + d)
+        ry[i] = gyi - (b * xi + c2 * yi + e)
 
 
-def _residuals(x, y, gx, gy, a, b, c, d, e, *, in_place: bool = False):
-    """(g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e)) per point: numpy's expression of the
-    same operations in the same order (bit-identical; no FMA without fastmath), in one pass.
-    ``in_place``: written over x and y (no two more M-arrays alive; issue 25, memory)."""
-    from ..geometry.kernel_args import readonly
+@numba.njit(cache=True, fastmath=False)
+def _max_abs_centred(x, xc):
+    """max_i |x_i − xc|."""
+    m = 0.0
+    for i in range(x.size):
+        m = max(m, abs(x[i] - xc))
+    return m
 
-    rx, ry = (x, y) if in_place else (np.empty(x.size), np.empty(x.size))
-    _residual_kernel(x, y, readonly(gx), readonly(gy), float(2.0 * a), float(b), float(2.0 * c), float(d), float(e),
-                     rx, ry)
+
+def _residuals(x, y, gx, gy, xc, yc, a, b, c, d, e, rx, ry):
+    """(g_x − (2a·x + b·y + d), g_y − (b·x + 2c·y + e)) per point at (x − xc, y − yc), written to
+    rx, ry (which may be x, y or gx, gy: in place): numpy's expression of the same operations in
+    the same order (bit-identical; no FMA without fastmath), in one pass."""
+    _residual_kernel(x, y, gx, gy, float(xc), float(yc), float(2.0 * a), float(b), float(2.0 * c), float(d),
+                     float(e), rx, ry)
     return rx, ry
 
 
 def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, robust: bool = True,
-                          max_iter: int = 100) -> ParaboloidFit:
+                          max_iter: int = 100, overwrite_slopes: bool = False) -> ParaboloidFit:
     """Least-squares paraboloid over slopes (module docstring).
 
     Parameters
@@ -524,6 +550,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         the focal lengths' sign.
     robust : bool
         Tukey-bisquare IRLS (default) or plain least squares.
+    overwrite_slopes : bool
+        With every point valid and ``slopes`` an (M, 2) view of (2, M) rows (what
+        :func:`surface_fit_summary` passes): the residuals are written over ``slopes`` and the
+        fit's ``residual_slopes`` is that array (no (2, M) array more; issue 25, memory).
 
     Notes
     -----
@@ -538,38 +568,60 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     n = int(np.count_nonzero(ok))
     if n < 6:
         raise ComputationError(f"only {n} points with slopes: a paraboloid over slopes needs at least 6")
-    # Centre the coordinates for conditioning (a, b, c do not depend on the origin); one
-    # contiguous copy per column.
+    # Centred coordinates for conditioning (a, b, c do not depend on the origin): every point
+    # valid, the kernels centre x − xc, y − yc on the fly (the same numbers as a centred copy,
+    # without it), else a centred copy of the valid points (origin 0).
     if n == ok.size:
         xc, yc = float(p[..., 0].mean()), float(p[..., 1].mean())
-        xyc = np.empty((2,) + p.shape[:-1])  # the centred x, y as rows: later the residuals, in place
-        np.subtract(p[..., 0], xc, out=xyc[0])
-        np.subtract(p[..., 1], yc, out=xyc[1])
-        x, y = xyc[0].reshape(-1), xyc[1].reshape(-1)
+        x, y = np.ascontiguousarray(p[..., 0]).reshape(-1), np.ascontiguousarray(p[..., 1]).reshape(-1)
         gx, gy = np.ascontiguousarray(g[..., 0]).reshape(-1), np.ascontiguousarray(g[..., 1]).reshape(-1)
+        ox, oy = xc, yc
     else:
         x, y, gx, gy = p[..., 0][ok], p[..., 1][ok], g[..., 0][ok], g[..., 1][ok]
         xc, yc = x.mean(), y.mean()
         x -= xc
         y -= yc
-    coef = _solve_normal(_weighted_sums(x, y, gx, gy, np.zeros(5), 1.0, False))
+        ox = oy = 0.0
+    # read-only views for the kernels: one argument type whatever the caller's arrays (the
+    # residuals are written through the writable arrays at the end)
+    xw, yw, gxw, gyw = x, y, gx, gy
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)
+    coef = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, np.zeros(5), 1.0, False))
     if robust:
-        buf = np.empty(min(2 * n, max(4096, (2 * n) // 64)))
+        from .surface_fit_select import median_and_mad
+
+        buf = np.empty(min(2 * n, max(4096, (2 * n) // 16)))
         hist = np.empty(_N_BINS_SELECT, np.int64)
-        ax, ay = float(np.max(np.abs(x))), float(np.max(np.abs(y)))
+        ax, ay = _max_abs_centred(x, ox), _max_abs_centred(y, oy)
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
+        m1 = m2 = d1 = d2 = 0.0  # the two middle values of the residuals and of their deviations
         scale = 0.0
+        buf_z = np.empty(buf.size)
+        stride = max(1, n // _SAMPLE_POINTS)
         for _ in range(max_iter):
-            med = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
-                          None if delta is None else (med - delta, med + delta))
-            mad = _median(x, y, gx, gy, coef, 1, med, buf, hist,
-                          None if delta is None else (max(mad - 2.0 * delta, 0.0), mad + 2.0 * delta))
+            # Each order statistic moves by at most delta (the deviations by 2·delta): the next
+            # brackets hold the two middle values, not only their mean (adjacent order
+            # statistics of 9 M values lie ~1e-10 apart, wider than delta near convergence).
+            both = None
+            if delta is not None:  # both medians from one pass (surface_fit_select), if the brackets allow
+                both = median_and_mad(x, y, gx, gy, coef, (m1 - delta, m2 + delta),
+                                      (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta), buf, buf_z, origin=(ox, oy),
+                                      sample=np.sort(_sample_values(x, y, gx, gy, ox, oy, coef, 0, 0.0, stride)))
+            if both is not None:
+                (med, m1, m2), (mad, d1, d2) = both
+            else:
+                med, m1, m2 = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
+                                      None if delta is None else (m1 - delta, m2 + delta), ranks=True,
+                                      origin=(ox, oy))
+                mad, d1, d2 = _median(x, y, gx, gy, coef, 1, med, buf, hist,
+                                      None if delta is None else (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta),
+                                      ranks=True, origin=(ox, oy))
             s = mad / _MAD_TO_SIGMA
             scale = _TUKEY_C * s if s > 0 else 0.0
             if not s > 0:
                 break
-            new = _solve_normal(_weighted_sums(x, y, gx, gy, coef, _TUKEY_C * s, True))
+            new = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, coef, _TUKEY_C * s, True))
             dc = np.abs(new - coef)
             done = np.max(dc) <= 1e-12 * max(1.0, np.max(np.abs(coef)))
             # max_i |A_i·Δc| (both rows), widened for rounding: the brackets of the next medians.
@@ -582,11 +634,13 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
     e0 = e - b * xc - 2 * c * yc
-    rx, ry = _residuals(x, y, gx, gy, a, b, c, d, e, in_place=True)  # g − A·c over the centred copies
-    del x, y
     if n == ok.size:
-        res = xyc.reshape(2, -1).T.reshape(g.shape)  # a view of the (2, M) rows rx, ry: no third copy
+        rows = g.T if (overwrite_slopes and g.ndim == 2 and g.shape[1] == 2 and g.T.flags.c_contiguous
+                       and g.flags.writeable and np.may_share_memory(gxw, g)) else np.empty((2, n))
+        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, rows[0], rows[1])  # g − A·c
+        res = rows.T.reshape(g.shape)  # a view of the (2, M) rows rx, ry (or ``slopes`` itself)
     else:
+        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, xw, yw)  # over the centred copies
         res = np.full(g.shape, np.nan)
         res[ok, 0] = rx
         res[ok, 1] = ry
@@ -625,7 +679,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
         start = gather_rows(rec.p_sample_mm, ex["slopes"], ok, start, xy, gxy)
-    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(m, bool), camera_z_mm=camera_z_mm)
+    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(m, bool), camera_z_mm=camera_z_mm, overwrite_slopes=True)
     del gxy
     if use_sig:
         sig = np.empty((m, 2))

@@ -85,12 +85,25 @@ def _pixel_scales(g: h5py.Group, shape: tuple) -> list[h5py.Dataset]:
     return scales
 
 
+def _all_zero_bits(data: np.ndarray) -> bool:
+    """Every element of a bool, integer or float array all zero bits (0, +0.0, False: HDF5's
+    default fill value, what an unwritten chunk reads as; −0.0 is not)."""
+    if data.dtype.kind not in "biuf" or not data.size:
+        return False
+    words = data.view(f"u{data.dtype.itemsize}")  # the same strides: no copy
+    return not words.flat[0] and not words.any()
+
+
 def _put(g: h5py.Group, name: str, data, *, units: str, long_name: str, frame: str | None = None,
          dims: list | None = None, compress: bool = True, archive: bool = False, **attrs) -> h5py.Dataset:
     """Write ``g[name]`` with its units, long name, frame and dimension scales (per-pixel
     (H, W[, k]) maps by default, in chunks of :data:`CHUNK_ROWS` whole rows; ``dims``: other
     scales, one per axis). Filters: :data:`INT_FILTERS` for booleans and integers, else
-    :data:`ARCHIVE_FILTERS` if ``archive`` else :data:`FLOAT_FILTERS`."""
+    :data:`ARCHIVE_FILTERS` if ``archive`` else :data:`FLOAT_FILTERS`. A chunked map whose
+    elements are all zero bits (e.g. the calibration σ maps when the setup carries no calibration
+    covariance) is created without writing its chunks: HDF5 reads unwritten chunks as the
+    default fill value 0, so the dataset reads back identical (issue 25: 110 MB less to write
+    for a two-camera 1920×1200 evaluation)."""
     if units not in UNITS:
         raise ValueError(f"units {units!r} of {name!r} not in {UNITS}")
     data = np.asarray(data)
@@ -100,7 +113,10 @@ def _put(g: h5py.Group, name: str, data, *, units: str, long_name: str, frame: s
         if compress and data.size:
             filters = INT_FILTERS if data.dtype.kind != "f" else ARCHIVE_FILTERS if archive else FLOAT_FILTERS
             kw = dict(filters, chunks=(min(CHUNK_ROWS, data.shape[0]), *data.shape[1:]))
-    d = g.create_dataset(name, data=data, **kw)
+    if kw and _all_zero_bits(data):  # every chunk equals the fill value: none written (read back as 0)
+        d = g.create_dataset(name, shape=data.shape, dtype=data.dtype, **kw)
+    else:
+        d = g.create_dataset(name, data=data, **kw)
     d.attrs["units"] = units
     d.attrs["long_name"] = long_name
     if frame is not None:

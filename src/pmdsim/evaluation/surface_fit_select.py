@@ -1,0 +1,144 @@
+"""The robust paraboloid fit's median and MAD from one pass over the points (issue 25, item 1).
+
+Each IRLS iteration of :func:`pmdsim.evaluation.surface_fit.fit_paraboloid_slopes` needs the
+exact median m of the 2M slope residuals r and the exact median of their deviations |r − m|.
+From the second iteration on, both are bracketed (the order statistics move by at most δ, the
+deviations' by 2δ): m's two middle values lie in [lo, hi], the deviations' in [dlo, dhi].
+The deviations' pass needs m exactly, but not to decide most points: for every centre c in
+[lo, hi],
+
+* r with hi − dlo < r < lo + dlo has |r − c| < dlo (counted),
+* r < lo − dhi or r > hi + dhi has |r − c| > dhi (ignored),
+
+and only the r between (two narrow zones around m ± MAD) are kept. So one pass collects the
+residuals in [lo, hi] (the median's selection) and those zones' residuals; once m is selected
+from the first, the deviations of the second are formed — abs(r − m), the operation of the
+two-pass path, so the same values — counted and selected. The medians are the exact order
+statistics either way (bit-identical to the two-pass path); where a bracket holds too many values
+or misses a rank, :func:`median_and_mad` returns None and the caller takes the two-pass path.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .surface_fit import _pair, _pick
+
+__all__ = ["median_and_mad"]
+
+_BLOCK = 256  # points counted before a block is re-read for its values to copy
+
+
+@numba.njit(cache=True, fastmath=False)
+def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
+    """One pass over the 2M residuals r: the number < lo and those in [lo, hi] (to ``buf_r``);
+    the number with hi − dlo < r < lo + dlo and the others in [lo − dhi, hi + dhi] (to
+    ``buf_z``), as many as fit (the latter two classes' bounds moved inwards, resp. outwards, by
+    8 ulps of |lo| + |hi| + dhi: the rounding of r − c and of the bounds cannot misclassify). Returns (below, n_r, sure, n_z); n > buffer size: too many.
+    Blocks of 256 points are counted without branches and re-read only where they hold a value
+    to copy."""
+    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
+    cap_r = buf_r.size
+    cap_z = buf_z.size
+    # the classes' bounds moved by a few ulps towards "collect": r − c and the bounds are rounded
+    tol = 8.0 * 2.220446049250313e-16 * (abs(lo) + abs(hi) + dhi)
+    zlo = lo - dhi - tol
+    zhi = hi + dhi + tol
+    slo = hi - dlo + tol
+    shi = lo + dlo - tol
+    below = n_r = sure = n_z = 0
+    for start in range(0, x.size, _BLOCK):
+        stop = min(start + _BLOCK, x.size)
+        cnt = 0  # values to copy in this block
+        for i in range(start, stop):
+            r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0)
+            below += (r0 < lo) + (r1 < lo)
+            s0 = (r0 > slo) * (r0 < shi)
+            s1 = (r1 > slo) * (r1 < shi)
+            sure += s0 + s1
+            cnt += ((r0 >= lo) * (r0 <= hi) + (r1 >= lo) * (r1 <= hi)
+                    + (r0 >= zlo) * (r0 <= zhi) * (1 - s0) + (r1 >= zlo) * (r1 <= zhi) * (1 - s1))
+        if cnt:
+            for i in range(start, stop):
+                for r in _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0):
+                    if lo <= r <= hi:
+                        if n_r < cap_r:
+                            buf_r[n_r] = r
+                        n_r += 1
+                    if zlo <= r <= zhi and not (slo < r < shi):
+                        if n_z < cap_z:
+                            buf_z[n_z] = r
+                        n_z += 1
+    return below, n_r, sure, n_z
+
+
+@numba.njit(cache=True, fastmath=False)
+def _deviations(z, centre, dlo, dhi, out):
+    """|z − centre| of the collected residuals: the number < dlo, and those in [dlo, dhi]
+    written to ``out``; returns (below, inside)."""
+    below = 0
+    inside = 0
+    for i in range(z.size):
+        v = abs(z[i] - centre)
+        if v < dlo:
+            below += 1
+        elif v <= dhi:
+            out[inside] = v
+            inside += 1
+    return below, inside
+
+
+def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sample=None, origin=(0.0, 0.0)):
+    """(median, lower and upper middle values) of the 2M residuals at ``coef`` and the same of
+    their absolute deviations from that median — as two calls of
+    :func:`pmdsim.evaluation.surface_fit._median` with ``ranks=True`` — from one pass, or None
+    where the brackets do not allow it (too many values for the buffers, a rank outside).
+
+    Parameters
+    ----------
+    x, y, gx, gy : (M,) float64
+        Centred coordinates and slopes of the points.
+    coef : (5,) float64
+        (a, b, c, d, e) of the residuals.
+    bracket, dev_bracket : (lo, hi)
+        Expected to hold the two middle residuals and the two middle deviations.
+    buf_r, buf_z : (K,) float64
+        Scratch buffers (the deviations kept are written over ``buf_r``).
+    sample : (S,) float64, sorted, optional
+        Every k-th residual: a pass expected to overflow a buffer is not started (None returned).
+    origin : (xc, yc)
+        The residuals are those at (x − xc, y − yc).
+    """
+    lo, hi = bracket
+    dlo, dhi = dev_bracket
+    if not (lo <= hi and 0.0 <= dlo <= dhi):
+        return None
+    if hi - dlo >= lo + dlo:  # (about) no residual is surely within dlo of every centre: too many to keep
+        return None
+    if sample is not None:
+        ns = sample.size
+        n_in = np.searchsorted(sample, hi, side="right") - np.searchsorted(sample, lo)
+        n_zone = (np.searchsorted(sample, hi + dhi, side="right") - np.searchsorted(sample, lo - dhi)
+                  - (np.searchsorted(sample, lo + dlo) - np.searchsorted(sample, hi - dlo, side="right")))
+        if max(n_in / ns * 2 * x.size / buf_r.size, n_zone / ns * 2 * x.size / buf_z.size) > 0.5:
+            return None
+    n = 2 * x.size
+    k1, k2 = (n - 1) // 2, n // 2
+    below, n_r, sure, n_z = _collect_both(x, y, gx, gy, float(origin[0]), float(origin[1]), coef, lo, hi, dlo, dhi, buf_r, buf_z)
+    if n_r > buf_r.size or n_z > min(buf_z.size, buf_r.size):  # (the deviations are written over buf_r)
+        return None
+    got = _pick(buf_r[:n_r], below, k1, k2, lo, hi)
+    if got is None:
+        return None
+    v1, v2 = got
+    med = float(v1) if n % 2 else float((v1 + v2) / 2.0)
+    # the deviations of the zones' residuals from the exact median, over the residual buffer
+    # (no longer needed): the same abs(r − m) as the two-pass path computes
+    below_d, inside = _deviations(buf_z[:n_z], med, dlo, dhi, buf_r)
+    got = _pick(buf_r[:inside], sure + below_d, k1, k2, dlo, dhi)
+    if got is None:
+        return None
+    w1, w2 = got
+    mad = float(w1) if n % 2 else float((w1 + w2) / 2.0)
+    return (med, float(v1), float(v2)), (mad, float(w1), float(w2))
