@@ -50,7 +50,7 @@ from ..geometry.cover_glass import _FOOT_TOL_MM, through_glass_full
 from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, eval2_kernel, intersect_kernel, intersect_solve,
 )
-from .glass_skip import skip_check_run
+from .glass_skip import patch_rows, skip_check_run
 from .trace_rows import (
     _AX, _AY, _BLK, _BX, _BY, _C, _CONV, _GAZ, _GM, _GMX, _GMY, _HX, _HY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX,
     _OOY, _OOZ, _PID, _PIY, _QOX, _QOY, _QOZ, _SC, _SMALL_GRID, _UX, _UY, _VX, _VY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG,
@@ -419,14 +419,8 @@ def _foot_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol, s1x
         uy = S[_UY * B + i]
         sx = ux - gxi
         sy = uy - gyj
-        r0 = c0 + sx * (c1 + sx * (c2 + sx * c3))
-        r1 = c4 + sx * (c5 + sx * (c6 + sx * c7))
-        r2 = c8 + sx * (c9 + sx * (c10 + sx * c11))
-        r3 = c12 + sx * (c13 + sx * (c14 + sx * c15))
-        e1d0 = c1 + sx * (2.0 * c2 + sx * 3.0 * c3)
-        e1d1 = c5 + sx * (2.0 * c6 + sx * 3.0 * c7)
-        e1d2 = c9 + sx * (2.0 * c10 + sx * 3.0 * c11)
-        e1d3 = c13 + sx * (2.0 * c14 + sx * 3.0 * c15)
+        r0, r1, r2, r3, e1d0, e1d1, e1d2, e1d3 = patch_rows(c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12,
+                                                            c13, c14, c15, sx)
         e0 = 2.0 * c2 + 6.0 * sx * c3
         e1 = 2.0 * c6 + 6.0 * sx * c7
         e2 = 2.0 * c10 + 6.0 * sx * c11
