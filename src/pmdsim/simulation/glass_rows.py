@@ -50,9 +50,11 @@ from ..geometry.cover_glass import _FOOT_TOL_MM, through_glass_full
 from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, eval2_kernel, intersect_kernel, intersect_solve,
 )
+from .glass_skip import patch_rows, skip_check_run
 from .trace_rows import (
-    _AX, _AY, _BLK, _BX, _BY, _C, _GAZ, _GM, _GMX, _GMY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX, _OOY, _OOZ, _PID,
-    _PIY, _QOX, _QOY, _QOZ, _SMALL_GRID, _UX, _UY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG, _fixup, _intersect_block,
+    _AX, _AY, _BLK, _BX, _BY, _C, _CONV, _GAZ, _GM, _GMX, _GMY, _HX, _HY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX,
+    _OOY, _OOZ, _PID, _PIY, _QOX, _QOY, _QOZ, _SC, _SMALL_GRID, _UX, _UY, _VX, _VY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG,
+    _fixup, _intersect_block,
 )
 
 __all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace",
@@ -391,27 +393,34 @@ def _plane_store(i, t, n_idx, S):
 
 
 @numba.njit(**_JIT)
-def _foot_run(n, c, gxi, gyj, t, n_idx, d2, d3, tol, S):
+def _foot_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol, s1x, s1y, s2x, s2y, S):
     """Foot-point step and refraction (:func:`foot_newton`, :func:`_foot_store`) for pixels
     0 … n − 1 of ``S`` (a view from the run's first pixel), which all evaluate on one bicubic
-    patch (coefficients ``c[0:16]``, origin (gxi, gyj)): loop-invariant coefficients, no
-    gathers, one loop that LLVM vectorises."""
+    patch (coefficients ``c[0:16]``, origin (gxi, gyj), open interval (x_lo, x_hi) ×
+    (y_lo, y_hi)): loop-invariant coefficients, no gathers, one loop that LLVM vectorises.
+    Where every pixel's predicted foot point v = u_lin + 2·s₁ − s₂ (``s1x`` … ``s2y``: the
+    steps of the two rows above, from the run's first pixel) is provably within the foot
+    tolerance (:func:`.glass_skip.skip_check_run`), the Newton step is skipped: refraction at v.
+    The step taken (or its estimate) is stored in _VX, _VY."""
+    B = _BLK
+    if skip_check_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, d2, s1x, s1y, s2x, s2y, S) == n:
+        for i in range(n):
+            s_x = S[_GMX * B + i]
+            s_y = S[_GMY * B + i]
+            _foot_store(i, S[_X * B + i], S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i],
+                        S[_CONV * B + i], True, t, n_idx, S)
+            S[_VX * B + i] = s_x
+            S[_VY * B + i] = s_y
+        return
     c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
     c8, c9, c10, c11, c12, c13, c14, c15 = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
-    B = _BLK
     for i in range(n):
         ux = S[_UX * B + i]
         uy = S[_UY * B + i]
         sx = ux - gxi
         sy = uy - gyj
-        r0 = c0 + sx * (c1 + sx * (c2 + sx * c3))
-        r1 = c4 + sx * (c5 + sx * (c6 + sx * c7))
-        r2 = c8 + sx * (c9 + sx * (c10 + sx * c11))
-        r3 = c12 + sx * (c13 + sx * (c14 + sx * c15))
-        e1d0 = c1 + sx * (2.0 * c2 + sx * 3.0 * c3)
-        e1d1 = c5 + sx * (2.0 * c6 + sx * 3.0 * c7)
-        e1d2 = c9 + sx * (2.0 * c10 + sx * 3.0 * c11)
-        e1d3 = c13 + sx * (2.0 * c14 + sx * 3.0 * c15)
+        r0, r1, r2, r3, e1d0, e1d1, e1d2, e1d3 = patch_rows(c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12,
+                                                            c13, c14, c15, sx)
         e0 = 2.0 * c2 + 6.0 * sx * c3
         e1 = 2.0 * c6 + 6.0 * sx * c7
         e2 = 2.0 * c10 + 6.0 * sx * c11
@@ -424,6 +433,8 @@ def _foot_run(n, c, gxi, gyj, t, n_idx, d2, d3, tol, S):
         hyy = 2.0 * r2 + 6.0 * sy * r3
         ux, uy, h, hx, hy, g, ok = foot_newton(h, hx, hy, hxx, hxy, hyy, ux, uy, S[_AX * B + i], S[_AY * B + i],
                                                S[_BX * B + i], S[_BY * B + i], t, d2, d3, tol)
+        S[_VX * B + i] = ux - S[_UX * B + i]
+        S[_VY * B + i] = uy - S[_UY * B + i]
         _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
 
 
@@ -441,6 +452,11 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     mx2 = zr[7][col0:]
     my1 = zr[8][col0:]
     my2 = zr[9][col0:]
+    s1x = zr[10][col0:]
+    s1y = zr[11][col0:]
+    s2x = zr[12][col0:]
+    s2y = zr[13][col0:]
+    nan = np.nan
     plane = kind == _KIND_PLANE
     # The reflected ray (origin _QOX…, direction _WX…: six consecutive fields) kept for the scalar
     # path in _OOX … _ODZ: one contiguous copy of the six fields (the unused tail of each field
@@ -495,7 +511,14 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
             while i < n and P[_PID * B + i] == b:
                 i += 1
             bi = b // 16
-            _foot_run(i - s, coef[b:b + 16], gx[bi % nx1], gy[bi // nx1], t, n_idx, d2, d3, tol, S[s:])
+            i0 = bi % nx1
+            j0 = bi // nx1
+            x_lo = -np.inf if i0 == 0 else gx[i0]
+            x_hi = np.inf if i0 == nx1 - 1 else gx[i0 + 1]
+            y_lo = -np.inf if j0 == 0 else gy[j0]
+            y_hi = np.inf if j0 == gy.shape[0] - 2 else gy[j0 + 1]
+            _foot_run(i - s, coef[b:b + 16], gx[i0], gy[j0], x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol,
+                      s1x[s:], s1y[s:], s2x[s:], s2y[s:], S[s:])
     else:
         for i in range(n):
             if S[_C * B + i] == 0.0:
@@ -510,8 +533,27 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
         mg = S[_GM * B + i]
         settled = (S[_C * B + i] == 0.0) & _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg)
         n_left += (mg >= 0.0) & (not settled)
-    if n_left == 0:
+    if n_left > 0:
+        _scalar_left(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, S)
+    # The foot-point steps of this row, for the skip's prediction in the rows below (glass_skip):
+    # where the pixel is valid and had the linear prediction (both rows above valid).
+    if kind != _KIND_SPLINE:
         return
+    for i in range(n):
+        valid = (S[_SC * B + i] == 0.0) & (S[_C * B + i] == 0.0) & np.isfinite(
+            a1[i] + a2[i] + mx1[i] + mx2[i] + my1[i] + my2[i])
+        s2x[i] = s1x[i]
+        s2y[i] = s1y[i]
+        s1x[i] = S[_VX * B + i] if valid else nan
+        s1y[i] = S[_VY * B + i] if valid else nan
+
+
+@numba.njit(**_JIT)
+def _scalar_left(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, S):
+    """The pixels of the block that the fast path of :func:`glass_block` did not settle: more
+    foot-point steps (scalar), else the refracting pass's trace; their step for the skip's
+    prediction (_VX, _VY) is NaN."""
+    B = _BLK
     for i in range(n):
         mg = S[_GM * B + i]
         if mg < 0.0:
@@ -529,3 +571,5 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
         S[_GAZ * B + i] = az
         S[_GMX * B + i] = mx
         S[_GMY * B + i] = my
+        S[_VX * B + i] = np.nan
+        S[_VY * B + i] = np.nan

@@ -109,7 +109,7 @@ def _trace_run(
     With a cover glass (``glass_t`` > 0 mm, index ``glass_n``) every reflected ray is traced
     through it (:mod:`pmdsim.simulation.glass_rows`, warm started from the pixels two and
     three to the left in the first row of a band, from the rows above in the others:
-    ``z_rows[band]`` has 10 rows then, the screen heights being those of the emitting-surface
+    ``z_rows[band]`` has 14 rows then, the screen heights being those of the emitting-surface
     points seen through the glass). ``with_glass`` is a boolean literal: the glass-free entry
     kernel :func:`_trace_kernel` passes ``False`` and does not compile the glass stage
     (:mod:`pmdsim.simulation.glass_switch`); :func:`_trace_kernel_glass` passes ``True``.
@@ -432,7 +432,7 @@ def trace_rays(
     n_runs = (n + run_length - 1) // run_length
     if with_glass and len(shape) >= 2:  # longer bands: fewer first rows, the costly ones with a glass
         band_rows = glass_band_rows(n_runs, band_rows)
-    z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 10 if with_glass else 4, run_length), np.nan)
+    z_rows = np.full(((n_runs + band_rows - 1) // band_rows, 14 if with_glass else 4, run_length), np.nan)
     scratch = np.empty((z_rows.shape[0], _NF * _BLK))
     pscratch = np.empty((z_rows.shape[0], _NI * _BLK), dtype=np.int64)
     # Bands are handed to the threads one at a time: on a shared machine a thread that is
