@@ -55,59 +55,105 @@ _COARSE_TOL_MM = 1e-3
 _ASSEMBLY_BLOCKS = 16
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
+    """(x, y, g_x, g_y, dg_x/dz, dg_y/dz) of the point at height pz on the view ray through o
+    with dp/dz = (ex, ey, 1), seeing the screen point q: its x, y, the slopes g of the
+    bisector normal there and their derivative along the view ray."""
+    w = pz - oz
+    px = ox + w * ex
+    py = oy + w * ey
+    ax = ox - px
+    ay = oy - py
+    az = oz - pz
+    ia = 1.0 / np.sqrt(ax * ax + ay * ay + az * az)
+    ax *= ia
+    ay *= ia
+    az *= ia
+    bx = qx - px
+    by = qy - py
+    bz = qz - pz
+    ib = 1.0 / np.sqrt(bx * bx + by * by + bz * bz)
+    bx *= ib
+    by *= ib
+    bz *= ib
+    mx = ax + bx
+    my = ay + by
+    mz = az + bz
+    # d(â)/dz = −(e − (â·e) â)/|a|, the same for b̂.
+    ae = ax * ex + ay * ey + az
+    be = bx * ex + by * ey + bz
+    dmx = -(ex - ae * ax) * ia - (ex - be * bx) * ib
+    dmy = -(ey - ae * ay) * ia - (ey - be * by) * ib
+    dmz = -(1.0 - ae * az) * ia - (1.0 - be * bz) * ib
+    imz = 1.0 / mz
+    gx = -mx * imz
+    gy = -my * imz
+    return px, py, gx, gy, -(dmx + gx * dmz) * imz, -(dmy + gy * dmz) * imz  # d(−m_x/m_z)/dz
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _row_geometry(o, d, q, S, z, v, geo):
     """For every pixel u of S in row v at height z: geo[u] = (x, y, g_x, g_y, dg_x/dz,
     dg_y/dz, d_x/d_z, d_y/d_z) — the point's x, y, the slopes g of the bisector normal there,
     their derivative along the view ray and the ray's dx/dz, dy/dz (geo shape (W, 8))."""
     W = S.shape[1]
-    ox = o[0]
-    oy = o[1]
-    oz = o[2]
     for u in range(W):
         if not S[v, u]:
             continue
         idz = 1.0 / d[v, u, 2]
         ex = d[v, u, 0] * idz  # dp/dz = (ex, ey, 1)
         ey = d[v, u, 1] * idz
-        pz = z[v, u]
-        w = pz - oz
-        px = ox + w * ex
-        py = oy + w * ey
-        ax = ox - px
-        ay = oy - py
-        az = oz - pz
-        ia = 1.0 / np.sqrt(ax * ax + ay * ay + az * az)
-        ax *= ia
-        ay *= ia
-        az *= ia
-        bx = q[v, u, 0] - px
-        by = q[v, u, 1] - py
-        bz = q[v, u, 2] - pz
-        ib = 1.0 / np.sqrt(bx * bx + by * by + bz * bz)
-        bx *= ib
-        by *= ib
-        bz *= ib
-        mx = ax + bx
-        my = ay + by
-        mz = az + bz
-        # d(â)/dz = −(e − (â·e) â)/|a|, the same for b̂.
-        ae = ax * ex + ay * ey + az
-        be = bx * ex + by * ey + bz
-        dmx = -(ex - ae * ax) * ia - (ex - be * bx) * ib
-        dmy = -(ey - ae * ay) * ia - (ey - be * by) * ib
-        dmz = -(1.0 - ae * az) * ia - (1.0 - be * bz) * ib
-        imz = 1.0 / mz
-        gx = -mx * imz
-        gy = -my * imz
-        geo[u, 0] = px
-        geo[u, 1] = py
-        geo[u, 2] = gx
-        geo[u, 3] = gy
-        geo[u, 4] = -(dmx + gx * dmz) * imz  # d(−m_x/m_z)/dz
-        geo[u, 5] = -(dmy + gy * dmz) * imz
+        geo[u, 0], geo[u, 1], geo[u, 2], geo[u, 3], geo[u, 4], geo[u, 5] = _point_geometry(
+            o[0], o[1], o[2], ex, ey, z[v, u], q[v, u, 0], q[v, u, 1], q[v, u, 2])
         geo[u, 6] = ex
         geo[u, 7] = ey
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _ray_planes(d, q, R):
+    """R (5, H, W) = (d_x/d_z, d_y/d_z, q_x, q_y, q_z) of d, q (H, W, 3): the per-pixel data of
+    the assembly as contiguous planes (independent of the heights; see :func:`_assemble_rows`)."""
+    H, W = d.shape[0], d.shape[1]
+    for v in numba.prange(0, H):
+        for u in range(W):
+            idz = 1.0 / d[v, u, 2]
+            R[0, v, u] = d[v, u, 0] * idz
+            R[1, v, u] = d[v, u, 1] * idz
+            R[2, v, u] = q[v, u, 0]
+            R[3, v, u] = q[v, u, 1]
+            R[4, v, u] = q[v, u, 2]
+
+
+def ray_planes(d, q):
+    """The planes (5, H, W) of :func:`_ray_planes` for d, q (H, W, 3)."""
+    R = np.empty((5,) + d.shape[:2])
+    _ray_planes(d, q, R)
+    return R
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _row_geometry_planes(o, R, z, v, geo):
+    """geo (8, W) = the rows of :func:`_row_geometry` for every pixel of row v (planes R of
+    :func:`_ray_planes`; no mask, so that the loop vectorises: off the mask the values are
+    unused and may be NaN)."""
+    W = z.shape[1]
+    ox = o[0]
+    oy = o[1]
+    oz = o[2]
+    exr = R[0, v]
+    eyr = R[1, v]
+    qxr = R[2, v]
+    qyr = R[3, v]
+    qzr = R[4, v]
+    zr = z[v]
+    g0, g1, g2, g3, g4, g5, g6, g7 = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5], geo[6], geo[7]
+    for u in range(W):
+        ex = exr[u]
+        ey = eyr[u]
+        g0[u], g1[u], g2[u], g3[u], g4[u], g5[u] = _point_geometry(ox, oy, oz, ex, ey, zr[u], qxr[u], qyr[u], qzr[u])
+        g6[u] = ex
+        g7[u] = ey
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -127,18 +173,45 @@ def _edge(za, zb, ga, ia, gb, ib):
     return ok, res, Ja, Jb
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
+    """The n edges a = u → b = u + off (off = 1: along a row, ga is gb; 0: row a → row b
+    below) of rows with masks Sa, Sb, heights za, zb and geometry ga, gb (8, W) of
+    :func:`_row_geometry_planes`: e[0, u], e[1, u], e[2, u] = residual, J_a, J_b as
+    :func:`_edge`, all 0 where an end is off the mask or a value is not finite (no branches:
+    the loop vectorises)."""
+    res_o, ja_o, jb_o = e[0], e[1], e[2]
+    for u in range(n):
+        ib = u + off
+        Gx = 0.5 * (ga[2, u] + gb[2, ib])
+        Gy = 0.5 * (ga[3, u] + gb[3, ib])
+        dx = gb[0, ib] - ga[0, u]
+        dy = gb[1, ib] - ga[1, u]
+        res = zb[ib] - za[u] - (Gx * dx + Gy * dy)
+        Ja = -1.0 + (Gx * ga[6, u] + Gy * ga[7, u]) - 0.5 * (ga[4, u] * dx + ga[5, u] * dy)
+        Jb = 1.0 - (Gx * gb[6, ib] + Gy * gb[7, ib]) - 0.5 * (gb[4, ib] * dx + gb[5, ib] * dy)
+        ok = Sa[u] and Sb[ib] and np.isfinite(res) and np.isfinite(Ja) and np.isfinite(Jb)
+        res_o[u] = res if ok else 0.0
+        ja_o[u] = Ja if ok else 0.0
+        jb_o[u] = Jb if ok else 0.0
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
+def _assemble_rows(o, R, S, z, sv, su, D, iD, Ex, Ey, rhs):
     """Gauss–Newton normal equations Jᵀ J δ = −Jᵀ res of the trapezoidal equations
     res = z_b − z_a − ½(g_a + g_b)·(xy_b − xy_a) of all 4-neighbour pairs in S at the heights
-    z, written to the padded 5-point arrays (see above). The seed (sv, su) is not an unknown
-    (gauge): it gets no row, and the couplings to it are 0. Edges whose residual or
-    derivatives are not finite are dropped.
+    z, written to the padded 5-point arrays (see above), from the planes R (5, H, W) of
+    :func:`_ray_planes`. The seed (sv, su) is not an unknown (gauge): it gets no row, and the
+    couplings to it are 0 (sv < 0: no seed). Edges whose residual or derivatives are not
+    finite are dropped.
 
     Every edge is evaluated once, from its left or upper pixel. The rows are split into
     :data:`_ASSEMBLY_BLOCKS` blocks processed in parallel, each with a rolling two-row buffer
-    of the pixel geometry (:func:`_row_geometry`); the contributions of a block's last row to
-    the next block's first row go through a buffer that is added afterwards."""
+    of the pixel geometry (:func:`_row_geometry_planes`) and the row's edges
+    (:func:`_row_edges`); the contributions of a block's last row to the next block's first
+    row go through a buffer that is added afterwards. Every sum is formed in the same order
+    whatever the blocks (above, left, right, below; a block's first row: left, right,
+    below, above), so the result does not depend on the number of threads."""
     H, W = S.shape
     nb = min(H, _ASSEMBLY_BLOCKS)
     bD = np.zeros((nb, W))
@@ -146,58 +219,52 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     for blk in numba.prange(0, nb):
         v0 = blk * H // nb
         v1 = (blk + 1) * H // nb
-        geo = np.empty((2, W, 8))
-        for v in range(v0, v1):
-            for u in range(W):
-                D[v + 1, u + 1] = 0.0
-                rhs[v + 1, u + 1] = 0.0
-        _row_geometry(o, d, q, S, z, v0, geo[0])
+        geo = np.empty((2, 8, W))
+        eh = np.zeros((3, W))  # the row's edges to the right: residual, J_a, J_b
+        ev = np.zeros((3, W))  # and below
+        for u in range(W):
+            D[v0 + 1, u + 1] = 0.0
+            rhs[v0 + 1, u + 1] = 0.0
+        _row_geometry_planes(o, R, z, v0, geo[0])
         for v in range(v0, v1):
             gc = geo[(v - v0) & 1]
             gn = geo[1 - ((v - v0) & 1)]
+            _row_edges(S[v], S[v], z[v], z[v], gc, gc, 1, W - 1, eh)
             below = v + 1 < H
             if below:
-                _row_geometry(o, d, q, S, z, v + 1, gn)
+                _row_geometry_planes(o, R, z, v + 1, gn)
+                _row_edges(S[v], S[v + 1], z[v], z[v + 1], gc, gn, 0, W, ev)
+            else:
+                ev[:, :] = 0.0
+            Dr, rr, Dn, rn = D[v + 1, 1:], rhs[v + 1, 1:], D[v + 2, 1:], rhs[v + 2, 1:]
+            # pixel u: D (its upper edge's J_b² already) + left J_b² + right J_a² + lower J_a²
+            Dr[0] = Dr[0] + eh[1, 0] * eh[1, 0] + ev[1, 0] * ev[1, 0]
+            rr[0] = rr[0] - eh[1, 0] * eh[0, 0] - ev[1, 0] * ev[0, 0]
+            for u in range(1, W):
+                Dr[u] = Dr[u] + eh[2, u - 1] * eh[2, u - 1] + eh[1, u] * eh[1, u] + ev[1, u] * ev[1, u]
+                rr[u] = rr[u] - eh[2, u - 1] * eh[0, u - 1] - eh[1, u] * eh[0, u] - ev[1, u] * ev[0, u]
+            if v + 1 < v1:
+                for u in range(W):
+                    Dn[u] = ev[2, u] * ev[2, u]
+                    rn[u] = -(ev[2, u] * ev[0, u])
+            elif below:
+                for u in range(W):
+                    bD[blk, u] = ev[2, u] * ev[2, u]
+                    brhs[blk, u] = -ev[2, u] * ev[0, u]
             for u in range(W):
-                exo = 0.0
-                eyo = 0.0
-                if S[v, u]:
-                    a_free = not (v == sv and u == su)
-                    if u + 1 < W and S[v, u + 1]:  # right
-                        ok, res, Ja, Jb = _edge(z[v, u], z[v, u + 1], gc, u, gc, u + 1)
-                        if ok:
-                            b_free = not (v == sv and u + 1 == su)
-                            if a_free:
-                                D[v + 1, u + 1] += Ja * Ja
-                                rhs[v + 1, u + 1] -= Ja * res
-                            if b_free:
-                                D[v + 1, u + 2] += Jb * Jb
-                                rhs[v + 1, u + 2] -= Jb * res
-                            if a_free and b_free:
-                                exo = -Ja * Jb
-                    if below and S[v + 1, u]:  # below
-                        ok, res, Ja, Jb = _edge(z[v, u], z[v + 1, u], gc, u, gn, u)
-                        if ok:
-                            b_free = not (v + 1 == sv and u == su)
-                            if a_free:
-                                D[v + 1, u + 1] += Ja * Ja
-                                rhs[v + 1, u + 1] -= Ja * res
-                            if b_free:
-                                if v + 1 < v1:
-                                    D[v + 2, u + 1] += Jb * Jb
-                                    rhs[v + 2, u + 1] -= Jb * res
-                                else:
-                                    bD[blk, u] = Jb * Jb
-                                    brhs[blk, u] = -Jb * res
-                            if a_free and b_free:
-                                eyo = -Ja * Jb
-                Ex[v + 1, u + 1] = exo
-                Ey[v + 1, u + 1] = eyo
+                Ex[v + 1, u + 1] = -eh[1, u] * eh[2, u]
+                Ey[v + 1, u + 1] = -ev[1, u] * ev[2, u]
     for blk in range(nb - 1):
         v1 = (blk + 1) * H // nb
         for u in range(W):
             D[v1 + 1, u + 1] += bD[blk, u]
             rhs[v1 + 1, u + 1] += brhs[blk, u]
+    if sv >= 0:  # the gauge: no row, no couplings
+        D[sv + 1, su + 1] = 0.0
+        Ex[sv + 1, su + 1] = 0.0
+        Ex[sv + 1, su] = 0.0
+        Ey[sv + 1, su + 1] = 0.0
+        Ey[sv, su + 1] = 0.0
     for v in numba.prange(0, H):
         for u in range(W):
             dd = D[v + 1, u + 1]
@@ -207,6 +274,11 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
                 D[v + 1, u + 1] = 0.0
                 iD[v + 1, u + 1] = 0.0
                 rhs[v + 1, u + 1] = 0.0
+
+
+def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
+    """:func:`_assemble_rows` from the view-ray directions d and screen points q (H, W, 3)."""
+    _assemble_rows(o, ray_planes(d, q), S, z, sv, su, D, iD, Ex, Ey, rhs)
 
 
 @numba.njit(cache=True)
@@ -227,7 +299,7 @@ def _apply_update(z, delta, D):
     return m
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
@@ -239,8 +311,11 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     update is below ``tol`` — with a good start (see :func:`_start_heights`) one full solve
     and one cheap checking solve suffice —, and relatively to 1e-4 when that is finer, but
     never below ``tol/100``, the accuracy to which the last update is known when it is
-    compared with ``tol``."""
+    compared with ``tol``. ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if
+    already computed."""
     H, W = S.shape
+    if R is None:
+        R = ray_planes(d, q)
     D = np.zeros((H + 2, W + 2))
     iD = np.zeros_like(D)
     Ex = np.zeros_like(D)
@@ -255,7 +330,7 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     change = np.inf
     it = 0
     for it in range(1, max_iter + 1):
-        _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
+        _assemble_rows(o, R, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
         if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
             X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                        cap=_INNER_CAP * tol, lap=lap, work=work)
@@ -302,7 +377,7 @@ def _coarse_mask(S, seed):
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
 
 
-def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
+def _start_heights(o, d, q, S, seed, z0, tol, max_iter, R=None):
     """Start of the Gauss–Newton iteration on the pixels S (heights (H, W), NaN outside S).
 
     Coarse to fine: if S has at least :data:`_COARSE_START_MIN_PIXELS` pixels, the
@@ -316,17 +391,19 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
     its solution (for the full-frame benchmark within about 1e-4 mm). On
     small problems (and should a coarse solve fail) the start is the stepwise solution
     (:func:`reconstruct_stepwise`). Pixels of S that neither reaches start at the seed
-    height."""
+    height. ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if already computed
+    (the coarse levels take every second row and column of them)."""
     H, W = S.shape
     z = None
     if int(np.count_nonzero(S)) >= _COARSE_START_MIN_PIXELS and min(H, W) >= 4:
         a, b, Sc, sc = _coarse_mask(S, seed)
         dc = np.ascontiguousarray(d[a::2, b::2])
         qc = np.ascontiguousarray(q[a::2, b::2])
+        Rc = None if R is None else np.ascontiguousarray(R[:, a::2, b::2])
         tol_c = max(tol, _COARSE_TOL_MM)
         try:
-            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter)
-            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter)
+            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter, Rc)
+            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter, Rc)
         except ReconstructionError:
             zc = None  # fall back to the stepwise start
         if zc is not None:
@@ -450,8 +527,9 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     S = np.ascontiguousarray(labels == labels[seed])
     H, W = valid.shape
 
-    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter)
+    R = ray_planes(d, q)
+    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, R)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, R)
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)
