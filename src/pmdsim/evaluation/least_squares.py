@@ -299,19 +299,22 @@ def _apply_update(z, delta, D):
     return m
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None, atol_frac=0.01):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
     converged, largest last update).
 
     Each update is solved (:func:`_pcg`) until the estimated error of the update is below
-    ``max(tol/100, min(1e-4 · |first estimate|, tol/10))`` (max-norm): to a tenth of ``tol``,
-    so that after an update that removes all but a second-order remainder the next (checking)
-    update is below ``tol`` — with a good start (see :func:`_start_heights`) one full solve
-    and one cheap checking solve suffice —, and relatively to 1e-4 when that is finer, but
-    never below ``tol/100``, the accuracy to which the last update is known when it is
-    compared with ``tol``. ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if
+    ``max(atol_frac · tol, min(1e-4 · |first estimate|, tol/10))`` (max-norm): to a tenth of
+    ``tol``, so that after an update that removes all but a second-order remainder the next
+    (checking) update is below ``tol`` — with a good start (see :func:`_start_heights`) one
+    full solve and one cheap checking solve suffice —, and relatively to 1e-4 when that is
+    finer, but never below ``atol_frac · tol``, the accuracy to which the last update is
+    known when it is compared with ``tol``: ``tol/100`` on the coarse levels of the start
+    (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
+    (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
+    then typically solved in one iteration instead of three). ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if
     already computed."""
     H, W = S.shape
     if R is None:
@@ -332,11 +335,11 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None):
     for it in range(1, max_iter + 1):
         _assemble_rows(o, R, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
         if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
-            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                        cap=_INNER_CAP * tol, lap=lap, work=work)
             delta, solved = X[0], bool(ok[0])
         else:
-            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                     cap=_INNER_CAP * tol, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
@@ -469,10 +472,10 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     coarse cycle from the full grid, W-cycles below —, dense Cholesky on the coarsest level),
     which copes with arbitrary masks; on a full frame of at least 100 000 pixels by the DCT
     inverse of the Neumann Laplacian instead (:func:`pmdsim.evaluation.poisson.prefers_dct`;
-    the same result, fewer iterations). Each update is solved until its estimated error is below
-    ``tol_mm``/10 (or 1e-4 relative, if finer, but not below ``tol_mm``/100), so that the
-    update that follows, which decides convergence, is accurate to a small fraction of
-    ``tol_mm``.
+    the same result, fewer iterations). Each update on the full grid is solved until its
+    estimated error is below ``tol_mm``/10 (on the coarse levels of the start: or 1e-4
+    relative, if finer, but not below a hundredth of their tolerance), so that the update that
+    follows, which decides convergence, and the result are accurate to a tenth of ``tol_mm``.
 
     Parameters
     ----------
@@ -529,7 +532,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
 
     R = ray_planes(d, q)
     z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, R)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, R)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, R, atol_frac=_INNER_CAP)
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)
