@@ -110,48 +110,33 @@ def _row_geometry(o, d, q, S, z, v, geo):
         geo[u, 7] = ey
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def _ray_planes(d, q, R):
-    """R (5, H, W) = (d_x/d_z, d_y/d_z, q_x, q_y, q_z) of d, q (H, W, 3): the per-pixel data of
-    the assembly as contiguous planes (independent of the heights; see :func:`_assemble_rows`)."""
-    H, W = d.shape[0], d.shape[1]
-    for v in numba.prange(0, H):
-        for u in range(W):
-            idz = 1.0 / d[v, u, 2]
-            R[0, v, u] = d[v, u, 0] * idz
-            R[1, v, u] = d[v, u, 1] * idz
-            R[2, v, u] = q[v, u, 0]
-            R[3, v, u] = q[v, u, 1]
-            R[4, v, u] = q[v, u, 2]
-
-
-def ray_planes(d, q):
-    """The planes (5, H, W) of :func:`_ray_planes` for d, q (H, W, 3)."""
-    R = np.empty((5,) + d.shape[:2])
-    _ray_planes(d, q, R)
-    return R
-
-
 @numba.njit(cache=True, error_model="numpy")
-def _row_geometry_planes(o, R, z, v, geo):
-    """geo (8, W) = the rows of :func:`_row_geometry` for every pixel of row v (planes R of
-    :func:`_ray_planes`; no mask, so that the loop vectorises: off the mask the values are
-    unused and may be NaN)."""
+def _row_geometry_all(o, d, q, z, v, geo, rays):
+    """geo (8, W) = the rows of :func:`_row_geometry` for every pixel of row v (no mask, so
+    that the loop vectorises: off the mask the values are unused and may be NaN). The row's d
+    and q are first gathered into ``rays`` (6, W) (contiguous rows, which the second loop
+    reads)."""
     W = z.shape[1]
     ox = o[0]
     oy = o[1]
     oz = o[2]
-    exr = R[0, v]
-    eyr = R[1, v]
-    qxr = R[2, v]
-    qyr = R[3, v]
-    qzr = R[4, v]
     zr = z[v]
+    dr = d[v].reshape(3 * W)  # contiguous rows (views)
+    qr = q[v].reshape(3 * W)
+    d0, d1, d2, q0, q1, q2 = rays[0], rays[1], rays[2], rays[3], rays[4], rays[5]
+    for u in range(W):
+        d0[u] = dr[3 * u]
+        d1[u] = dr[3 * u + 1]
+        d2[u] = dr[3 * u + 2]
+        q0[u] = qr[3 * u]
+        q1[u] = qr[3 * u + 1]
+        q2[u] = qr[3 * u + 2]
     g0, g1, g2, g3, g4, g5, g6, g7 = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5], geo[6], geo[7]
     for u in range(W):
-        ex = exr[u]
-        ey = eyr[u]
-        g0[u], g1[u], g2[u], g3[u], g4[u], g5[u] = _point_geometry(ox, oy, oz, ex, ey, zr[u], qxr[u], qyr[u], qzr[u])
+        idz = 1.0 / d2[u]
+        ex = d0[u] * idz  # dp/dz = (ex, ey, 1)
+        ey = d1[u] * idz
+        g0[u], g1[u], g2[u], g3[u], g4[u], g5[u] = _point_geometry(ox, oy, oz, ex, ey, zr[u], q0[u], q1[u], q2[u])
         g6[u] = ex
         g7[u] = ey
 
@@ -177,7 +162,7 @@ def _edge(za, zb, ga, ia, gb, ib):
 def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
     """The n edges a = u → b = u + off (off = 1: along a row, ga is gb; 0: row a → row b
     below) of rows with masks Sa, Sb, heights za, zb and geometry ga, gb (8, W) of
-    :func:`_row_geometry_planes`: e[0, u], e[1, u], e[2, u] = residual, J_a, J_b as
+    :func:`_row_geometry_all`: e[0, u], e[1, u], e[2, u] = residual, J_a, J_b as
     :func:`_edge`, all 0 where an end is off the mask or a value is not finite (no branches:
     the loop vectorises)."""
     res_o, ja_o, jb_o = e[0], e[1], e[2]
@@ -197,17 +182,16 @@ def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def _assemble_rows(o, R, S, z, sv, su, D, iD, Ex, Ey, rhs):
+def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     """Gauss–Newton normal equations Jᵀ J δ = −Jᵀ res of the trapezoidal equations
     res = z_b − z_a − ½(g_a + g_b)·(xy_b − xy_a) of all 4-neighbour pairs in S at the heights
-    z, written to the padded 5-point arrays (see above), from the planes R (5, H, W) of
-    :func:`_ray_planes`. The seed (sv, su) is not an unknown (gauge): it gets no row, and the
-    couplings to it are 0 (sv < 0: no seed). Edges whose residual or derivatives are not
+    z, written to the padded 5-point arrays (see above). The seed (sv, su) is not an unknown
+    (gauge): it gets no row, and the couplings to it are 0 (sv < 0: no seed). Edges whose residual or derivatives are not
     finite are dropped.
 
     Every edge is evaluated once, from its left or upper pixel. The rows are split into
     :data:`_ASSEMBLY_BLOCKS` blocks processed in parallel, each with a rolling two-row buffer
-    of the pixel geometry (:func:`_row_geometry_planes`) and the row's edges
+    of the pixel geometry (:func:`_row_geometry_all`) and the row's edges
     (:func:`_row_edges`); the contributions of a block's last row to the next block's first
     row go through a buffer that is added afterwards. Every sum is formed in the same order
     whatever the blocks (above, left, right, below; a block's first row: left, right,
@@ -220,19 +204,20 @@ def _assemble_rows(o, R, S, z, sv, su, D, iD, Ex, Ey, rhs):
         v0 = blk * H // nb
         v1 = (blk + 1) * H // nb
         geo = np.empty((2, 8, W))
+        rays = np.empty((6, W))
         eh = np.zeros((3, W))  # the row's edges to the right: residual, J_a, J_b
         ev = np.zeros((3, W))  # and below
         for u in range(W):
             D[v0 + 1, u + 1] = 0.0
             rhs[v0 + 1, u + 1] = 0.0
-        _row_geometry_planes(o, R, z, v0, geo[0])
+        _row_geometry_all(o, d, q, z, v0, geo[0], rays)
         for v in range(v0, v1):
             gc = geo[(v - v0) & 1]
             gn = geo[1 - ((v - v0) & 1)]
             _row_edges(S[v], S[v], z[v], z[v], gc, gc, 1, W - 1, eh)
             below = v + 1 < H
             if below:
-                _row_geometry_planes(o, R, z, v + 1, gn)
+                _row_geometry_all(o, d, q, z, v + 1, gn, rays)
                 _row_edges(S[v], S[v + 1], z[v], z[v + 1], gc, gn, 0, W, ev)
             else:
                 ev[:, :] = 0.0
@@ -276,11 +261,6 @@ def _assemble_rows(o, R, S, z, sv, su, D, iD, Ex, Ey, rhs):
                 rhs[v + 1, u + 1] = 0.0
 
 
-def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
-    """:func:`_assemble_rows` from the view-ray directions d and screen points q (H, W, 3)."""
-    _assemble_rows(o, ray_planes(d, q), S, z, sv, su, D, iD, Ex, Ey, rhs)
-
-
 @numba.njit(cache=True)
 def _apply_update(z, delta, D):
     """z += delta on the unknowns (D > 0; delta and D padded by one pixel). Returns the
@@ -299,7 +279,7 @@ def _apply_update(z, delta, D):
     return m
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None, atol_frac=0.01):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
@@ -314,11 +294,8 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None, atol_frac=0.01):
     known when it is compared with ``tol``: ``tol/100`` on the coarse levels of the start
     (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
     (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
-    then typically solved in one iteration instead of three). ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if
-    already computed."""
+    then typically solved in one iteration instead of three)."""
     H, W = S.shape
-    if R is None:
-        R = ray_planes(d, q)
     D = np.zeros((H + 2, W + 2))
     iD = np.zeros_like(D)
     Ex = np.zeros_like(D)
@@ -333,7 +310,7 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, R=None, atol_frac=0.01):
     change = np.inf
     it = 0
     for it in range(1, max_iter + 1):
-        _assemble_rows(o, R, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
+        _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
         if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
             X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                        cap=_INNER_CAP * tol, lap=lap, work=work)
@@ -380,7 +357,7 @@ def _coarse_mask(S, seed):
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
 
 
-def _start_heights(o, d, q, S, seed, z0, tol, max_iter, R=None):
+def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
     """Start of the Gauss–Newton iteration on the pixels S (heights (H, W), NaN outside S).
 
     Coarse to fine: if S has at least :data:`_COARSE_START_MIN_PIXELS` pixels, the
@@ -394,19 +371,17 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter, R=None):
     its solution (for the full-frame benchmark within about 1e-4 mm). On
     small problems (and should a coarse solve fail) the start is the stepwise solution
     (:func:`reconstruct_stepwise`). Pixels of S that neither reaches start at the seed
-    height. ``R``: the planes (5, H, W) of d and q (:func:`ray_planes`), if already computed
-    (the coarse levels take every second row and column of them)."""
+    height."""
     H, W = S.shape
     z = None
     if int(np.count_nonzero(S)) >= _COARSE_START_MIN_PIXELS and min(H, W) >= 4:
         a, b, Sc, sc = _coarse_mask(S, seed)
         dc = np.ascontiguousarray(d[a::2, b::2])
         qc = np.ascontiguousarray(q[a::2, b::2])
-        Rc = None if R is None else np.ascontiguousarray(R[:, a::2, b::2])
         tol_c = max(tol, _COARSE_TOL_MM)
         try:
-            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter, Rc)
-            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter, Rc)
+            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter)
+            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter)
         except ReconstructionError:
             zc = None  # fall back to the stepwise start
         if zc is not None:
@@ -530,9 +505,8 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     S = np.ascontiguousarray(labels == labels[seed])
     H, W = valid.shape
 
-    R = ray_planes(d, q)
-    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, R)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, R, atol_frac=_INNER_CAP)
+    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP)
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)
