@@ -56,6 +56,13 @@ _ASSEMBLY_BLOCKS = 16
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
+def _unit(x, y, z):
+    """(x, y, z)/|(x, y, z)| and 1/|(x, y, z)|."""
+    i = 1.0 / np.sqrt(x * x + y * y + z * z)
+    return x * i, y * i, z * i, i
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
     """(x, y, g_x, g_y, dg_x/dz, dg_y/dz) of the point at height pz on the view ray through o
     with dp/dz = (ex, ey, 1), seeing the screen point q: its x, y, the slopes g of the
@@ -63,20 +70,8 @@ def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
     w = pz - oz
     px = ox + w * ex
     py = oy + w * ey
-    ax = ox - px
-    ay = oy - py
-    az = oz - pz
-    ia = 1.0 / np.sqrt(ax * ax + ay * ay + az * az)
-    ax *= ia
-    ay *= ia
-    az *= ia
-    bx = qx - px
-    by = qy - py
-    bz = qz - pz
-    ib = 1.0 / np.sqrt(bx * bx + by * by + bz * bz)
-    bx *= ib
-    by *= ib
-    bz *= ib
+    ax, ay, az, ia = _unit(ox - px, oy - py, oz - pz)  # â, 1/|a|: towards the camera
+    bx, by, bz, ib = _unit(qx - px, qy - py, qz - pz)  # b̂, 1/|b|: towards the screen point
     mx = ax + bx
     my = ay + by
     mz = az + bz
