@@ -55,59 +55,85 @@ _COARSE_TOL_MM = 1e-3
 _ASSEMBLY_BLOCKS = 16
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _unit(x, y, z):
+    """(x, y, z)/|(x, y, z)| and 1/|(x, y, z)|."""
+    i = 1.0 / np.sqrt(x * x + y * y + z * z)
+    return x * i, y * i, z * i, i
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
+    """(x, y, g_x, g_y, dg_x/dz, dg_y/dz) of the point at height pz on the view ray through o
+    with dp/dz = (ex, ey, 1), seeing the screen point q: its x, y, the slopes g of the
+    bisector normal there and their derivative along the view ray."""
+    w = pz - oz
+    px = ox + w * ex
+    py = oy + w * ey
+    ax, ay, az, ia = _unit(ox - px, oy - py, oz - pz)  # â, 1/|a|: towards the camera
+    bx, by, bz, ib = _unit(qx - px, qy - py, qz - pz)  # b̂, 1/|b|: towards the screen point
+    mx = ax + bx
+    my = ay + by
+    mz = az + bz
+    # d(â)/dz = −(e − (â·e) â)/|a|, the same for b̂.
+    ae = ax * ex + ay * ey + az
+    be = bx * ex + by * ey + bz
+    dmx = -(ex - ae * ax) * ia - (ex - be * bx) * ib
+    dmy = -(ey - ae * ay) * ia - (ey - be * by) * ib
+    dmz = -(1.0 - ae * az) * ia - (1.0 - be * bz) * ib
+    imz = 1.0 / mz
+    gx = -mx * imz
+    gy = -my * imz
+    return px, py, gx, gy, -(dmx + gx * dmz) * imz, -(dmy + gy * dmz) * imz  # d(−m_x/m_z)/dz
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _row_geometry(o, d, q, S, z, v, geo):
     """For every pixel u of S in row v at height z: geo[u] = (x, y, g_x, g_y, dg_x/dz,
     dg_y/dz, d_x/d_z, d_y/d_z) — the point's x, y, the slopes g of the bisector normal there,
     their derivative along the view ray and the ray's dx/dz, dy/dz (geo shape (W, 8))."""
     W = S.shape[1]
-    ox = o[0]
-    oy = o[1]
-    oz = o[2]
     for u in range(W):
         if not S[v, u]:
             continue
         idz = 1.0 / d[v, u, 2]
         ex = d[v, u, 0] * idz  # dp/dz = (ex, ey, 1)
         ey = d[v, u, 1] * idz
-        pz = z[v, u]
-        w = pz - oz
-        px = ox + w * ex
-        py = oy + w * ey
-        ax = ox - px
-        ay = oy - py
-        az = oz - pz
-        ia = 1.0 / np.sqrt(ax * ax + ay * ay + az * az)
-        ax *= ia
-        ay *= ia
-        az *= ia
-        bx = q[v, u, 0] - px
-        by = q[v, u, 1] - py
-        bz = q[v, u, 2] - pz
-        ib = 1.0 / np.sqrt(bx * bx + by * by + bz * bz)
-        bx *= ib
-        by *= ib
-        bz *= ib
-        mx = ax + bx
-        my = ay + by
-        mz = az + bz
-        # d(â)/dz = −(e − (â·e) â)/|a|, the same for b̂.
-        ae = ax * ex + ay * ey + az
-        be = bx * ex + by * ey + bz
-        dmx = -(ex - ae * ax) * ia - (ex - be * bx) * ib
-        dmy = -(ey - ae * ay) * ia - (ey - be * by) * ib
-        dmz = -(1.0 - ae * az) * ia - (1.0 - be * bz) * ib
-        imz = 1.0 / mz
-        gx = -mx * imz
-        gy = -my * imz
-        geo[u, 0] = px
-        geo[u, 1] = py
-        geo[u, 2] = gx
-        geo[u, 3] = gy
-        geo[u, 4] = -(dmx + gx * dmz) * imz  # d(−m_x/m_z)/dz
-        geo[u, 5] = -(dmy + gy * dmz) * imz
+        geo[u, 0], geo[u, 1], geo[u, 2], geo[u, 3], geo[u, 4], geo[u, 5] = _point_geometry(
+            o[0], o[1], o[2], ex, ey, z[v, u], q[v, u, 0], q[v, u, 1], q[v, u, 2])
         geo[u, 6] = ex
         geo[u, 7] = ey
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _row_geometry_all(o, d, q, z, v, geo, rays):
+    """geo (8, W) = the rows of :func:`_row_geometry` for every pixel of row v (no mask, so
+    that the loop vectorises: off the mask the values are unused and may be NaN). The row's d
+    and q are first gathered into ``rays`` (6, W) (contiguous rows, which the second loop
+    reads)."""
+    W = z.shape[1]
+    ox = o[0]
+    oy = o[1]
+    oz = o[2]
+    zr = z[v]
+    dr = d[v].reshape(3 * W)  # contiguous rows (views)
+    qr = q[v].reshape(3 * W)
+    d0, d1, d2, q0, q1, q2 = rays[0], rays[1], rays[2], rays[3], rays[4], rays[5]
+    for u in range(W):
+        d0[u] = dr[3 * u]
+        d1[u] = dr[3 * u + 1]
+        d2[u] = dr[3 * u + 2]
+        q0[u] = qr[3 * u]
+        q1[u] = qr[3 * u + 1]
+        q2[u] = qr[3 * u + 2]
+    g0, g1, g2, g3, g4, g5, g6, g7 = geo[0], geo[1], geo[2], geo[3], geo[4], geo[5], geo[6], geo[7]
+    for u in range(W):
+        idz = 1.0 / d2[u]
+        ex = d0[u] * idz  # dp/dz = (ex, ey, 1)
+        ey = d1[u] * idz
+        g0[u], g1[u], g2[u], g3[u], g4[u], g5[u] = _point_geometry(ox, oy, oz, ex, ey, zr[u], q0[u], q1[u], q2[u])
+        g6[u] = ex
+        g7[u] = ey
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -127,18 +153,44 @@ def _edge(za, zb, ga, ia, gb, ib):
     return ok, res, Ja, Jb
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
+    """The n edges a = u → b = u + off (off = 1: along a row, ga is gb; 0: row a → row b
+    below) of rows with masks Sa, Sb, heights za, zb and geometry ga, gb (8, W) of
+    :func:`_row_geometry_all`: e[0, u], e[1, u], e[2, u] = residual, J_a, J_b as
+    :func:`_edge`, all 0 where an end is off the mask or a value is not finite (no branches:
+    the loop vectorises)."""
+    res_o, ja_o, jb_o = e[0], e[1], e[2]
+    for u in range(n):
+        ib = u + off
+        Gx = 0.5 * (ga[2, u] + gb[2, ib])
+        Gy = 0.5 * (ga[3, u] + gb[3, ib])
+        dx = gb[0, ib] - ga[0, u]
+        dy = gb[1, ib] - ga[1, u]
+        res = zb[ib] - za[u] - (Gx * dx + Gy * dy)
+        Ja = -1.0 + (Gx * ga[6, u] + Gy * ga[7, u]) - 0.5 * (ga[4, u] * dx + ga[5, u] * dy)
+        Jb = 1.0 - (Gx * gb[6, ib] + Gy * gb[7, ib]) - 0.5 * (gb[4, ib] * dx + gb[5, ib] * dy)
+        ok = Sa[u] and Sb[ib] and np.isfinite(res) and np.isfinite(Ja) and np.isfinite(Jb)
+        res_o[u] = res if ok else 0.0
+        ja_o[u] = Ja if ok else 0.0
+        jb_o[u] = Jb if ok else 0.0
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     """Gauss–Newton normal equations Jᵀ J δ = −Jᵀ res of the trapezoidal equations
     res = z_b − z_a − ½(g_a + g_b)·(xy_b − xy_a) of all 4-neighbour pairs in S at the heights
     z, written to the padded 5-point arrays (see above). The seed (sv, su) is not an unknown
-    (gauge): it gets no row, and the couplings to it are 0. Edges whose residual or
-    derivatives are not finite are dropped.
+    (gauge): it gets no row, and the couplings to it are 0 (sv < 0: no seed). Edges whose residual or derivatives are not
+    finite are dropped.
 
     Every edge is evaluated once, from its left or upper pixel. The rows are split into
     :data:`_ASSEMBLY_BLOCKS` blocks processed in parallel, each with a rolling two-row buffer
-    of the pixel geometry (:func:`_row_geometry`); the contributions of a block's last row to
-    the next block's first row go through a buffer that is added afterwards."""
+    of the pixel geometry (:func:`_row_geometry_all`) and the row's edges
+    (:func:`_row_edges`); the contributions of a block's last row to the next block's first
+    row go through a buffer that is added afterwards. Every sum is formed in the same order
+    whatever the blocks (above, left, right, below; a block's first row: left, right,
+    below, above), so the result does not depend on the number of threads."""
     H, W = S.shape
     nb = min(H, _ASSEMBLY_BLOCKS)
     bD = np.zeros((nb, W))
@@ -146,58 +198,53 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     for blk in numba.prange(0, nb):
         v0 = blk * H // nb
         v1 = (blk + 1) * H // nb
-        geo = np.empty((2, W, 8))
-        for v in range(v0, v1):
-            for u in range(W):
-                D[v + 1, u + 1] = 0.0
-                rhs[v + 1, u + 1] = 0.0
-        _row_geometry(o, d, q, S, z, v0, geo[0])
+        geo = np.empty((2, 8, W))
+        rays = np.empty((6, W))
+        eh = np.zeros((3, W))  # the row's edges to the right: residual, J_a, J_b
+        ev = np.zeros((3, W))  # and below
+        for u in range(W):
+            D[v0 + 1, u + 1] = 0.0
+            rhs[v0 + 1, u + 1] = 0.0
+        _row_geometry_all(o, d, q, z, v0, geo[0], rays)
         for v in range(v0, v1):
             gc = geo[(v - v0) & 1]
             gn = geo[1 - ((v - v0) & 1)]
+            _row_edges(S[v], S[v], z[v], z[v], gc, gc, 1, W - 1, eh)
             below = v + 1 < H
             if below:
-                _row_geometry(o, d, q, S, z, v + 1, gn)
+                _row_geometry_all(o, d, q, z, v + 1, gn, rays)
+                _row_edges(S[v], S[v + 1], z[v], z[v + 1], gc, gn, 0, W, ev)
+            else:
+                ev[:, :] = 0.0
+            Dr, rr, Dn, rn = D[v + 1, 1:], rhs[v + 1, 1:], D[v + 2, 1:], rhs[v + 2, 1:]
+            # pixel u: D (its upper edge's J_b² already) + left J_b² + right J_a² + lower J_a²
+            Dr[0] = Dr[0] + eh[1, 0] * eh[1, 0] + ev[1, 0] * ev[1, 0]
+            rr[0] = rr[0] - eh[1, 0] * eh[0, 0] - ev[1, 0] * ev[0, 0]
+            for u in range(1, W):
+                Dr[u] = Dr[u] + eh[2, u - 1] * eh[2, u - 1] + eh[1, u] * eh[1, u] + ev[1, u] * ev[1, u]
+                rr[u] = rr[u] - eh[2, u - 1] * eh[0, u - 1] - eh[1, u] * eh[0, u] - ev[1, u] * ev[0, u]
+            if v + 1 < v1:
+                for u in range(W):
+                    Dn[u] = ev[2, u] * ev[2, u]
+                    rn[u] = -(ev[2, u] * ev[0, u])
+            elif below:
+                for u in range(W):
+                    bD[blk, u] = ev[2, u] * ev[2, u]
+                    brhs[blk, u] = -ev[2, u] * ev[0, u]
             for u in range(W):
-                exo = 0.0
-                eyo = 0.0
-                if S[v, u]:
-                    a_free = not (v == sv and u == su)
-                    if u + 1 < W and S[v, u + 1]:  # right
-                        ok, res, Ja, Jb = _edge(z[v, u], z[v, u + 1], gc, u, gc, u + 1)
-                        if ok:
-                            b_free = not (v == sv and u + 1 == su)
-                            if a_free:
-                                D[v + 1, u + 1] += Ja * Ja
-                                rhs[v + 1, u + 1] -= Ja * res
-                            if b_free:
-                                D[v + 1, u + 2] += Jb * Jb
-                                rhs[v + 1, u + 2] -= Jb * res
-                            if a_free and b_free:
-                                exo = -Ja * Jb
-                    if below and S[v + 1, u]:  # below
-                        ok, res, Ja, Jb = _edge(z[v, u], z[v + 1, u], gc, u, gn, u)
-                        if ok:
-                            b_free = not (v + 1 == sv and u == su)
-                            if a_free:
-                                D[v + 1, u + 1] += Ja * Ja
-                                rhs[v + 1, u + 1] -= Ja * res
-                            if b_free:
-                                if v + 1 < v1:
-                                    D[v + 2, u + 1] += Jb * Jb
-                                    rhs[v + 2, u + 1] -= Jb * res
-                                else:
-                                    bD[blk, u] = Jb * Jb
-                                    brhs[blk, u] = -Jb * res
-                            if a_free and b_free:
-                                eyo = -Ja * Jb
-                Ex[v + 1, u + 1] = exo
-                Ey[v + 1, u + 1] = eyo
+                Ex[v + 1, u + 1] = -eh[1, u] * eh[2, u]
+                Ey[v + 1, u + 1] = -ev[1, u] * ev[2, u]
     for blk in range(nb - 1):
         v1 = (blk + 1) * H // nb
         for u in range(W):
             D[v1 + 1, u + 1] += bD[blk, u]
             rhs[v1 + 1, u + 1] += brhs[blk, u]
+    if sv >= 0:  # the gauge: no row, no couplings
+        D[sv + 1, su + 1] = 0.0
+        Ex[sv + 1, su + 1] = 0.0
+        Ex[sv + 1, su] = 0.0
+        Ey[sv + 1, su + 1] = 0.0
+        Ey[sv, su + 1] = 0.0
     for v in numba.prange(0, H):
         for u in range(W):
             dd = D[v + 1, u + 1]
@@ -227,19 +274,22 @@ def _apply_update(z, delta, D):
     return m
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
     converged, largest last update).
 
     Each update is solved (:func:`_pcg`) until the estimated error of the update is below
-    ``max(tol/100, min(1e-4 · |first estimate|, tol/10))`` (max-norm): to a tenth of ``tol``,
-    so that after an update that removes all but a second-order remainder the next (checking)
-    update is below ``tol`` — with a good start (see :func:`_start_heights`) one full solve
-    and one cheap checking solve suffice —, and relatively to 1e-4 when that is finer, but
-    never below ``tol/100``, the accuracy to which the last update is known when it is
-    compared with ``tol``."""
+    ``max(atol_frac · tol, min(1e-4 · |first estimate|, tol/10))`` (max-norm): to a tenth of
+    ``tol``, so that after an update that removes all but a second-order remainder the next
+    (checking) update is below ``tol`` — with a good start (see :func:`_start_heights`) one
+    full solve and one cheap checking solve suffice —, and relatively to 1e-4 when that is
+    finer, but never below ``atol_frac · tol``, the accuracy to which the last update is
+    known when it is compared with ``tol``: ``tol/100`` on the coarse levels of the start
+    (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
+    (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
+    then typically solved in one iteration instead of three)."""
     H, W = S.shape
     D = np.zeros((H + 2, W + 2))
     iD = np.zeros_like(D)
@@ -257,11 +307,11 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter):
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
         if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
-            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                        cap=_INNER_CAP * tol, lap=lap, work=work)
             delta, solved = X[0], bool(ok[0])
         else:
-            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, 0.01 * tol, _INNER_RTOL, _INNER_MAX_ITER,
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                     cap=_INNER_CAP * tol, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
@@ -392,10 +442,10 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     coarse cycle from the full grid, W-cycles below —, dense Cholesky on the coarsest level),
     which copes with arbitrary masks; on a full frame of at least 100 000 pixels by the DCT
     inverse of the Neumann Laplacian instead (:func:`pmdsim.evaluation.poisson.prefers_dct`;
-    the same result, fewer iterations). Each update is solved until its estimated error is below
-    ``tol_mm``/10 (or 1e-4 relative, if finer, but not below ``tol_mm``/100), so that the
-    update that follows, which decides convergence, is accurate to a small fraction of
-    ``tol_mm``.
+    the same result, fewer iterations). Each update on the full grid is solved until its
+    estimated error is below ``tol_mm``/10 (on the coarse levels of the start: or 1e-4
+    relative, if finer, but not below a hundredth of their tolerance), so that the update that
+    follows, which decides convergence, and the result are accurate to a tenth of ``tol_mm``.
 
     Parameters
     ----------
@@ -451,7 +501,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     H, W = valid.shape
 
     z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP)
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)
