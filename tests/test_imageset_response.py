@@ -248,3 +248,28 @@ def test_declared_integration_method(tmp_path):
     write_set(tmp_path / "c", gamma_law(1.0), bits=8, extra={"method": "simpson"})
     with pytest.raises(ImageSetError, match="key 'method' must be 'stepwise' or 'least_squares', got 'simpson'"):
         load_manifest(tmp_path / "c")
+
+
+def test_screen_map_sigma_up_to_the_maps_edge():
+    """σ through a screen map is the map's local scale times the decoder's σ at every pixel
+    the map covers, including the last step of pattern coordinates before the map's edge, where
+    a forward difference would leave the map (a backward one is taken there). Closed form: an
+    affine map screen = A·pattern + b scales σ_x, σ_y by the columns of A."""
+    from pmdsim.evaluation.decoding import ScreenCoordinates
+    from pmdsim.io.imageset_instrument import ScreenMap, apply_mask_and_map
+
+    A = np.array([[1.25, 0.0], [0.0, 0.8]])
+    pat = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 80.0], [100.0, 80.0]])
+    smap = ScreenMap(pat, pat @ A.T + [3.0, -2.0])
+    h = 1e-3 * 100.0  # apply_mask_and_map's step for this map
+    x = np.array([[10.0, 50.0, 100.0 - h / 2, 100.0]])  # the last two within h of the right edge
+    y = np.array([[40.0, 80.0 - h / 3, 40.0, 80.0]])  # the second and last within h of the top
+    xy = np.stack([x, y], axis=-1)
+    std = np.stack([np.full_like(x, 0.02), np.full_like(x, 0.03)], axis=-1)
+    shape = x.shape
+    dec = ScreenCoordinates(screen_xy_mm=xy, valid=np.ones(shape, bool), flags=np.zeros(shape, np.uint8),
+                            std_xy_mm=std, modulation=np.ones(shape), offset=np.ones(shape))
+    out = apply_mask_and_map(dec, screen_map=smap)
+    np.testing.assert_allclose(out.screen_xy_mm, xy @ A.T + [3.0, -2.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out.std_xy_mm[..., 0], 1.25 * 0.02, rtol=1e-9)
+    np.testing.assert_allclose(out.std_xy_mm[..., 1], 0.8 * 0.03, rtol=1e-9)

@@ -179,43 +179,6 @@ def test_cli_outputs(tmp_path, small_setup_file):
         assert "height_std_um" not in f["left"] and json.loads(f.attrs["uncertainty"])["omitted"]
 
 
-def test_uncertainty_failure_keeps_heights(tmp_path, small_setup_file):
-    """A σ that the input makes impossible, as it happens: the manifest declares a screen map
-    whose samples end just beyond the largest decoded x. The map's local scale (a forward
-    difference over h) is then unknown at the pixels within h of its end, so their decoder σ is
-    NaN while their screen coordinates are fine (imageset_instrument.apply_mask_and_map); the
-    σ refuses them (propagated, NaN would read as exact heights). The heights are written, the
-    σ datasets are absent, one warning line names the camera, the cause and the count."""
-    from pmdsim.io.imageset import decode_camera, load_manifest
-    from pmdsim.setup.toml import load_setup
-    from pmdsim.studies.jobs import evaluate_image_set
-
-    sim = tmp_path / "sim"
-    assert _run(["simulate", "--setup", str(small_setup_file), "--out", str(sim), "--quiet"]).exit_code == 0
-    setup = load_setup(small_setup_file)
-    dec = decode_camera(load_manifest(sim), "left")
-    x = dec.screen_xy_mm[..., 0]
-    x_end = float(np.nanmax(np.where(dec.valid, x, np.nan))) + 0.25  # the map's last column, mm
-    h = 1e-3 * max(x_end, setup.screen.size_mm[1])  # apply_mask_and_map's step (> 0.25 mm here)
-    pat = [[0.0, 0.0], [x_end, 0.0], [0.0, setup.screen.size_mm[1]], [x_end, setup.screen.size_mm[1]]]
-    doc = json.loads((sim / "manifest.json").read_text())
-    doc["screen_map"] = {"pattern_xy_mm": pat, "screen_xy_mm": pat}  # the identity up to x_end
-    (sim / "manifest.json").write_text(json.dumps(doc))
-    summary = evaluate_image_set(sim, setup, tmp_path / "ev")
-    with h5py.File(tmp_path / "ev" / "evaluation.h5") as f:
-        rec = f["left"]["reconstructed"][()]
-        n = int(np.count_nonzero(rec & dec.valid & (x > x_end - h)))  # within h of the map's end
-        assert n > 0
-        assert np.isfinite(f["left"]["height_mm"][()][rec]).all() and rec.sum() > 1000
-        assert not any(k.startswith(("height_std", "slope_std")) for k in f["left"])
-        assert "height_std_um" in f["right"]  # the other camera's σ stands
-        assert json.loads(f.attrs["uncertainty"])["left"] == {"omitted": True}
-    assert not (tmp_path / "ev" / "height_std_left.png").exists()
-    lines = [w for w in summary.warnings if "no uncertainty" in w]
-    assert lines == [f"left: no uncertainty (σ datasets omitted, heights written): camera 'left': the decoder's σ "
-                     f"(std_xy_mm) is not finite at {n} reconstructed pixel(s); no σ of the surface"], summary.warnings
-
-
 def test_api_and_anchor_key(tiny):
     """pmdsim.evaluate carries σ by default (read-only), skips it on request; the seed height's
     σ enters at the seed; the manifest anchor key distance_std_mm is read."""

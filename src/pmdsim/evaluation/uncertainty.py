@@ -577,10 +577,14 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
         raise UncertaintyError("the height σ is not finite at some reconstructed pixel")
     cov = getattr(setup, "calibration_covariance", None)
     if cov is not None:
-        from .uncertainty_calibration import calibration_contribution  # noqa: PLC0415 (optional part)
+        from .uncertainty_calibration import (  # noqa: PLC0415 (optional part)
+            CalibrationUncertaintyError, calibration_contribution)
 
-        cal = calibration_contribution(setup, camera, decoded, anchor=anchor, method=method,
-                                       screen_model=screen_model)
+        try:
+            cal = calibration_contribution(setup, camera, decoded, anchor=anchor, method=method,
+                                           screen_model=screen_model)
+        except CalibrationUncertaintyError as exc:  # as stereo does: the caller keeps the heights
+            raise UncertaintyError(f"the calibration's contribution cannot be computed: {exc}") from None
         h_cal = np.where(S, np.asarray(cal.height_std_um, dtype=float), np.nan)
         g_cal = np.where(S[..., None], np.asarray(cal.slope_std_urad, dtype=float), np.nan)
     else:

@@ -42,6 +42,7 @@ import numpy as np
 from ..errors import PmdsimError
 from ..setup.covariance import perturbed_setup
 from .anchor import DistanceAnchor, HeightAnchor, _bilinear_point, reconstruct_anchored, register_model
+from .integration import ReconstructionError
 from .reconstruction import reconstruct
 from .registration import register
 from .surface_fit import sample_slopes
@@ -158,8 +159,12 @@ class _Grid:
         if not ok[self.seed_c]:
             raise CalibrationUncertaintyError(f"camera {self.camera!r}: the seed pixel is lost when the setup moves "
                                               f"by a hundredth of a standard deviation")
-        rec = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, ok, method=self.method, seed_pixel=self.seed_c,
-                          seed_height_mm=self.z_seed + dz0)
+        try:
+            rec = reconstruct(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, ok, method=self.method, seed_pixel=self.seed_c,
+                              seed_height_mm=self.z_seed + dz0)
+        except ReconstructionError as exc:  # the covariance moves the setup where no surface is seen
+            raise CalibrationUncertaintyError(f"camera {self.camera!r}: the surface cannot be reconstructed when the "
+                                              f"setup moves by a hundredth of a standard deviation ({exc})") from None
         f = np.empty(ok.shape + (3,))
         f[..., 0] = rec.height_mm
         f[..., 1:] = sample_slopes(rec.n_sample)
@@ -245,7 +250,7 @@ def calibration_contribution(setup, camera: str, decoded, *, anchor=None, method
         raise CalibrationUncertaintyError(f"stride must be ≥ 1, got {stride!r}")
     axes = principal_axes(cov.subset(names))
     h_out = np.where(mask, 0.0, np.nan)
-    g_out = np.where(mask[..., None], 0.0, np.nan)
+    g_out = np.where(mask[..., None], np.zeros(mask.shape + (2,)), np.nan)  # (H, W, 2)
     if not axes:
         return CalibrationContribution(h_out, g_out, names, 0, s)
     ov, ou = seed[0] % s, seed[1] % s

@@ -497,6 +497,19 @@ def consistency_stacks(images, response, noise_std=None, lit=None):
     return xs, ys, np.maximum(sigma, 1e-12), kappa
 
 
+def _map_derivative(screen_map: ScreenMap, xy: np.ndarray, mapped: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """The map's derivative along ``step`` (shape (2,), mm) at pattern points ``xy`` (..., 2):
+    a forward difference, and a backward one where the forward point leaves the map (its last
+    ``|step|`` of pattern coordinates), so that a pixel mapped inside the map has a finite local
+    scale (and σ) up to the map's edge. Returns (..., 2): d(screen_xy_mm)/d(pattern) along step."""
+    h = float(np.hypot(*step))
+    d = (screen_map(xy + step) - mapped) / h
+    back = ~np.isfinite(d).all(axis=-1) & np.isfinite(mapped).all(axis=-1)
+    if back.any():
+        d[back] = (mapped[back] - screen_map(xy[back] - step)) / h
+    return d
+
+
 def apply_mask_and_map(dec: ScreenCoordinates, *, saturated=None, mask=None, screen_map: ScreenMap | None = None,
                        source: str = "") -> ScreenCoordinates:
     """Flag saturated pixels (SATURATED) and pixels outside ``mask`` (DARK: not lit in the
@@ -516,8 +529,8 @@ def apply_mask_and_map(dec: ScreenCoordinates, *, saturated=None, mask=None, scr
     if screen_map is not None:
         h = 1e-3 * max(1.0, float(np.nanmax(np.abs(screen_map.pattern_xy_mm))))
         mapped = screen_map(xy)
-        jx = (screen_map(xy + [h, 0.0]) - mapped) / h
-        jy = (screen_map(xy + [0.0, h]) - mapped) / h
+        jx = _map_derivative(screen_map, xy, mapped, np.array([h, 0.0]))
+        jy = _map_derivative(screen_map, xy, mapped, np.array([0.0, h]))
         with np.errstate(invalid="ignore"):
             std = np.stack([np.hypot(jx[..., 0] * std[..., 0], jy[..., 0] * std[..., 1]),
                             np.hypot(jx[..., 1] * std[..., 0], jy[..., 1] * std[..., 1])], axis=-1)
