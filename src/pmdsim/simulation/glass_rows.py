@@ -10,7 +10,10 @@ u = A_xy − t·m_xy of that prediction, which lies on the reflected ray's offse
 1. one Newton step on F(u) = A(u)_xy − (a + b·A(u)_z) (the outer-surface point
    A(u) = (u, h(u)) + t·m(u) on the ray x = a + b·z), with the exact Jacobian (the surface's
    second derivatives: one bicubic evaluation of h, ∇h and the Hessian at u,
-   :func:`foot_newton`); the step is accepted by an error bound (below);
+   :func:`foot_newton`); the step is accepted by an error bound (below). From the fifth row of a
+   band on, the step is skipped where the steps of the two rows above predict the foot point
+   provably within the foot tolerance (a bound from the residual alone,
+   :mod:`pmdsim.simulation.glass_skip`);
 2. the gradient carried to the new foot point by the Hessian, the ray's point on the outer
    surface's tangent plane there, refraction (Snell's law in vector form);
 3. the emitting-surface hit of the refracted ray: the tracer's intersection stage
