@@ -130,6 +130,8 @@ def main() -> None:
                     help="tracemalloc per stage in the last run (numpy buffers: what is alive at the stage's entry "
                          "and its peak; slows the run)")
     args = ap.parse_args()
+    if args.trace_memory and args.repeat < 2:
+        ap.error("--trace-memory traces the last of the --repeat runs and times the others: give --repeat 2 or more")
 
     import numba
 
