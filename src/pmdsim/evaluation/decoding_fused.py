@@ -1,7 +1,7 @@
 """Both fringe directions of :func:`~pmdsim.evaluation.decoding.decode_screen_coordinates` in
 one parallel pass over image rows (issue 25, item 3).
 
-The images are handed over as a tuple of (H, W) images — no ``np.stack`` copy of the 24 images —
+The images are handed over as a numba typed list of (H, W) images — no ``np.stack`` copy of the 24 images —
 and each row is decoded coarse → fine for direction x, then y, in row buffers, with the
 per-pixel arithmetic of ``decoding._finish_row`` expression for expression (bit for bit
 :func:`~pmdsim.evaluation.decoding.decode_direction`'s values) written as branch-free loops that
@@ -85,7 +85,7 @@ def as_image_list(images, name: str) -> ImageList:
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
 def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
-    """``decoding._accumulate_row`` for images ``first`` … ``first + n − 1`` of the tuple
+    """``decoding._accumulate_row`` for images ``first`` … ``first + n − 1`` of the list
     ``images`` and weights ``w_*[first:first + n]``: per pixel the same sums in the same order,
     four images per pass over the row (one load and store of the sums per four images)."""
     w = sa.shape[0]
@@ -211,7 +211,7 @@ def _fused_kernel(images, level_start, level_period, dir_level, origin, upper, s
                   noise, xy, flags, std, modulation, offset, valid, rev):
     """Decode both directions; one parallel pass over image rows.
 
-    ``images``: tuple of (H, W) images, the levels' images one after the other (x coarse → fine,
+    ``images``: typed list of (H, W) images, the levels' images one after the other (x coarse → fine,
     then y coarse → fine); level l has images ``level_start[l]`` … ``level_start[l + 1] − 1``,
     period ``level_period[l]`` mm; direction d has levels ``dir_level[d]`` … ``dir_level[d + 1] − 1``
     and ``origin[d]``, ``upper[d]``, ``std_scale[d]``. ``w_*``: per image. ``noise`` (1|H, 1|W).
@@ -222,6 +222,17 @@ def _fused_kernel(images, level_start, level_period, dir_level, origin, upper, s
         _decode_row(images, np.int64(v), level_start, level_period, dir_level, origin, upper, std_scale, w_a,
                     w_c, w_s, check_saturation, max_value, dark_level, min_modulation, min_ratio, tolerance,
                     rev_ratio, noise, xy, flags, std, modulation, offset, valid, rev)
+
+
+def _image_list(images) -> "numba.typed.List":
+    """The images as one numba typed list of read-only (H, W) views: its type holds the images'
+    dtype and layout but not their count, so the fused kernel compiles once per dtype and not
+    once per number of images (a tuple's length is part of its type: 15 compiles of the kernel
+    in the test suite)."""
+    out = numba.typed.List()
+    for im in images:
+        out.append(readonly(im))
+    return out
 
 
 def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
@@ -243,7 +254,7 @@ def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
     px, py = preps
     all_images = [im for p in preps for stack in p.stacks for im in stack]
     dtypes = {im.dtype for im in all_images}
-    if len(dtypes) > 1:  # mixed dtypes (rare): one tuple type; the promotion keeps every grey level's float64
+    if len(dtypes) > 1:  # mixed dtypes (rare): one list type; the promotion keeps every grey level's float64
         common = np.result_type(*dtypes)
         all_images = [im.astype(common) for im in all_images]
     counts = [len(stack) for p in preps for stack in p.stacks]
@@ -260,7 +271,7 @@ def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
     valid = np.empty((h, w), np.bool_)
     rev = np.empty((h, w, 2), np.bool_)
     _fused_kernel(
-        tuple(readonly(im) for im in all_images), level_start,
+        _image_list(all_images), level_start,
         np.concatenate([px.periods, py.periods]).astype(np.float64),
         np.array([0, len(px.stacks), len(px.stacks) + len(py.stacks)], np.int64),
         np.array([px.origin, py.origin]), np.array([px.upper, py.upper]),
