@@ -71,6 +71,10 @@ def test_sensor_rays_bit_identical_to_the_per_pixel_inversion(name):
     np.testing.assert_array_equal(d.reshape(-1, 3)[:, :2], ref)
     np.testing.assert_array_equal(d[..., 2], 1.0)
     np.testing.assert_array_equal(ok.reshape(-1), ref_ok)
+    # Independent of any inversion: the model's forward distortion (eq. 3) of each converged
+    # ray gives back its pixel's normalised coordinates.
+    xy = d.reshape(-1, 3)[:, :2][ref_ok]
+    np.testing.assert_allclose(cam.distort(xy), _normalised(cam, uv)[ref_ok], rtol=0, atol=1e-11)  # tol 1e-12
     if name == "folding_k1":
         assert 0.5 < 1.0 - ref_ok.mean() < 1.0  # most blocks: every lane falls back, and fails
     else:

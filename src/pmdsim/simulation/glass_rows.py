@@ -53,7 +53,8 @@ from ..geometry.cover_glass import _FOOT_TOL_MM, through_glass_full
 from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, eval2_kernel, intersect_kernel, intersect_solve,
 )
-from .glass_skip import patch_rows, skip_check_run
+from .glass_skip import skip_check_run
+from .trace_rows import patch_rows
 from .trace_rows import (
     _AX, _AY, _BLK, _BX, _BY, _C, _CONV, _GAZ, _GM, _GMX, _GMY, _HX, _HY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX,
     _OOY, _OOZ, _PID, _PIY, _QOX, _QOY, _QOZ, _SC, _SMALL_GRID, _UX, _UY, _VX, _VY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG,

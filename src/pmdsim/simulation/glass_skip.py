@@ -47,25 +47,9 @@ import math
 import numba
 
 from ..geometry.cover_glass import _FOOT_TOL_MM
-from .trace_rows import _AX, _AY, _BLK, _BX, _BY, _CONV, _GMX, _GMY, _HX, _HY, _JIT, _UX, _UY, _X, _Y, _Z
+from .trace_rows import _AX, _AY, _BLK, _BX, _BY, _CONV, _GMX, _GMY, _HX, _HY, _JIT, _UX, _UY, _X, _Y, _Z, patch_rows
 
-__all__ = ["foot_skip_bound", "patch_rows", "skip_check_run"]
-
-
-@numba.njit(**_JIT, inline="always")
-def patch_rows(c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13, c14, c15, sx):
-    """The bicubic patch h = Σ_a Σ_b c[4a + b]·s_y^a·s_x^b at s_x = ``sx``: its four polynomials in
-    s_x, r_a = Σ_b c[4a + b]·s_x^b, and their derivatives ∂r_a/∂s_x (Horner's scheme; h, ∇h and the
-    Hessian follow by Horner's scheme in s_y)."""
-    r0 = c0 + sx * (c1 + sx * (c2 + sx * c3))
-    r1 = c4 + sx * (c5 + sx * (c6 + sx * c7))
-    r2 = c8 + sx * (c9 + sx * (c10 + sx * c11))
-    r3 = c12 + sx * (c13 + sx * (c14 + sx * c15))
-    e1d0 = c1 + sx * (2.0 * c2 + sx * 3.0 * c3)
-    e1d1 = c5 + sx * (2.0 * c6 + sx * 3.0 * c7)
-    e1d2 = c9 + sx * (2.0 * c10 + sx * 3.0 * c11)
-    e1d3 = c13 + sx * (2.0 * c14 + sx * 3.0 * c15)
-    return r0, r1, r2, r3, e1d0, e1d1, e1d2, e1d3
+__all__ = ["foot_skip_bound", "skip_check_run"]
 
 
 @numba.njit(**_JIT, inline="always")
