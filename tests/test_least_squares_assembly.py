@@ -34,23 +34,24 @@ def _scene(seed_px, holes):
 
 def _residuals(o, d, q, z, S):
     """Trapezoidal residuals z_b − z_a − ½(g_a + g_b)·(xy_b − xy_a) of every 4-neighbour pair
-    in S (right, then below neighbours), and the pairs as flat indices (a, b)."""
+    in S (right, then below neighbours, each row-major), and the pairs as flat indices (a, b)."""
     t = (z - o[2]) / d[..., 2]
     p = o + t[..., None] * d
     a = o - p
     b = q - p
     m = a / np.linalg.norm(a, axis=-1, keepdims=True) + b / np.linalg.norm(b, axis=-1, keepdims=True)
     g = -m[..., :2] / m[..., 2:]
+    idx = np.arange(H * W).reshape(H, W)
     res, pairs = [], []
-    for dv, du in ((0, 1), (1, 0)):
-        for v in range(H - dv):
-            for u in range(W - du):
-                if S[v, u] and S[v + dv, u + du]:
-                    G = 0.5 * (g[v, u] + g[v + dv, u + du])
-                    dxy = p[v + dv, u + du, :2] - p[v, u, :2]
-                    res.append(z[v + dv, u + du] - z[v, u] - G @ dxy)
-                    pairs.append((v * W + u, (v + dv) * W + u + du))
-    return np.array(res), pairs
+    for sa, sb in (((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+                   ((slice(0, -1), slice(None)), (slice(1, None), slice(None)))):
+        keep = S[sa] & S[sb]
+        G = 0.5 * (g[sa] + g[sb])
+        dxy = p[sb][..., :2] - p[sa][..., :2]
+        r = z[sb] - z[sa] - np.sum(G * dxy, axis=-1)
+        res.append(r[keep])
+        pairs += list(zip(idx[sa][keep], idx[sb][keep]))
+    return np.concatenate(res), pairs
 
 
 @pytest.mark.parametrize("seed_px,holes", [((3, 4), []), ((0, 0), [(2, 3), (5, 7), (6, 0)]), ((6, 8), [(3, slice(2, 5))])],
