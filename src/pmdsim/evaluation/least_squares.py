@@ -274,7 +274,48 @@ def _apply_update(z, delta, D):
     return m
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01):
+class _Fields:
+    """Zeroed work arrays for the levels of one reconstruction, carved from buffers allocated
+    once: the k-th array handed out since :meth:`reset` is a view of the k-th buffer of its
+    dtype (sized for the largest level, ``size`` elements, grown if a request is larger).
+
+    Every level of the coarse-to-fine start and the full grid need the same dozen padded
+    fields; fresh arrays per level cost a page fault per 4 KB page on first touch (on this
+    machine 20–60 % of the full reconstruction's time was system time, varying with the
+    other jobs). A view is zeroed where an earlier level may have written it, so it is
+    exactly a fresh ``np.zeros`` array. No two levels' arrays are alive at once (a level's
+    solve ends before the next level starts)."""
+
+    def __init__(self, size: int):
+        self.size = int(size)
+        self._bufs: dict = {}  # dtype → [[buffer, elements possibly non-zero], ...]
+        self._next: dict = {}
+
+    def reset(self) -> None:
+        """Hand out the buffers again from the first (the arrays handed out before are dead)."""
+        self._next.clear()
+
+    def zeros(self, shape, dtype=np.float64) -> np.ndarray:
+        """A zeroed C-contiguous array of ``shape`` and ``dtype``."""
+        dtype = np.dtype(dtype)
+        shape = tuple(int(n) for n in np.atleast_1d(shape))
+        n = int(np.prod(shape))
+        bufs = self._bufs.setdefault(dtype, [])
+        k = self._next.get(dtype, 0)
+        self._next[dtype] = k + 1
+        if k == len(bufs) or bufs[k][0].size < n:
+            entry = [np.zeros(max(n, self.size), dtype=dtype), 0]  # calloc: zero until touched
+            if k == len(bufs):
+                bufs.append(entry)
+            else:
+                bufs[k] = entry
+        buf, dirty = bufs[k]
+        buf[:min(dirty, n)] = 0
+        bufs[k][1] = max(dirty, n)
+        return buf[:n].reshape(shape)
+
+
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=None):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
@@ -289,18 +330,19 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01):
     known when it is compared with ``tol``: ``tol/100`` on the coarse levels of the start
     (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
     (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
-    then typically solved in one iteration instead of three)."""
+    then typically solved in one iteration instead of three). ``fields`` (:class:`_Fields`)
+    provides the work arrays (a new one if not given)."""
     H, W = S.shape
-    D = np.zeros((H + 2, W + 2))
-    iD = np.zeros_like(D)
-    Ex = np.zeros_like(D)
-    Ey = np.zeros_like(D)
-    rhs = np.zeros_like(D)
-    work = _CGWork(D.shape)
+    if fields is None:
+        fields = _Fields((H + 2) * (W + 2))
+    fields.reset()
+    D, iD, Ex, Ey, rhs = (fields.zeros((H + 2, W + 2)) for _ in range(5))
     lap = None
     if poisson.prefers_dct(np.count_nonzero(S) - 1, S.shape):  # the seed is not an unknown
         lap = poisson.DCTLaplacian(S.shape, seed, dtype=np.float32)
-        work = poisson._DCTWork(1, D.shape)
+        work = poisson._DCTWork(1, D.shape, zeros=fields.zeros)
+    else:
+        work = _CGWork(D.shape, zeros=fields.zeros)
     converged = False
     change = np.inf
     it = 0
@@ -352,7 +394,7 @@ def _coarse_mask(S, seed):
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
 
 
-def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
+def _start_heights(o, d, q, S, seed, z0, tol, max_iter, fields=None):
     """Start of the Gauss–Newton iteration on the pixels S (heights (H, W), NaN outside S).
 
     Coarse to fine: if S has at least :data:`_COARSE_START_MIN_PIXELS` pixels, the
@@ -366,8 +408,10 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
     its solution (for the full-frame benchmark within about 1e-4 mm). On
     small problems (and should a coarse solve fail) the start is the stepwise solution
     (:func:`reconstruct_stepwise`). Pixels of S that neither reaches start at the seed
-    height."""
+    height. ``fields``: as :func:`_gauss_newton` (shared by the levels)."""
     H, W = S.shape
+    if fields is None:
+        fields = _Fields((H + 2) * (W + 2))
     z = None
     if int(np.count_nonzero(S)) >= _COARSE_START_MIN_PIXELS and min(H, W) >= 4:
         a, b, Sc, sc = _coarse_mask(S, seed)
@@ -375,8 +419,8 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter):
         qc = np.ascontiguousarray(q[a::2, b::2])
         tol_c = max(tol, _COARSE_TOL_MM)
         try:
-            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter)
-            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter)
+            zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter, fields)
+            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter, fields=fields)
         except ReconstructionError:
             zc = None  # fall back to the stepwise start
         if zc is not None:
@@ -496,12 +540,17 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     o, d, q, valid = _check_inputs(o, d, q, valid)
     seed, z0 = _check_seed(seed_pixel, seed_height_mm, o, d, valid)
 
-    labels, _ = ndimage.label(valid)  # 4-connectivity
-    S = np.ascontiguousarray(labels == labels[seed])
     H, W = valid.shape
+    if valid.all():  # one component: no labelling needed
+        S = np.ones((H, W), dtype=bool)
+    else:
+        labels, _ = ndimage.label(valid)  # 4-connectivity
+        S = np.ascontiguousarray(labels == labels[seed])
 
-    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP)
+    fields = _Fields((H + 2) * (W + 2))  # the work arrays of every level
+    z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, fields)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields)
+    del fields
 
     recon = S & np.isfinite(z)
     z = np.where(recon, z, np.nan)

@@ -415,14 +415,11 @@ class _Multigrid:
 
 
 class _CGWork:
-    """Work arrays of :func:`_pcg` for padded grids of one shape (zero padding kept)."""
+    """Work arrays of :func:`_pcg` for padded grids of one shape (zero padding kept), from
+    ``zeros(shape, dtype)`` (default ``np.zeros``; a caller may hand out reused buffers)."""
 
-    def __init__(self, shape):
-        self.x = np.zeros(shape)
-        self.r = np.zeros(shape)
-        self.z = np.zeros(shape)
-        self.p = np.zeros(shape)
-        self.Ap = np.zeros(shape)
+    def __init__(self, shape, zeros=np.zeros):
+        self.x, self.r, self.z, self.p, self.Ap = (zeros(shape, np.float64) for _ in range(5))
 
 
 def _pcg(D, iD, Ex, Ey, b, atol, rtol, max_iter, cap=np.inf, work=None, mg=None):

@@ -203,12 +203,13 @@ def _scatter_dot_max(R, y, y0, unknown, Z):
 
 class _DCTWork:
     """Work arrays of :func:`dct_pcg` for k padded fields of one shape (float64) and the
-    single-precision transform buffer."""
+    single-precision transform buffer, from ``zeros(shape, dtype)`` (default ``np.zeros``)."""
 
-    def __init__(self, k, shape):
+    def __init__(self, k, shape, zeros=np.zeros):
+        # zeros(shape, dtype): zeroed arrays (a caller may hand out reused buffers instead)
         self.k = int(k)
-        self.X, self.R, self.Z, self.P, self.AP = (np.zeros((self.k,) + tuple(shape)) for _ in range(5))
-        self.buf = np.zeros((self.k, shape[0] - 2, shape[1] - 2), dtype=np.float32)
+        self.X, self.R, self.Z, self.P, self.AP = (zeros((self.k,) + tuple(shape), np.float64) for _ in range(5))
+        self.buf = zeros((self.k, shape[0] - 2, shape[1] - 2), np.float32)
 
 
 def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None, work=None, unknown=None):
