@@ -183,9 +183,22 @@ def _update_gather(X, R, P, AP, alpha, buf):
 
 
 @numba.njit(cache=True, parallel=True)
+def _start_fields(X, R, B, buf):
+    """X = 0, R = B and buf = B's interior (single precision), in one pass."""
+    Hp, Wp = X.shape
+    for v in numba.prange(0, Hp):
+        for u in range(Wp):
+            X[v, u] = 0.0
+            R[v, u] = B[v, u]
+        if 0 < v < Hp - 1:
+            for u in range(1, Wp - 1):
+                buf[v - 1, u - 1] = B[v, u]
+
+
+@numba.njit(cache=True, parallel=True)
 def _scatter_dot_max(R, y, y0, unknown, Z):
     """Z = (y − y0) on the unknowns (0 elsewhere; y unpadded and y0 single precision, the
-    difference formed in single precision); returns (R·Z, max |Z|)."""
+    difference formed in single precision, Z float32 or float64); returns (R·Z, max |Z|)."""
     Hp, Wp = Z.shape
     s = 0.0
     m = 0.0
@@ -202,14 +215,19 @@ def _scatter_dot_max(R, y, y0, unknown, Z):
 
 
 class _DCTWork:
-    """Work arrays of :func:`dct_pcg` for k padded fields of one shape (float64) and the
-    single-precision transform buffer, from ``zeros(shape, dtype)`` (default ``np.zeros``)."""
+    """Work arrays of :func:`dct_pcg` for k padded fields of one shape and the single-precision
+    transform buffer, from ``zeros(shape, dtype)`` (default ``np.zeros``): X, R, P, AP in
+    float64; the preconditioned residual Z in float32 (its values are differences formed in
+    single precision, :func:`_scatter_dot_max`, so float32 holds them exactly and CG's float64
+    arithmetic is unchanged, with half the bytes)."""
 
     def __init__(self, k, shape, zeros=np.zeros):
         # zeros(shape, dtype): zeroed arrays (a caller may hand out reused buffers instead)
         self.k = int(k)
-        self.X, self.R, self.Z, self.P, self.AP = (zeros((self.k,) + tuple(shape), np.float64) for _ in range(5))
-        self.buf = zeros((self.k, shape[0] - 2, shape[1] - 2), np.float32)
+        shape = (self.k,) + tuple(shape)
+        self.X, self.R, self.P, self.AP = (zeros(shape, np.float64) for _ in range(4))
+        self.Z = zeros(shape, np.float32)
+        self.buf = zeros((self.k, shape[1] - 2, shape[2] - 2), np.float32)
 
 
 def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None, work=None, unknown=None):
@@ -255,8 +273,6 @@ def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None,
     if unknown is None:
         unknown = D > 0.0
     X, R, Z, P, AP, buf = work.X[:k], work.R[:k], work.Z[:k], work.P[:k], work.AP[:k], work.buf[:k]
-    X[:] = 0.0
-    R[:] = B
     rz = np.zeros(k)
     zmax = np.zeros(k)
     its = np.zeros(k, dtype=np.int64)
@@ -264,7 +280,7 @@ def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None,
     active = np.ones(k, dtype=np.bool_)
     sums = np.zeros(k)
     for i in range(k):
-        buf[i] = R[i, 1:-1, 1:-1]
+        _start_fields(X[i], R[i], B[i], buf[i])
         sums[i] = float(np.sum(R[i]))
 
     def precondition(idx):
