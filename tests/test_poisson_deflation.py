@@ -25,15 +25,20 @@ def _operator(S, seed, rng):
     return D, Ex, Ey
 
 
+def _problem(rng_seed, H, W, seed, hole):
+    """The operator of :func:`_operator` on H×W (``hole``: a region that is not unknowns, or
+    None) and its sparse matrix with the unknowns' flat indices."""
+    S = np.ones((H, W), bool)
+    if hole is not None:
+        S[hole] = False
+    D, Ex, Ey = _operator(S, seed, np.random.default_rng(rng_seed))
+    return (D, Ex, Ey), _sparse(D, Ex, Ey)
+
+
 @pytest.mark.parametrize("masked", [False, True])
 def test_galerkin_matrix_matches_the_explicit_basis(masked):
-    rng = np.random.default_rng(11)
     H, W, seed = 18, 27, (5, 20)
-    S = np.ones((H, W), bool)
-    if masked:
-        S[9, 3:6] = False
-    D, Ex, Ey = _operator(S, seed, rng)
-    A, unk = _sparse(D, Ex, Ey)
+    (D, Ex, Ey), (A, unk) = _problem(11, H, W, seed, np.s_[9, 3:6] if masked else None)
     modes = LowModes((H, W), seed, modes=(3, 4))
     modes.prepare(D, Ex, Ey, D > 0)
     # the basis written out: the orthonormal DCT-II vectors (scipy's inverse transform of unit
@@ -70,11 +75,7 @@ def test_galerkin_matrix_matches_the_explicit_basis(masked):
 def test_deflated_pcg_matches_spsolve(masked):
     rng = np.random.default_rng(5)
     H, W, seed = 40, 52, (20, 11)
-    S = np.ones((H, W), bool)
-    if masked:
-        S[10:13, 25:29] = False
-    D, Ex, Ey = _operator(S, seed, rng)
-    A, unk = _sparse(D, Ex, Ey)
+    (D, Ex, Ey), (A, unk) = _problem(5, H, W, seed, np.s_[10:13, 25:29] if masked else None)
     for k in range(2):
         b = np.zeros((H + 2, W + 2))
         b[1:-1, 1:-1] = rng.standard_normal((H, W)) if k == 0 else np.outer(np.linspace(0, 1, H), np.ones(W))
