@@ -1,16 +1,14 @@
 """Stage profile of the least-squares integration (issue 25 item 3): where the full-frame
 ``reconstruct_least_squares`` spends its time.
 
-    python benchmarks/profile_least_squares.py [--threads 1] [--repeat 3] [--deflate]
+    python benchmarks/profile_least_squares.py [--threads 1] [--repeat 3]
 
 Table 1, left camera, Δh = 3 mm, 1920×1200 (the frame ``bench_kernel_floors.py`` times: the
 24 8-bit images decoded and registered, seed (600, 960)). Wraps the module's stages — every
 assembly of the normal equations, every preconditioned CG solve (with its iterations), every
 Gauss–Newton loop and coarse-to-fine start level, the final points and normals — and prints
 each call's CPU (process) time for the last of ``--repeat`` runs (the first one warms up),
-per grid level, with the run's total and the 1-minute load average. ``--deflate`` solves each
-level's first linearisation by the deflated CG (``poisson_deflation.deflated_dct_pcg``, off by
-default: ``least_squares._DEFLATE``).
+per grid level, with the run's total and the 1-minute load average.
 """
 
 from __future__ import annotations
@@ -29,7 +27,6 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--deflate", action="store_true", help="the first linearisation by deflated CG")
     a = ap.parse_args()
     from pmdsim.evaluation import least_squares as LS
     from pmdsim.evaluation import poisson as P
@@ -58,8 +55,6 @@ def main() -> None:
             extra = ""
             if name == "dct_pcg":
                 extra = f" CG iterations {int(out[1][0])}"
-            elif name == "deflated_dct_pcg":
-                extra = f" deflated CG iterations {int(out[1])}"
             elif name == "_gauss_newton":
                 extra = f" Gauss–Newton iterations {out[0]}, last update {out[2]:.2e} mm"
             log.append(f"{name:24s} {str(shape):14s} {dt * 1e3:7.1f} ms{extra}")
@@ -68,9 +63,8 @@ def main() -> None:
         setattr(mod, name, timed)
 
     for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_and_normals", "_start_heights",
-                 "_fill_kernel", "_run_stepwise", "_interpolate_coarse", "deflated_dct_pcg"):
+                 "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
         wrap(LS, name)
-    LS._DEFLATE = a.deflate
     wrap(P, "dct_pcg")
     for r in range(a.repeat):
         log.clear()

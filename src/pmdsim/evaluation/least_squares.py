@@ -20,7 +20,6 @@ from .integration import (
 )
 from . import poisson
 from .multigrid import _CGWork, _pcg
-from .poisson_deflation import LowModes, deflated_dct_pcg
 from .stepwise import STEP_MAX_ITER, _NB_DU, _NB_DV, _fill_kernel, _interpolate_coarse, _run_stepwise
 
 __all__ = ["reconstruct_least_squares"]
@@ -49,14 +48,6 @@ _COARSE_START_MIN_PIXELS = 50_000
 #: order in the update plus the inner solve's error, ≤ 1e-5 mm), so a typical coarse level
 #: stops after one iteration. The final convergence test is the one on the full grid.
 _COARSE_TOL_MM = 1e-3
-
-
-#: Whether the full grid's first linearisation (on a full frame: DCT preconditioner) is solved by
-#: deflated CG (:func:`pmdsim.evaluation.poisson_deflation.deflated_dct_pcg`). Off: it needs 3
-#: CG iterations instead of 7 on the Table 1 frame, but its setup and the two extra passes per
-#: iteration cost more than the 4 iterations saved (283 against 250 ms; docs/benchmarks.md,
-#: "Integration after int25d").
-_DEFLATE = False
 
 
 #: Row blocks of :func:`_assemble_gauss_newton` (a constant, so that the result does not
@@ -324,7 +315,7 @@ class _Fields:
         return buf[:n].reshape(shape)
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=None, deflate=False):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=None):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
@@ -340,8 +331,7 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=Non
     (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
     (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
     then typically solved in one iteration instead of three). ``fields`` (:class:`_Fields`)
-    provides the work arrays (a new one if not given); ``deflate``: the first linearisation by
-    deflated CG if :data:`_DEFLATE` and the DCT preconditioner is used."""
+    provides the work arrays (a new one if not given)."""
     H, W = S.shape
     if fields is None:
         fields = _Fields((H + 2) * (W + 2))
@@ -351,21 +341,14 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=Non
     if poisson.prefers_dct(np.count_nonzero(S) - 1, S.shape):  # the seed is not an unknown
         lap = poisson.DCTLaplacian(S.shape, seed, dtype=np.float32)
         work = poisson._DCTWork(1, D.shape, zeros=fields.zeros)
-        work.ZD = fields.zeros(D.shape)  # the deflated preconditioned residual
     else:
         work = _CGWork(D.shape, zeros=fields.zeros)
-    modes = None
     converged = False
     change = np.inf
     it = 0
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
-        if lap is not None and it == 1 and deflate and _DEFLATE:  # deflated (poisson_deflation.py)
-            if modes is None:
-                modes = LowModes(S.shape, seed, lap=lap)
-            delta, _, solved = deflated_dct_pcg(D, Ex, Ey, rhs, seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
-                                                cap=_INNER_CAP * tol, lap=lap, work=work, modes=modes)
-        elif lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
+        if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
             X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
                                        cap=_INNER_CAP * tol, lap=lap, work=work)
             delta, solved = X[0], bool(ok[0])
@@ -566,8 +549,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
 
     fields = _Fields((H + 2) * (W + 2))  # the work arrays of every level
     z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, fields)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields,
-                                          deflate=True)
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields)
     del fields
 
     recon = S & np.isfinite(z)

@@ -1,8 +1,14 @@
-"""Deflated DCT-preconditioned conjugate gradients for the least-squares integration's normal
-equations on a full frame (issue 25 item 3): CG preconditioned by the pinned Laplacian's DCT
-inverse (:mod:`pmdsim.evaluation.poisson`), with the lowest DCT modes and the Laplacian's Green's
-function at the gauge pixel deflated (Saad, Yeung, Erhel & Guyomarc'h 2000, "A deflated version
-of the conjugate gradient algorithm", SIAM J. Sci. Comput. 21, 1909).
+"""Prototype (measured, not used by pmdsim): deflated DCT-preconditioned conjugate gradients for
+the least-squares integration's normal equations on a full frame (issue 25 item 3, route (a)),
+timed against ``poisson.dct_pcg`` on the first full-grid Gauss–Newton system of the Table 1 frame.
+
+    python benchmarks/deflation_prototype.py [--repeat 5]
+
+CG preconditioned by the pinned Laplacian's DCT inverse (:mod:`pmdsim.evaluation.poisson`), with
+the lowest DCT modes and the Laplacian's Green's function at the gauge pixel deflated (Saad,
+Yeung, Erhel & Guyomarc'h 2000, "A deflated version of the conjugate gradient algorithm", SIAM
+J. Sci. Comput. 21, 1909), in the A-DEF2 form (Tang, Nabben, Vuik & Erlangga 2009), which stays
+stable to 1e-13 where the plain deflated form drifts.
 
 Why: the Gauss–Newton matrix N differs from the Laplacian L most in its smoothest modes (Robin
 terms on the border, the weak dependence of the residuals on the absolute height, which competes
@@ -10,24 +16,29 @@ with the one pinned pixel), so the spectrum of L_s⁻¹N spreads over [0.64, 1.8
 of the Table 1 frame) and CG spends its iterations on them: the error of every iterate of the
 plain solve is ≥ 94 % in the lowest 4×6 DCT modes. Deflation solves the problem exactly on the
 space W spanned by those modes and the Green's function h (the "level" of the surface against
-the pin) and runs CG on the N-orthogonal complement.
+the pin) and runs CG on the N-orthogonal complement: 3 iterations instead of 7, but its setup
+and two extra passes per iteration cost more than the 4 iterations saved (docs/benchmarks.md,
+"Integration after int25d").
 
 The basis is separable, W = {U_r(v) V_s(u)} ∪ {h}, U, V the orthonormal DCT-II vectors, all
 restricted to the unknowns. Nothing of size N·W is stored: E = WᵀNW is formed from the padded
-operator arrays by matrix products of the basis' pair products (:meth:`LowModes.prepare`), and
-the projections WᵀN z that every iteration needs are accumulated in the pass that forms N z
-(:func:`_matvec_project`), per row (T = (N z) V, then Uᵀ T).
+operator arrays by sums over the basis' pair products (:meth:`LowModes.prepare`), and the
+projections Wᵀ(N z − r) that every iteration needs are accumulated in the pass that forms N z
+(:func:`_project`), per row (T = y V, then Uᵀ T).
 """
 
 from __future__ import annotations
 
+import argparse
+import os
+import time
+
 import numba
 import numpy as np
 
-from .multigrid import _residual
-from .poisson import DCTLaplacian, _direction_matvec, _scatter_dot_max, _start_fields, _update_gather
-
-__all__: list[str] = []
+from pmdsim.evaluation.multigrid import _residual
+from pmdsim.evaluation.poisson import (DCTLaplacian, _DCTWork, _direction_matvec, _scatter_dot_max, _start_fields,
+                                       _update_gather, dct_pcg)
 
 
 #: Row and column DCT modes deflated (the lowest 4 × 6, plus the Green's function at the seed).
@@ -227,8 +238,8 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
 
     Stops when the max-norm of the deflated preconditioned residual (the estimate of the error)
     is below ``max(atol, min(rtol · its initial value, cap))`` and adds it to x, as ``dct_pcg``.
-    Arguments as :func:`~pmdsim.evaluation.poisson.dct_pcg` with b (H + 2, W + 2) and ``work`` a
-    :class:`~pmdsim.evaluation.poisson._DCTWork` for one field with an extra float64 field ``ZD``
+    Arguments as :func:`pmdsim.evaluation.poisson.dct_pcg` with b (H + 2, W + 2) and ``work`` a
+    :class:`pmdsim.evaluation.poisson._DCTWork` for one field with an extra float64 field ``ZD``
     (created if missing). Returns (x, iterations, converged); x is ``work.X[0]``."""
     Hp, Wp = D.shape
     if lap is None:
@@ -239,7 +250,6 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
         modes = LowModes((Hp - 2, Wp - 2), pinned, lap=lap)
     modes.prepare(D, Ex, Ey, unknown)
     if work is None:
-        from .poisson import _DCTWork
         work = _DCTWork(1, D.shape)
     if getattr(work, "ZD", None) is None or work.ZD.shape != D.shape:
         work.ZD = np.zeros(D.shape)
@@ -277,3 +287,52 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
         rz_old = rz
         rz, zmax = precondition(total)
         beta = rz / rz_old
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    a = ap.parse_args()
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from _common import rendered_images
+    from pmdsim.evaluation import least_squares as LS
+    from pmdsim.evaluation.pipeline import decode_images, evaluate_decoded
+    from pmdsim.setup import default_setup
+    from pmdsim.simulation import trace_setup_camera
+
+    s = default_setup().with_bulge(3.0)
+    m = trace_setup_camera(s, "left", store_points=True)
+    dec = decode_images(s, rendered_images(s, "left", m))
+    seed = (600, 960)
+    reg, rec = evaluate_decoded(s.with_bulge(0.0), "left", dec, method="least_squares", seed_pixel=seed)
+    o, d, q, S, z0 = reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, float(rec.height_mm[seed])
+    numba.set_num_threads(1)
+    tol = 1e-9  # reconstruct_least_squares' default: the full grid's solves to tol/10
+    z = LS._start_heights(o, d, q, S, seed, z0, tol, 20)
+    H, W = S.shape
+    D, iD, Ex, Ey, rhs = (np.zeros((H + 2, W + 2)) for _ in range(5))
+    LS._assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
+    lap = DCTLaplacian(S.shape, seed, dtype=np.float32)
+    work = _DCTWork(1, D.shape)
+    times = {"plain": [], "deflated": [], "LowModes": []}
+    for _ in range(a.repeat + 1):  # the first: compilation, not counted
+        c = time.process_time()
+        X, its_p, _ = dct_pcg(D, Ex, Ey, rhs[None], seed, 0.1 * tol, 1e-4, 200, cap=0.1 * tol, lap=lap, work=work)
+        times["plain"].append(time.process_time() - c)
+        x_plain = X[0].copy()
+        c = time.process_time()
+        modes = LowModes(S.shape, seed, lap=lap)
+        times["LowModes"].append(time.process_time() - c)
+        c = time.process_time()
+        x, its_d, ok = deflated_dct_pcg(D, Ex, Ey, rhs, seed, 0.1 * tol, 1e-4, 200, cap=0.1 * tol, lap=lap,
+                                        work=work, modes=modes)
+        times["deflated"].append(time.process_time() - c)
+    print(f"UTC {time.strftime('%H:%M:%S', time.gmtime())}, load {os.getloadavg()[0]:.2f}, one thread, CPU time, "
+          f"best of {a.repeat}: plain dct_pcg {int(its_p[0])} iterations {min(times['plain'][1:]) * 1e3:.1f} ms; "
+          f"deflated {its_d} iterations {min(times['deflated'][1:]) * 1e3:.1f} ms (+ LowModes "
+          f"{min(times['LowModes'][1:]) * 1e3:.1f} ms); largest difference of the updates "
+          f"{np.max(np.abs(x - x_plain)):.2e} mm (largest update {np.max(np.abs(x_plain)):.2e} mm)")
+
+
+if __name__ == "__main__":
+    main()
