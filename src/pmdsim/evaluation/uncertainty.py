@@ -65,6 +65,10 @@ DEFAULT_RNG_SEED = 20261127
 
 NO_COVARIANCE_NOTE = "setup carries no calibration covariance: noise part only"
 
+_STEPWISE_SINGULAR = "the linearised stepwise recursion is singular (a step's height coefficient vanishes); no σ"
+
+_GEOMETRY_NOT_FINITE = "the slopes' geometry is not finite at some reconstructed pixel; no σ"
+
 
 class UncertaintyError(PmdsimError, ArithmeticError):
     """The uncertainty of a reconstruction cannot be computed (e.g. the linearised system is
@@ -388,7 +392,7 @@ class _LinearisedIntegration:
         self.geo = np.zeros((H, W, 8))
         _geometry(o, d, q, S, z, self.geo)
         if not np.isfinite(self.geo).all(axis=-1)[S].all():  # (no (n, 8) copy of the geometry)
-            raise UncertaintyError("the slopes' geometry is not finite at some reconstructed pixel; no σ")
+            raise UncertaintyError(_GEOMETRY_NOT_FINITE)
         if self.method == "stepwise":
             self.layer = np.empty((H, W), dtype=np.int64)
             self.order = np.empty(H * W, dtype=np.int64)
@@ -413,8 +417,7 @@ class _LinearisedIntegration:
         if self.method == "stepwise":
             dz = np.empty((H, W))
             if not _stepwise_linear(self.geo, self.layer, self.order, self.n, dg, dz):
-                raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
-                                       "vanishes); no σ")
+                raise UncertaintyError(_STEPWISE_SINGULAR)
             return dz
         _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self.rhs)
         scale = float(np.max(np.abs(self.rhs)))
@@ -442,8 +445,7 @@ def _sampled_std(lin, A, samples: int, rng_seed: int, *, overwrite: bool = False
     acc = np.zeros(S.shape)
     if lin.method == "stepwise":
         if not stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
-            raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
-                                   "vanishes); no σ")
+            raise UncertaintyError(_STEPWISE_SINGULAR)
     else:  # batched solves (DCT- or multigrid-preconditioned CG)
         from .uncertainty_solve import least_squares_sum_sq  # noqa: PLC0415 (it imports this module)
 
@@ -560,15 +562,25 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
                                f"pixel(s); no σ of the surface")
     if int(samples) < 2:
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
-    # Memory (issue 25): the linearisation first (its temporaries are gone before A exists), A
-    # zeroed off S in place (no copy).
-    lin = _LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
-    # the kernel reads σ only on S, where it is finite (checked above): no NaN-free copy
-    A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
+    if rec.method == "stepwise":  # geometry, A and σ in one pass (no full-size maps: issue 25)
+        from .uncertainty_stepwise_fused import stepwise_noise_sigma  # noqa: PLC0415 (it imports this module)
+
+        h_noise, g_noise, status = stepwise_noise_sigma(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec, dq, std, samples,
+                                                        rng_seed)
+        if status == 1:
+            raise UncertaintyError(_GEOMETRY_NOT_FINITE)
+        if status == 2:
+            raise UncertaintyError(_STEPWISE_SINGULAR)
+    else:
+        # Memory (issue 25): the linearisation first (its temporaries are gone before A exists), A
+        # zeroed off S in place (no copy).
+        lin = _LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
+        # the kernel reads σ only on S, where it is finite (checked above): no NaN-free copy
+        A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
+        h_noise = _sampled_std(lin, A, samples, rng_seed, overwrite=True)
+        del lin, A
     if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
         notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
-    h_noise = _sampled_std(lin, A, samples, rng_seed, overwrite=True)
-    del lin, A
     if anchor_std_mm and anchor is not None:
         dz_da = anchor_height_derivative(reg, anchor, method, T_world_ref=setup.sample.T_world_sample)
         h_noise = combine(h_noise, dz_da * float(anchor_std_mm))
