@@ -16,6 +16,7 @@ from .integration import (
     _check_seed,
     _points_and_normals,
 )
+from .prefetch import prefetch
 
 __all__ = ["reconstruct_stepwise", "step_tolerance_mm", "STEP_TOL_MM", "STEP_TOL_ULPS", "STEP_MAX_ITER"]
 
@@ -67,6 +68,10 @@ _NB_DV = np.array([-1, 1, 0, 0], dtype=np.int64)
 _NB_DU = np.array([0, 0, -1, 1], dtype=np.int64)
 
 
+#: Pixels ahead whose inputs the wavefront gather prefetches (:mod:`pmdsim.evaluation.prefetch`).
+_PREFETCH_AHEAD = 8
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
     """The inputs of the wavefront ``nxt[:n]``'s steps, as contiguous rows (index i: the
@@ -76,6 +81,17 @@ def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
     H = state.shape[0]
     W = state.shape[1]
     for i in range(n):
+        if i + _PREFETCH_AHEAD < n:  # the inputs of a pixel ahead: its rows and the rows above and below
+            k = nxt[i + _PREFETCH_AHEAD]
+            prefetch(d, 3 * k)
+            prefetch(q, 3 * k)
+            prefetch(state, 4 * k)
+            if k >= W:
+                prefetch(d, 3 * (k - W))
+                prefetch(state, 4 * (k - W))
+            if k + W < H * W:
+                prefetch(d, 3 * (k + W))
+                prefetch(state, 4 * (k + W))
         idx = nxt[i]
         vb = idx // W
         ub = idx - vb * W

@@ -28,10 +28,25 @@ import numba
 import numpy as np
 
 from .least_squares import _point_geometry
+from .prefetch import prefetch as _prefetch
 from .uncertainty import _pixel_jacobian, _tangent_array
 from .uncertainty_stepwise import _draw_word, _edge_coeffs, _seed_key, _wavefront_buffers, _wavefront_samples
 
 __all__ = ["stepwise_noise_sigma"]
+
+#: Pixels ahead whose inputs the wavefront pass prefetches (their cache lines lie on different
+#: image rows: without it each pixel waits for its own misses behind the previous pixel's work).
+PREFETCH_AHEAD = 6
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_pixel(d, q, z, p, sig, k):
+    """Prefetch the inputs of flat pixel k (its d, q, z, p and σ)."""
+    _prefetch(d, 3 * k)
+    _prefetch(q, 3 * k)
+    _prefetch(z, k)
+    _prefetch(p, 3 * k)
+    _prefetch(sig, 2 * k)
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
@@ -55,9 +70,10 @@ def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
 
 @numba.njit(cache=True, error_model="numpy")
 def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
-    """Σ_k δz_k² into ``acc`` (H, W) and the slopes' σ into ``gstd`` (H, W, 2) for the pixels
-    reached from the seed (sv, su) within S (module docstring). Returns 0, or 1 if a reached
-    pixel's geometry is not finite, 2 if a pixel's coefficient Σ J_b vanishes."""
+    """The heights' σ sqrt(Σ_k δz_k² / K) into ``acc`` (H, W) (zeros on entry; NaN off S) and the
+    slopes' σ into ``gstd`` (H, W, 2) for the pixels reached from the seed (sv, su) within S
+    (module docstring). Returns 0, or 1 if a reached pixel's geometry is not finite, 2 if a
+    pixel's coefficient Σ J_b vanishes."""
     H, W = S.shape
     cap = 2 * min(H, W) + 2  # a wavefront holds at most two pixels per row and per column
     n_chunks = (K + 31) // 32
@@ -95,6 +111,8 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
         if n_nxt == 0:
             break
         for i in range(n_nxt):  # its pixels' inputs and coefficients
+            if i + PREFETCH_AHEAD < n_nxt:
+                _prefetch_pixel(d, q, z, p, sig, nxt_idx[i + PREFETCH_AHEAD])
             kb = nxt_idx[i]
             vb = kb // W
             ub = kb - vb * W
@@ -136,6 +154,9 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
         A_p, A_c = A_c, A_p
         cur_idx, nxt_idx = nxt_idx, cur_idx
         n_cur = n_nxt
+    for v in range(H):  # σ = sqrt(Σ_k δz_k² / K) on S (as numpy's sqrt(acc / K)), NaN elsewhere
+        for u in range(W):
+            acc[v, u] = np.sqrt(acc[v, u] / K) if S[v, u] else np.nan
     return status
 
 
@@ -177,4 +198,4 @@ def stepwise_noise_sigma(o, d, q, rec, dq_dxy, std_xy_mm, samples: int, rng_seed
                            np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(rec.height_mm, dtype=float),
                            S, sv, su, np.ascontiguousarray(rec.p_sample_mm, dtype=float), _tangent_array(dq_dxy),
                            np.ascontiguousarray(std_xy_mm, dtype=float), int(rng_seed) % (1 << 63), K, acc, gstd)
-    return np.where(S, np.sqrt(acc / K), np.nan), gstd, int(status)
+    return acc, gstd, int(status)
