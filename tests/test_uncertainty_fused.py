@@ -63,3 +63,27 @@ def test_a_geometry_that_is_not_finite_is_reported():
     with np.errstate(all="ignore"):
         _, _, status = stepwise_noise_sigma(o, d, q, rec, dq, std, 8, 1)
     assert status == 1
+
+
+def test_combined_noise_part_is_returned_exactly_when_the_root_sum_square_equals_it():
+    """``_combined`` (the check without the array of sums) against numpy's root-sum-square and
+    ``np.array_equal``: a zero calibration part (noise returned, the same object), a non-zero one
+    and a noise σ whose square underflows (the sums returned, equal to numpy's bit for bit)."""
+    rng = np.random.default_rng(3)
+    S = rng.random((64, 80)) < 0.9
+    noise = np.where(S, rng.uniform(0.1, 5.0, size=S.shape), np.nan)
+    zero_cal = np.where(S, 0.0, np.nan)
+    assert U._combined(noise, zero_cal) is noise
+    cal = np.where(S, rng.uniform(0.0, 1.0, size=S.shape), np.nan)
+    tiny = noise.copy()
+    tiny[S.nonzero()[0][0], S.nonzero()[1][0]] = 1e-200  # (1e-200)² = 0: sqrt(x²) ≠ x
+    for a, b in ((noise, cal), (tiny, zero_cal)):
+        out = U._combined(a, b)
+        ref = np.sqrt(a**2 + b**2)
+        assert out is not a and np.array_equal(out, ref, equal_nan=True)
+        assert not np.array_equal(ref, a, equal_nan=True)
+    g = np.stack([noise, noise], axis=-1)
+    assert U._count_not_finite_on(S, g) == 0
+    g[~S] = np.nan
+    g[S.nonzero()[0][5], S.nonzero()[1][5], 1] = np.inf
+    assert U._count_not_finite_on(S, g) == 1
