@@ -50,3 +50,20 @@ def peak_rss_mb() -> float:
 def dump_json(res: dict) -> None:
     json.dump(res, sys.stdout)
     sys.stdout.write("\n")
+
+
+def captured_inputs_args(description, out_help):
+    """The arguments of a kernel benchmark on inputs captured from an evaluation (image_dir,
+    --repeat, --save/--load of the inputs, --out/--compare of the result); returns (args, the
+    inputs: loaded, or None to capture)."""
+    import argparse  # noqa: PLC0415
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("image_dir", nargs="?")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--save")
+    ap.add_argument("--load")
+    ap.add_argument("--out", help=out_help)
+    ap.add_argument("--compare", help="an --out file of another tree: bit-identical?")
+    args = ap.parse_args()
+    return args, (dict(np.load(args.load)) if args.load else None)

@@ -43,7 +43,8 @@ _MEM = {}  # stage → (traced MB alive at entry, traced peak MB inside), with -
 _TRACE = {"on": False}
 _ORDER = ("decode", "checks", "registration+reconstruction", "  of which registration.register",
           "  of which RigidTransform.apply", "  of which Camera.view_rays", "surface fit",
-          "  of which fit_paraboloid_slopes", "uncertainty", "  of which _sampled_std", "files",
+          "  of which fit_paraboloid_slopes", "uncertainty", "  of which _sampled_std",
+          "  of which stepwise_noise_sigma", "files",
           "  of which write_evaluation_h5", "  of which PNG figures", "rest")
 
 
@@ -102,6 +103,11 @@ def _instrument():
                                                surface_fit.fit_paraboloid_slopes, nested=True)
     uncertainty_job.camera_uncertainty = _timed("uncertainty", uncertainty_job.camera_uncertainty)
     uncertainty._sampled_std = _timed("  of which _sampled_std", uncertainty._sampled_std, nested=True)
+    try:  # the stepwise σ in one pass (issue 25; not in older trees)
+        from pmdsim.evaluation import uncertainty_stepwise_fused as fused
+        fused.stepwise_noise_sigma = _timed("  of which stepwise_noise_sigma", fused.stepwise_noise_sigma, nested=True)
+    except ImportError:
+        pass
     # the figures (PNG files): heights (jobs), σ maps (uncertainty_job), slope error (surface_figures);
     # the names of the tree measured (matplotlib figures before, Pillow-written PNGs after issue 25)
     fig_names = [n for n in ("write_height_map_png", "height_map_figure") if hasattr(jobs, n)][:1]

@@ -14,13 +14,13 @@ its result with ``--out``).
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from _common import captured_inputs_args
 
 _NAMES = ("geo", "layer", "order", "starts", "pos", "A")
 
@@ -58,15 +58,9 @@ def _capture(image_dir) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("image_dir", nargs="?")
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--save")
-    ap.add_argument("--load")
-    ap.add_argument("--out", help="write Σ δz² (npy) for --compare")
-    ap.add_argument("--compare", help="an --out file of another tree: bit-identical?")
-    args = ap.parse_args()
-    d = dict(np.load(args.load)) if args.load else _capture(args.image_dir)
+    args, d = captured_inputs_args(__doc__.splitlines()[0], "write Σ δz² (npy) for --compare")
+    if d is None:
+        d = _capture(args.image_dir)
     if args.save:
         np.savez(args.save, **d)
     _, name, fn = _kernel()

@@ -16,6 +16,7 @@ from .integration import (
     _check_seed,
     _points_and_normals,
 )
+from .prefetch import prefetch
 
 __all__ = ["reconstruct_stepwise", "step_tolerance_mm", "STEP_TOL_MM", "STEP_TOL_ULPS", "STEP_MAX_ITER"]
 
@@ -30,14 +31,29 @@ STEP_TOL_MM = 1e-12
 STEP_TOL_ULPS = 16
 
 
+@numba.njit(cache=True)
+def _max_abs_valid(q, valid):
+    """max |q[v, u, c]| over the pixels of ``valid`` (H, W) of ``q`` (H, W, 3), NaN skipped
+    (−1.0 if there is none), without the (n, 3) copy of ``q[valid]``."""
+    H, W = valid.shape
+    out = -1.0
+    for v in range(H):
+        for u in range(W):
+            if valid[v, u]:
+                for c in range(3):
+                    a = abs(q[v, u, c])
+                    if a > out:
+                        out = a
+    return out
+
+
 def step_tolerance_mm(o, q, valid) -> float:
     """max(:data:`STEP_TOL_MM`, :data:`STEP_TOL_ULPS` · ulp(working distance)), mm: the
     convergence tolerance of one step, relative to what float64 resolves at the coordinates
     involved (the camera centre ``o`` (3,), the valid screen points of ``q`` (H, W, 3))."""
     scale = float(np.max(np.abs(o)))
-    qv = q[valid]
-    if qv.size:
-        scale = max(scale, float(np.max(np.abs(qv))))
+    qmax = float(_max_abs_valid(np.ascontiguousarray(q, dtype=np.float64), np.ascontiguousarray(valid, dtype=bool)))
+    scale = max(scale, qmax)  # (the valid q are finite: _check_inputs)
     return max(STEP_TOL_MM, STEP_TOL_ULPS * float(np.spacing(scale)))
 
 
@@ -52,38 +68,37 @@ _NB_DV = np.array([-1, 1, 0, 0], dtype=np.int64)
 _NB_DU = np.array([0, 0, -1, 1], dtype=np.int64)
 
 
+#: Pixels ahead whose inputs the wavefront gather prefetches (:mod:`pmdsim.evaluation.prefetch`).
+_PREFETCH_AHEAD = 8
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _solve_pixel(o, d, q, state, vb, ub, tol, max_iter, nb_dv, nb_du):
-    """One integration step: the height of pixel (vb, ub) from all its 4-neighbours a_i whose
-    flag in ``state`` (see :func:`_expand_kernel`) is 1 (reconstructed):
-
-        Σ_i [z_b − z_ai − G_i·(xy_b − xy_ai)] = 0,  G_i = ½(g_ai + g_b) (trapezoidal rule),
-
-    linear in t_b for fixed G_i; predictor G_i = g_ai, then correctors until |Δz| < ``tol``
-    (at most ``max_iter``). Returns (ok, t_b, g_b,x, g_b,y, correctors used, last |Δz|); not
-    ok if the ray misses the plane in front of the camera or the normal is unusable."""
+def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
+    """The inputs of the wavefront ``nxt[:n]``'s steps, as contiguous rows (index i: the
+    wavefront's pixel): ``own`` (6, ≥ n) its view ray d and screen point q; ``nb`` (4, 5, ≥ n) per
+    slot j < m[i] the j-th reconstructed 4-neighbour a (flag 1 in ``state``, in the order of
+    ``nb_dv``, ``nb_du``): t_a·d_a (x, y, z) and g_a (x, y); slots j ≥ m[i] hold zeros."""
     H = state.shape[0]
     W = state.shape[1]
-    ox = o[0]
-    oy = o[1]
-    oz = o[2]
-    dx = d[vb, ub, 0]
-    dy = d[vb, ub, 1]
-    dz = d[vb, ub, 2]
-    qx = q[vb, ub, 0]
-    qy = q[vb, ub, 1]
-    qz = q[vb, ub, 2]
-    ok = False
-    z_prev = 0.0
-    change = np.inf
-    used = 0
-    tb = 0.0
-    gbx = 0.0
-    gby = 0.0
-    have_gb = False
-    for it in range(max_iter + 1):
-        num = 0.0
-        den = 0.0
+    for i in range(n):
+        if i + _PREFETCH_AHEAD < n:  # the inputs of a pixel ahead: its rows and the rows above and below
+            k = nxt[i + _PREFETCH_AHEAD]
+            prefetch(d, 3 * k)
+            prefetch(q, 3 * k)
+            prefetch(state, 4 * k)
+            if k >= W:
+                prefetch(d, 3 * (k - W))
+                prefetch(state, 4 * (k - W))
+            if k + W < H * W:
+                prefetch(d, 3 * (k + W))
+                prefetch(state, 4 * (k + W))
+        idx = nxt[i]
+        vb = idx // W
+        ub = idx - vb * W
+        for c in range(3):
+            own[c, i] = d[vb, ub, c]
+            own[3 + c, i] = q[vb, ub, c]
+        j = 0
         for k in range(4):
             va = vb + nb_dv[k]
             ua = ub + nb_du[k]
@@ -91,33 +106,115 @@ def _solve_pixel(o, d, q, state, vb, ub, tol, max_iter, nb_dv, nb_du):
                 continue
             if state[va, ua, 3] != 1.0:
                 continue
-            Gx = state[va, ua, 1] if not have_gb else 0.5 * (state[va, ua, 1] + gbx)
-            Gy = state[va, ua, 2] if not have_gb else 0.5 * (state[va, ua, 2] + gby)
             ta = state[va, ua, 0]
-            rax = ta * d[va, ua, 0]
-            ray = ta * d[va, ua, 1]
-            raz = ta * d[va, ua, 2]
-            # (t_b d_z − r_a,z) − G·(t_b d_xy − r_a,xy) = 0 summed over the neighbours.
-            num += raz - (Gx * rax + Gy * ray)
-            den += dz - (Gx * dx + Gy * dy)
-        tb = num / den
-        if not (tb > 0.0) or not np.isfinite(tb):
-            ok = False
+            nb[j, 0, i] = ta * d[va, ua, 0]
+            nb[j, 1, i] = ta * d[va, ua, 1]
+            nb[j, 2, i] = ta * d[va, ua, 2]
+            nb[j, 3, i] = state[va, ua, 1]
+            nb[j, 4, i] = state[va, ua, 2]
+            j += 1
+        m[i] = j
+        for jj in range(j, 4):
+            for c in range(5):
+                nb[jj, c, i] = 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _slot_terms(num, den, present, pred, rx, ry, rz, gx_a, gy_a, gx_b, gy_b, dx, dy, dz):
+    """num, den plus one neighbour slot's terms (+0.0 for an absent slot)."""
+    Gx = gx_a if pred else 0.5 * (gx_a + gx_b)
+    Gy = gy_a if pred else 0.5 * (gy_a + gy_b)
+    # (t_b d_z − r_a,z) − G·(t_b d_xy − r_a,xy) = 0 summed over the neighbours.
+    tn = rz - (Gx * rx + Gy * ry)
+    td = dz - (Gx * dx + Gy * dy)
+    return num + (tn if present else 0.0), den + (td if present else 0.0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _solve_wavefront(o, own, nb, m, n, tol, max_iter, res, status):
+    """One integration step for every pixel of a gathered wavefront (:func:`_gather_wavefront`),
+    all pixels in lock-step (per iteration one branch-free loop over the pixels computes their
+    steps, reading 1-d rows and writing four, so that it vectorises: the divisions and square
+    roots of neighbouring pixels overlap instead of forming one chain per pixel; a second loop
+    keeps the steps of the pixels still iterating):
+
+        Σ_i [z_b − z_ai − G_i·(xy_b − xy_ai)] = 0,  G_i = ½(g_ai + g_b) (trapezoidal rule),
+
+    linear in t_b for fixed G_i; predictor G_i = g_ai, then correctors until |Δz| < ``tol``
+    (at most ``max_iter``). Each pixel's arithmetic is that of solving it alone, in the same
+    order (an absent neighbour slot adds +0.0, which changes at most the sign of a zero sum, and
+    a zero sum fails the step either way; the previous height o_z + t_b·d_z is recomputed from
+    the previous t_b, the same operations), and a pixel's values stop changing when it converges
+    or fails. ``res`` (7, ≥ n): t_b, g_b,x, g_b,y of the last step, its |Δz| (inf if no
+    corrector ran), and workspace; ``status`` (≥ n): the correctors used + 1 for a solved pixel
+    (converged or not: the last iterate is kept), −1 for a failed one (the ray misses the plane
+    in front of the camera or the normal is unusable)."""
+    ox = o[0]
+    oy = o[1]
+    oz = o[2]
+    t_b = res[0, :n]
+    gbx = res[1, :n]
+    gby = res[2, :n]
+    change = res[3, :n]
+    st = status[:n]
+    d_x, d_y, d_z, q_x, q_y, q_z = own[0, :n], own[1, :n], own[2, :n], own[3, :n], own[4, :n], own[5, :n]
+    r0x, r0y, r0z, g0x, g0y = nb[0, 0, :n], nb[0, 1, :n], nb[0, 2, :n], nb[0, 3, :n], nb[0, 4, :n]
+    r1x, r1y, r1z, g1x, g1y = nb[1, 0, :n], nb[1, 1, :n], nb[1, 2, :n], nb[1, 3, :n], nb[1, 4, :n]
+    r2x, r2y, r2z, g2x, g2y = nb[2, 0, :n], nb[2, 1, :n], nb[2, 2, :n], nb[2, 3, :n], nb[2, 4, :n]
+    r3x, r3y, r3z, g3x, g3y = nb[3, 0, :n], nb[3, 1, :n], nb[3, 2, :n], nb[3, 3, :n], nb[3, 4, :n]
+    mm = m[:n]
+    for i in range(n):
+        st[i] = 0
+        change[i] = np.inf
+        t_b[i] = 0.0
+        gbx[i] = 0.0
+        gby[i] = 0.0
+    t_new = res[4, :n]
+    gx_new = res[5, :n]
+    gy_new = res[6, :n]
+    for it in range(max_iter + 1):
+        pred = it == 0
+        for i in range(n):  # the step of every pixel (four rows written: this loop vectorises)
+            dx = d_x[i]
+            dy = d_y[i]
+            dz = d_z[i]
+            bx = gbx[i]
+            by = gby[i]
+            mi = mm[i]
+            num, den = _slot_terms(0.0, 0.0, mi > 0, pred, r0x[i], r0y[i], r0z[i], g0x[i], g0y[i], bx, by, dx, dy, dz)
+            num, den = _slot_terms(num, den, mi > 1, pred, r1x[i], r1y[i], r1z[i], g1x[i], g1y[i], bx, by, dx, dy, dz)
+            num, den = _slot_terms(num, den, mi > 2, pred, r2x[i], r2y[i], r2z[i], g2x[i], g2y[i], bx, by, dx, dy, dz)
+            num, den = _slot_terms(num, den, mi > 3, pred, r3x[i], r3y[i], r3z[i], g3x[i], g3y[i], bx, by, dx, dy, dz)
+            tb = num / den
+            gx, gy = _bisector_slopes(ox + tb * dx, oy + tb * dy, oz + tb * dz, ox, oy, oz, q_x[i], q_y[i], q_z[i])
+            t_new[i] = tb
+            gx_new[i] = gx
+            gy_new[i] = gy
+        n_active = 0
+        for i in range(n):  # which pixels take the step, converge or fail
+            tb = t_new[i]
+            gx = gx_new[i]
+            gy = gy_new[i]
+            dz = d_z[i]
+            s = st[i]
+            t_old = t_b[i]
+            active = s == 0
+            bad = (not (tb > 0.0)) | (not np.isfinite(tb)) | (not np.isfinite(gx)) | (not np.isfinite(gy))
+            step = active & (not bad)
+            dzc = abs((oz + tb * dz) - (oz + t_old * dz))
+            corr = step & (not pred)
+            t_b[i] = tb if step else t_old
+            gbx[i] = gx if step else gbx[i]
+            gby[i] = gy if step else gby[i]
+            change[i] = dzc if corr else change[i]
+            s = -1 if (active & bad) else (it + 1 if (corr & (dzc < tol)) else s)
+            st[i] = s
+            n_active += 1 if s == 0 else 0
+        if n_active == 0:
             break
-        bz = oz + tb * dz
-        gbx, gby = _bisector_slopes(ox + tb * dx, oy + tb * dy, bz, ox, oy, oz, qx, qy, qz)
-        if not (np.isfinite(gbx) and np.isfinite(gby)):
-            ok = False
-            break
-        ok = True
-        have_gb = True
-        if it > 0:
-            change = abs(bz - z_prev)
-            used = it
-            if change < tol:
-                break
-        z_prev = bz
-    return ok, tb, gbx, gby, used, change
+    for i in range(n):
+        if st[i] == 0:
+            st[i] = max_iter + 1  # the last iterate is kept
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -132,11 +229,19 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
     of its pixels is solved from *all* its reconstructed 4-neighbours at once (the pixels of
     one wavefront are never 4-adjacent when the start is a single pixel, as the pixel grid is
     bipartite; in general they are solved from the neighbours reconstructed before the
-    wavefront, so the order within a wavefront does not matter). Returns (largest corrector
-    count, largest final |Δz|, number of pixels that missed ``tol``)."""
+    wavefront, so the order within a wavefront does not matter): its inputs gathered into
+    contiguous rows (:func:`_gather_wavefront`), then solved in lock-step
+    (:func:`_solve_wavefront`). Returns (largest corrector count, largest final |Δz|, number of
+    pixels that missed ``tol``)."""
     H = state.shape[0]
     W = state.shape[1]
     nxt = np.empty(H * W, dtype=np.int64)
+    cap = 0
+    own = np.empty((6, 0))
+    nb = np.empty((4, 5, 0))
+    m = np.empty(0, dtype=np.int64)
+    res = np.empty((7, 0))
+    status = np.empty(0, dtype=np.int64)
     max_used = 0
     max_change = 0.0
     n_unconverged = 0
@@ -157,25 +262,35 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
                 state[vb, ub, 3] = 2.0
                 nxt[n_nxt] = vb * W + ub
                 n_nxt += 1
+        if n_nxt > cap:  # wavefront buffers, grown as needed
+            cap = max(n_nxt, 2 * cap)
+            own = np.empty((6, cap))
+            nb = np.empty((4, 5, cap))
+            m = np.empty(cap, dtype=np.int64)
+            res = np.empty((7, cap))
+            status = np.empty(cap, dtype=np.int64)
         # Solve each pixel of the wavefront from all its reconstructed neighbours.
+        _gather_wavefront(d, q, state, nxt, n_nxt, nb_dv, nb_du, own, nb, m)
+        _solve_wavefront(o, own, nb, m, n_nxt, tol, max_iter, res, status)
         n_solved = 0
         for i in range(n_nxt):
             idx = nxt[i]
             vb = idx // W
             ub = idx - vb * W
-            ok, tb, gbx, gby, used, change = _solve_pixel(o, d, q, state, vb, ub, tol, max_iter, nb_dv, nb_du)
-            if not ok:
+            if status[i] < 0:
                 state[vb, ub, 3] = 0.0  # may be reached again from a later wavefront
                 continue
+            change = res[3, i]
+            used = status[i] - 1
             if change >= tol:
                 n_unconverged += 1
             if used > max_used:
                 max_used = used
             if change > max_change:
                 max_change = change
-            state[vb, ub, 0] = tb
-            state[vb, ub, 1] = gbx
-            state[vb, ub, 2] = gby
+            state[vb, ub, 0] = res[0, i]
+            state[vb, ub, 1] = res[1, i]
+            state[vb, ub, 2] = res[2, i]
             cur[n_solved] = idx  # reuse cur as the list of solved pixels of this wavefront
             n_solved += 1
         for i in range(n_solved):
@@ -210,11 +325,36 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     return _expand_kernel(o, d, q, state, cur, np.int64(1), tol, max_iter, nb_dv, nb_du)
 
 
+@numba.njit(cache=True)
+def _init_state(valid, state):
+    """state (H, W, 4) of :func:`_expand_kernel` before the integration: t, g NaN; flag 0 on
+    ``valid``, −1 off it."""
+    H, W = valid.shape
+    for v in range(H):
+        for u in range(W):
+            state[v, u, 0] = np.nan
+            state[v, u, 1] = np.nan
+            state[v, u, 2] = np.nan
+            state[v, u, 3] = 0.0 if valid[v, u] else -1.0
+
+
+@numba.njit(cache=True)
+def _heights(oz, d, state, z, done):
+    """z (H, W) = o_z + t·d_z where the flag of ``state`` is 1 (reconstructed; ``done``), NaN
+    elsewhere."""
+    H, W = done.shape
+    for v in range(H):
+        for u in range(W):
+            ok = state[v, u, 3] == 1.0
+            done[v, u] = ok
+            z[v, u] = oz + state[v, u, 0] * d[v, u, 2] if ok else np.nan
+
+
 def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
     H, W = valid.shape
-    state = np.full((H, W, 4), np.nan)
-    state[..., 3] = np.where(valid, 0.0, -1.0)
+    state = np.empty((H, W, 4))
+    _init_state(np.ascontiguousarray(valid, dtype=bool), state)
     max_used, max_change, n_unconv = _stepwise_kernel(
         o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
     if max_used < 0:
@@ -222,8 +362,9 @@ def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
             f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
             f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
             "choose another seed_pixel or check q")
-    done = state[..., 3] == 1.0
-    z = np.where(done, o[2] + state[..., 0] * d[..., 2], np.nan)
+    done = np.empty((H, W), dtype=bool)
+    z = np.empty((H, W))
+    _heights(float(o[2]), np.ascontiguousarray(d, dtype=np.float64), state, z, done)
     z[seed] = z0
     return z, done, max_used, max_change, n_unconv
 

@@ -65,6 +65,10 @@ DEFAULT_RNG_SEED = 20261127
 
 NO_COVARIANCE_NOTE = "setup carries no calibration covariance: noise part only"
 
+_STEPWISE_SINGULAR = "the linearised stepwise recursion is singular (a step's height coefficient vanishes); no σ"
+
+_GEOMETRY_NOT_FINITE = "the slopes' geometry is not finite at some reconstructed pixel; no σ"
+
 
 class UncertaintyError(PmdsimError, ArithmeticError):
     """The uncertainty of a reconstruction cannot be computed (e.g. the linearised system is
@@ -388,7 +392,7 @@ class _LinearisedIntegration:
         self.geo = np.zeros((H, W, 8))
         _geometry(o, d, q, S, z, self.geo)
         if not np.isfinite(self.geo).all(axis=-1)[S].all():  # (no (n, 8) copy of the geometry)
-            raise UncertaintyError("the slopes' geometry is not finite at some reconstructed pixel; no σ")
+            raise UncertaintyError(_GEOMETRY_NOT_FINITE)
         if self.method == "stepwise":
             self.layer = np.empty((H, W), dtype=np.int64)
             self.order = np.empty(H * W, dtype=np.int64)
@@ -413,8 +417,7 @@ class _LinearisedIntegration:
         if self.method == "stepwise":
             dz = np.empty((H, W))
             if not _stepwise_linear(self.geo, self.layer, self.order, self.n, dg, dz):
-                raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
-                                       "vanishes); no σ")
+                raise UncertaintyError(_STEPWISE_SINGULAR)
             return dz
         _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self.rhs)
         scale = float(np.max(np.abs(self.rhs)))
@@ -442,8 +445,7 @@ def _sampled_std(lin, A, samples: int, rng_seed: int, *, overwrite: bool = False
     acc = np.zeros(S.shape)
     if lin.method == "stepwise":
         if not stepwise_sampled(lin.geo, lin.layer, lin.order, lin.starts, lin.pos, A, seed, K, acc):
-            raise UncertaintyError("the linearised stepwise recursion is singular (a step's height coefficient "
-                                   "vanishes); no σ")
+            raise UncertaintyError(_STEPWISE_SINGULAR)
     else:  # batched solves (DCT- or multigrid-preconditioned CG)
         from .uncertainty_solve import least_squares_sum_sq  # noqa: PLC0415 (it imports this module)
 
@@ -510,12 +512,45 @@ def combine(*parts) -> np.ndarray:
     return np.sqrt(sum(p ** 2 for p in arrs))
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _rss_equals_first(a, b):
+    """Whether sqrt(a² + b²) (:func:`_rss2_kernel`'s operations) equals a element by element (NaN
+    equal to NaN, as ``np.array_equal(..., equal_nan=True)``), without the array of sums."""
+    for i in range(a.shape[0]):
+        t = np.sqrt(a[i] * a[i] + b[i] * b[i])
+        if not (t == a[i] or (np.isnan(t) and np.isnan(a[i]))):
+            return False
+    return True
+
+
 def _combined(noise, cal) -> np.ndarray:
     """:func:`combine` of the noise and calibration parts; ``noise`` itself (one array, not two
     equal ones: 55 MB less per 1920×1200 camera) where the sum equals it bit for bit, as it does
-    for a zero calibration part (sqrt(x²) = |x| in IEEE arithmetic)."""
+    for a zero calibration part (sqrt(x²) = |x| in IEEE arithmetic unless x² underflows); that is
+    checked by one compiled pass where :func:`combine` uses its kernel (no array of sums)."""
+    noise = np.asarray(noise, dtype=float)
+    cal = np.asarray(cal, dtype=float)
+    if noise.shape == cal.shape and noise.size >= 4096:
+        if _rss_equals_first(np.ascontiguousarray(noise).reshape(-1), np.ascontiguousarray(cal).reshape(-1)):
+            return noise
+        return combine(noise, cal)
     total = combine(noise, cal)
     return noise if np.array_equal(total, noise, equal_nan=True) else total
+
+
+@numba.njit(cache=True)
+def _count_not_finite_on(S, a):
+    """Number of pixels of S (H, W) where a (H, W, C) has a non-finite component."""
+    H, W = S.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if S[v, u]:
+                for c in range(a.shape[2]):
+                    if not np.isfinite(a[v, u, c]):
+                        n += 1
+                        break
+    return n
 
 
 def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, screen_model=None, anchor=None,
@@ -554,26 +589,37 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
     R = np.asarray(T_ref_screen.rotation, dtype=float)
     dq = _screen_tangents(R, screen_model, decoded.screen_xy_mm)
     std = np.asarray(decoded.std_xy_mm, dtype=float)
-    bad = int(np.count_nonzero(~np.isfinite(std[S]).all(axis=-1)))
+    S = np.ascontiguousarray(S, dtype=bool)
+    bad = int(_count_not_finite_on(S, np.ascontiguousarray(std)))  # (no copy of std[S])
     if bad:
         raise UncertaintyError(f"camera {camera!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
                                f"pixel(s); no σ of the surface")
     if int(samples) < 2:
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
-    # Memory (issue 25): the linearisation first (its temporaries are gone before A exists), A
-    # zeroed off S in place (no copy).
-    lin = _LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
-    # the kernel reads σ only on S, where it is finite (checked above): no NaN-free copy
-    A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
+    if rec.method == "stepwise":  # geometry, A and σ in one pass (no full-size maps: issue 25)
+        from .uncertainty_stepwise_fused import stepwise_noise_sigma  # noqa: PLC0415 (it imports this module)
+
+        h_noise, g_noise, status = stepwise_noise_sigma(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec, dq, std, samples,
+                                                        rng_seed)
+        if status == 1:
+            raise UncertaintyError(_GEOMETRY_NOT_FINITE)
+        if status == 2:
+            raise UncertaintyError(_STEPWISE_SINGULAR)
+    else:
+        # Memory (issue 25): the linearisation first (its temporaries are gone before A exists), A
+        # zeroed off S in place (no copy).
+        lin = _LinearisedIntegration(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, rec)
+        # the kernel reads σ only on S, where it is finite (checked above): no NaN-free copy
+        A, g_noise = _jacobian_scaled(reg.o_ref_mm, rec.p_sample_mm, reg.q_ref_mm, dq, S, std)
+        h_noise = _sampled_std(lin, A, samples, rng_seed, overwrite=True)
+        del lin, A
     if setup.screen.cover_glass is not None and getattr(setup.screen.cover_glass, "present", False):
         notes.append("cover glass: the refraction's effect on the slopes' Jacobian is not included")
-    h_noise = _sampled_std(lin, A, samples, rng_seed, overwrite=True)
-    del lin, A
     if anchor_std_mm and anchor is not None:
         dz_da = anchor_height_derivative(reg, anchor, method, T_world_ref=setup.sample.T_world_sample)
         h_noise = combine(h_noise, dz_da * float(anchor_std_mm))
         notes.append(f"anchor standard uncertainty {float(anchor_std_mm):g} mm included")
-    if not np.isfinite(h_noise[S]).all():
+    if _count_not_finite_on(S, np.ascontiguousarray(h_noise)[..., None]):
         raise UncertaintyError("the height σ is not finite at some reconstructed pixel")
     cov = getattr(setup, "calibration_covariance", None)
     if cov is not None:
@@ -589,10 +635,12 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
         g_cal = np.where(S[..., None], np.asarray(cal.slope_std_urad, dtype=float), np.nan)
     else:
         h_cal = np.where(S, 0.0, np.nan)
-        g_cal = np.where(S[..., None], np.zeros(S.shape + (2,)), np.nan)
+        g_cal = np.full(S.shape + (2,), np.nan)
+        g_cal[S] = 0.0
         notes.append(NO_COVARIANCE_NOTE)
-    h_noise_um = h_noise * 1e3
-    g_noise_urad = g_noise * 1e6
+    # the σ maps computed above are this function's own arrays: scaled in place (the same values)
+    h_noise_um = np.multiply(h_noise, 1e3, out=h_noise)
+    g_noise_urad = np.multiply(g_noise, 1e6, out=g_noise)
     return SurfaceUncertainty(slope_std_urad=_combined(g_noise_urad, g_cal), height_std_um=_combined(h_noise_um, h_cal),
                               slope_std_noise_urad=g_noise_urad, height_std_noise_um=h_noise_um,
                               slope_std_calibration_urad=g_cal, height_std_calibration_um=h_cal,

@@ -51,16 +51,34 @@ def _draw_word(key, pix, chunk, n_chunks):
     return _splitmix64(key ^ np.uint64(pix * n_chunks + chunk))
 
 
+@numba.njit(cache=True, inline="always")
+def _edge_jac_rows(ga, gb):
+    """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)
+    from the two pixels' geometry rows ga, gb (8,) (``uncertainty._geometry``)."""
+    Gx = 0.5 * (ga[2] + gb[2])
+    Gy = 0.5 * (ga[3] + gb[3])
+    dx = gb[0] - ga[0]
+    dy = gb[1] - ga[1]
+    Ja = -1.0 + (Gx * ga[6] + Gy * ga[7]) - 0.5 * (ga[4] * dx + ga[5] * dy)
+    Jb = 1.0 - (Gx * gb[6] + Gy * gb[7]) - 0.5 * (gb[4] * dx + gb[5] * dy)
+    return Ja, Jb, dx, dy
+
+
 @numba.njit(cache=True)
 def _edge_jac(geo, va, ua, vb, ub):
-    """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)."""
-    Gx = 0.5 * (geo[va, ua, 2] + geo[vb, ub, 2])
-    Gy = 0.5 * (geo[va, ua, 3] + geo[vb, ub, 3])
-    dx = geo[vb, ub, 0] - geo[va, ua, 0]
-    dy = geo[vb, ub, 1] - geo[va, ua, 1]
-    Ja = -1.0 + (Gx * geo[va, ua, 6] + Gy * geo[va, ua, 7]) - 0.5 * (geo[va, ua, 4] * dx + geo[va, ua, 5] * dy)
-    Jb = 1.0 - (Gx * geo[vb, ub, 6] + Gy * geo[vb, ub, 7]) - 0.5 * (geo[vb, ub, 4] * dx + geo[vb, ub, 5] * dy)
-    return Ja, Jb, dx, dy
+    """:func:`_edge_jac_rows` of the edge (va, ua) → (vb, ub) of the geometry map geo (H, W, 8)."""
+    return _edge_jac_rows(geo[va, ua], geo[vb, ub])
+
+
+@numba.njit(cache=True, inline="always")
+def _edge_coeffs(ga, gb, Aa, Ab, e_c, i, m):
+    """The edge a → b's coefficients of the recursion: e_c[i, m] = ½ (A_a^T Δxy) x, y and J_a;
+    returns J_b and ½ (A_b^T Δxy) x, y (Aa, Ab (2, 2): J·diag(σ) of a and b)."""
+    Ja, Jb, dx, dy = _edge_jac_rows(ga, gb)
+    e_c[i, m, 0] = 0.5 * (Aa[0, 0] * dx + Aa[1, 0] * dy)
+    e_c[i, m, 1] = 0.5 * (Aa[0, 1] * dx + Aa[1, 1] * dy)
+    e_c[i, m, 2] = Ja
+    return Jb, 0.5 * (Ab[0, 0] * dx + Ab[1, 0] * dy), 0.5 * (Ab[0, 1] * dx + Ab[1, 1] * dy)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -88,6 +106,58 @@ def _own_samples(cur, i, k0, n, w, ux, uy, den):
     for k in range(z.size):
         s += z[k] * z[k]
     return s
+
+
+@numba.njit(cache=True)
+def _wavefront_buffers(width, K):
+    """The sampled recursion's per-wavefront buffers for ``width`` pixels: δz of the previous and
+    the current wavefront (width, K), their draws' words (width, ⌈K/32⌉), and the coefficients
+    gathered first (the pixels lie on different image rows: a tight loop of independent loads
+    overlaps their cache misses), then used contiguously: upstream edge counts, their positions
+    in the previous wavefront, per edge ½ (A_a^T Δxy) x, y and J_a, per pixel Σ ½ (A_b^T Δxy)
+    x, y and Σ J_b, and Σ_k δz_k²."""
+    n_chunks = (K + 31) // 32
+    return (np.zeros((width, K)), np.zeros((width, K)), np.zeros((width, n_chunks), dtype=np.uint64),
+            np.zeros((width, n_chunks), dtype=np.uint64), np.zeros(width, dtype=np.int64),
+            np.zeros((width, 4), dtype=np.int64), np.zeros((width, 4, 3)), np.zeros((width, 3)), np.zeros(width))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _wavefront_samples(idx, nL, key, K, n_in, e_pos, e_c, b_c, prev, cur, w_prev, w_cur, s_out):
+    """All K samples of the wavefront's pixels idx[:nL] (flat indices) from their gathered
+    coefficients (n_in, e_pos, e_c, b_c) and the previous wavefront's δz ``prev`` and draws
+    ``w_prev``: δz into ``cur``, the draws into ``w_cur``, Σ_k δz_k² into ``s_out``. Returns False
+    if a pixel's coefficient Σ J_b vanishes (its δz is then 0)."""
+    n_chunks = (K + 31) // 32
+    ok = True
+    for i in range(nL):  # all K samples of each pixel
+        kb = idx[i]
+        for c in range(n_chunks):
+            w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
+        z = cur[i]
+        for k in range(K):
+            z[k] = 0.0
+        for j in range(n_in[i]):
+            vx = e_c[i, j, 0]
+            vy = e_c[i, j, 1]
+            Ja = e_c[i, j, 2]
+            pa = e_pos[i, j]
+            for c in range(n_chunks):
+                _edge_samples(cur, i, prev, pa, 32 * c, min(32, K - 32 * c), w_prev[pa, c], vx, vy, Ja)
+        den = b_c[i, 2]
+        if den == 0.0:
+            ok = False
+            for k in range(K):
+                z[k] = 0.0
+            s_out[i] = 0.0
+            continue
+        ux = b_c[i, 0]
+        uy = b_c[i, 1]
+        s = 0.0
+        for c in range(n_chunks):  # Σ_k δz_k² per 32 samples, in order (as the sample-chunked loop)
+            s += _own_samples(cur, i, 32 * c, min(32, K - 32 * c), w_cur[i, c], ux, uy, den)
+        s_out[i] = s
+    return ok
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -123,17 +193,7 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
     for L in range(n_layers):
         width = max(width, starts[L + 1] - starts[L])
     n_chunks = (K + 31) // 32
-    prev = np.zeros((width, K))
-    cur = np.zeros((width, K))
-    w_prev = np.zeros((width, n_chunks), dtype=np.uint64)  # the draws' words of the previous wavefront
-    w_cur = np.zeros((width, n_chunks), dtype=np.uint64)
-    # one wavefront's coefficients, gathered first (the pixels lie on different image rows: a
-    # tight loop of independent loads overlaps their cache misses), then used contiguously
-    n_in = np.zeros(width, dtype=np.int64)
-    e_pos = np.zeros((width, 4), dtype=np.int64)
-    e_c = np.zeros((width, 4, 3))  # per incoming edge: ½ (A_a^T Δxy) x, y and J_a
-    b_c = np.zeros((width, 3))  # Σ ½ (A_b^T Δxy) x, y and Σ J_b
-    s_out = np.zeros(width)
+    prev, cur, w_prev, w_cur, n_in, e_pos, e_c, b_c, s_out = _wavefront_buffers(width, K)
     key = _seed_key(seed)
     ok = True
     k0 = order[0]
@@ -155,46 +215,18 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
                 ua = ub + du
                 if not (0 <= va < H and 0 <= ua < W) or layer[va, ua] != L - 1:
                     continue
-                Ja, Jb, dx, dy = _edge_jac(geo, va, ua, vb, ub)
+                Jb, tx, ty = _edge_coeffs(geo[va, ua], geo[vb, ub], A[va, ua], A[vb, ub], e_c, i, m)
                 den += Jb
-                ux += 0.5 * (A[vb, ub, 0, 0] * dx + A[vb, ub, 1, 0] * dy)
-                uy += 0.5 * (A[vb, ub, 0, 1] * dx + A[vb, ub, 1, 1] * dy)
-                e_c[i, m, 0] = 0.5 * (A[va, ua, 0, 0] * dx + A[va, ua, 1, 0] * dy)
-                e_c[i, m, 1] = 0.5 * (A[va, ua, 0, 1] * dx + A[va, ua, 1, 1] * dy)
-                e_c[i, m, 2] = Ja
+                ux += tx
+                uy += ty
                 e_pos[i, m] = pos[va, ua]
                 m += 1
             n_in[i] = m
             b_c[i, 0] = ux
             b_c[i, 1] = uy
             b_c[i, 2] = den
-        for i in range(nL):  # all K samples of each pixel
-            kb = order[s0 + i]
-            for c in range(n_chunks):
-                w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
-            z = cur[i]
-            for k in range(K):
-                z[k] = 0.0
-            for j in range(n_in[i]):
-                vx = e_c[i, j, 0]
-                vy = e_c[i, j, 1]
-                Ja = e_c[i, j, 2]
-                pa = e_pos[i, j]
-                for c in range(n_chunks):
-                    _edge_samples(cur, i, prev, pa, 32 * c, min(32, K - 32 * c), w_prev[pa, c], vx, vy, Ja)
-            den = b_c[i, 2]
-            if den == 0.0:
-                ok = False
-                for k in range(K):
-                    z[k] = 0.0
-                s_out[i] = 0.0
-                continue
-            ux = b_c[i, 0]
-            uy = b_c[i, 1]
-            s = 0.0
-            for c in range(n_chunks):  # Σ_k δz_k² per 32 samples, in order (as the sample-chunked loop)
-                s += _own_samples(cur, i, 32 * c, min(32, K - 32 * c), w_cur[i, c], ux, uy, den)
-            s_out[i] = s
+        if not _wavefront_samples(order[s0:], nL, key, K, n_in, e_pos, e_c, b_c, prev, cur, w_prev, w_cur, s_out):
+            ok = False
         for i in range(nL):  # scatter
             kb = order[s0 + i]
             vb = kb // W
