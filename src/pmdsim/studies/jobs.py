@@ -343,7 +343,7 @@ def _decode_checked(manifest, setup: Setup, cam: str, noise_std, image_dir, run_
     xs, ys, noise, _ = consistency_stacks(images, inst.response, noise_std, lit=(decoded.flags & photometric) == 0)
     cons = check_consistency(xs, images.x_periods_mm, ys, images.y_periods_mm, decoded, setup.screen.size_mm, noise,
                              expected_xy_mm=expected)
-    decoded = with_consistency(decoded, cons)
+    decoded = with_consistency(decoded, cons, in_place=True)  # the decoder's maps: no one else holds them
     if not decoded.valid.any() and cons.tested.any():
         hint = _reversed_order_hint(images, inst, setup, cons, noise_std, expected, lit=(decoded.flags & photometric) == 0)
         raise ConsistencyFailure(
