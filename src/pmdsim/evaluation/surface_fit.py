@@ -46,36 +46,40 @@ def remove_piston_tilt(p_sample_mm, valid) -> tuple[np.ndarray, np.ndarray]:
     (the plane z = c₀ + c₁x + c₂y: its 2×2 slope system on centred coordinates is well
     conditioned; equal to lstsq to ~1e-12, tests/test_surface_fit_kernels.py)."""
     p = np.asarray(p_sample_mm, dtype=float)
-    ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
-    n = int(np.count_nonzero(ok))
-    if n < 3:
-        raise ComputationError("fewer than 3 reconstructed points: cannot remove piston and tilt")
     shape = p.shape[:-1]
     flat = np.ascontiguousarray(p.reshape(-1, 3))
-    okf = np.ascontiguousarray(ok.reshape(-1))
+    okf = np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=bool), shape).reshape(-1))
     out = np.empty(okf.size)
     coef = np.empty(3)
-    if not _plane_kernel(flat, okf, out, coef):
+    status = _plane_kernel(flat, okf, np.empty(okf.size, np.bool_), out, coef)
+    if status == 1:
+        raise ComputationError("fewer than 3 reconstructed points: cannot remove piston and tilt")
+    if status == 2:
         raise ComputationError("the reconstructed points are collinear: cannot remove piston and tilt")
     return out.reshape(shape), coef
 
 
 @numba.njit(cache=True, fastmath=False)
-def _plane_kernel(p, ok, out, coef):
-    """Least-squares plane z = c₀ + c₁x + c₂y through the points ``p`` (N, 3) where ``ok``;
-    ``out`` the residual heights (NaN where not ok). False if the 2×2 system is singular."""
+def _plane_kernel(p, ok, use, out, coef):
+    """Least-squares plane z = c₀ + c₁x + c₂y through the points ``p`` (N, 3) where ``ok`` and
+    x, y, z are finite (``use``: those points, written by the first pass); ``out`` the residual
+    heights (NaN elsewhere). Returns 0, 1 if fewer than 3 points, 2 if the 2×2 system is
+    singular."""
     n = 0
     sx = sy = sz = 0.0
     for i in range(p.shape[0]):
-        if ok[i]:
+        use[i] = ok[i] and np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2])
+        if use[i]:
             n += 1
             sx += p[i, 0]
             sy += p[i, 1]
             sz += p[i, 2]
+    if n < 3:
+        return 1
     xm, ym, zm = sx / n, sy / n, sz / n
     sxx = sxy = syy = sxz = syz = 0.0
     for i in range(p.shape[0]):
-        if ok[i]:
+        if use[i]:
             dx = p[i, 0] - xm
             dy = p[i, 1] - ym
             dz = p[i, 2] - zm
@@ -86,18 +90,15 @@ def _plane_kernel(p, ok, out, coef):
             syz += dy * dz
     det = sxx * syy - sxy * sxy
     if not (det > 1e-14 * sxx * syy):
-        return False
+        return 2
     c1 = (syy * sxz - sxy * syz) / det
     c2 = (sxx * syz - sxy * sxz) / det
     coef[0] = zm - c1 * xm - c2 * ym
     coef[1] = c1
     coef[2] = c2
-    for i in range(p.shape[0]):
-        if ok[i]:
-            out[i] = p[i, 2] - zm - c1 * (p[i, 0] - xm) - c2 * (p[i, 1] - ym)
-        else:
-            out[i] = np.nan
-    return True
+    for i in range(p.shape[0]):  # a select, not a branch: vectorised
+        out[i] = p[i, 2] - zm - c1 * (p[i, 0] - xm) - c2 * (p[i, 1] - ym) if use[i] else np.nan
+    return 0
 
 
 @dataclass(frozen=True)
