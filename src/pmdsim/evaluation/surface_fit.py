@@ -275,6 +275,10 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float, *, m
     else:  # flat views of the maps (no copies)
         sigs = [np.ascontiguousarray(s, dtype=float).reshape(-1, 2) for s in slope_std]
         masks = [np.ascontiguousarray(m, dtype=bool).reshape(-1) for m in masks]
+        if (sum(int(np.count_nonzero(m)) for m in masks) != len(xy) or len(res) != len(xy)
+                or any(m.size != len(s) for s, m in zip(sigs, masks)) or len(sigs) != len(masks)):
+            raise ValueError("with_uncertainty: the masks' pixels are not the fit's points (or σ maps of "
+                             "another size)")
     acc, cnt, i = np.zeros(2), np.zeros(1, np.int64), 0
     for s, m in zip(sigs, masks):
         i = _centre_kernel(xy, res, s, m, i, acc, cnt)
