@@ -138,3 +138,33 @@ def test_residuals_in_place_equal_numpy():
     rx, ry = _residuals(xu, yu, gxw, gyw, xc, yc, a, b, c, d, e, gxw, gyw)
     assert rx is gxw and ry is gyw
     assert np.array_equal(rx, rx_ref) and np.array_equal(ry, ry_ref)
+
+
+def test_small_pages_turns_the_hint_off_and_restores_it():
+    """numpy's huge-page hint is off inside ``with small_pages()`` and back to what it was
+    afterwards, also when the block raises."""
+    import pytest
+
+    from pmdsim.studies.evaluate_memory import _hugepage_switch, small_pages
+
+    get, put = _hugepage_switch()
+    seen = []
+
+    def job(fail=False):
+        with small_pages():
+            seen.append(get())
+            if fail:
+                raise ValueError("boom")
+            return np.ones(3).sum()
+
+    old = put(True)
+    try:
+        assert job() == 3.0 and seen == [False] and get() is True
+        with pytest.raises(ValueError):
+            job(fail=True)
+        assert seen == [False, False] and get() is True
+        put(False)
+        job()
+        assert get() is False
+    finally:
+        put(bool(old))

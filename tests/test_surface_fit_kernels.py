@@ -116,8 +116,13 @@ def test_piston_tilt_matches_lstsq_with_mask():
     np.testing.assert_allclose(h[use], z[use] - A @ ref, rtol=0, atol=1e-12)
     assert np.isnan(h[~use]).all()
     line = np.stack([x, 2 * x, z], -1)
-    with pytest.raises(sf.ComputationError):
+    with pytest.raises(sf.ComputationError, match="collinear"):
         sf.remove_piston_tilt(line, np.ones(x.shape, bool))
+    few = p.copy()
+    few[..., rng.integers(0, 3)] = np.inf  # x, y or z non-finite: left out as if not valid
+    few[5, 6] = few[7, 8] = (1.0, 2.0, 3.0)  # two points left
+    with pytest.raises(sf.ComputationError, match="fewer than 3"):
+        sf.remove_piston_tilt(few, np.ones(x.shape, bool))
 
 
 @pytest.mark.parametrize("quantise", [False, True])

@@ -62,3 +62,19 @@ def test_summary_equals_the_fit_of_the_concatenated_points():
     np.testing.assert_allclose(fit.coefficients[:3], (1 / 4000, 1 / 9000, 1 / 3000), rtol=2e-3, atol=2e-7)
     without = surface_fit_summary(recs, -900.0, None)[0]
     assert without.coefficients == fit.coefficients and without.coefficients_std is None
+
+
+def test_sigma_maps_must_match_the_fitted_pixels():
+    """σ read in the maps (``masks``): masks holding other pixels than the fit's points are refused
+    before any is read."""
+    import pytest
+
+    recs, sig = _recs()
+    fit, _ = surface_fit_summary(recs, -900.0, None)
+    gs = [sample_slopes(r.n_sample) for r in recs]
+    oks = [r.reconstructed & np.isfinite(g).all(-1) for r, g in zip(recs, gs)]
+    xy = np.concatenate([r.p_sample_mm[..., :2][ok] for r, ok in zip(recs, oks)])
+    with pytest.raises(ValueError, match="not the fit's points"):
+        with_uncertainty(fit, xy, sig, -900.0, masks=[oks[0], oks[1] & (np.arange(64) > 3)])
+    with pytest.raises(ValueError, match="not the fit's points"):
+        with_uncertainty(fit, xy, [sig[0], sig[1][:, :10]], -900.0, masks=oks)

@@ -62,8 +62,8 @@ from .phase import (
     ScreenCoordinates,
     equal_shifts,
 )
+from .consistency_levels import LevelBuffers, check_level, fit_row, stack_array
 from .fast_atan import _phase_0_2pi
-from .unwrapping import REVERSAL_CONTRAST_RATIO, _refine_reversal
 
 __all__ = [
     "DEFAULT_FALSE_ALARM",
@@ -206,53 +206,20 @@ def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_ou
     1e-15 rad of libm's)."""
     n, h, w = images.shape
     for v in numba.prange(0, h):
-        sa = np.zeros(w)
-        sc = np.zeros(w)
-        ss = np.zeros(w)
-        for k in range(n):
-            ck = cos_d[k]
-            sk = sin_d[k]
-            row = images[k, v]
-            for u in range(w):
-                x = np.float64(row[u])
-                sa[u] += x
-                sc[u] += x * ck
-                ss[u] += x * sk
+        sa, sc, ss, rss, best = np.empty(w), np.empty(w), np.empty(w), np.empty(w), np.empty(w)
+        worst = np.empty(w, np.int64)
+        fit_row(images, v, cos_d, sin_d, sa, sc, ss, rss, best, worst)
         for u in range(w):
-            a = sa[u] / n
-            c = 2.0 * sc[u] / n
-            s = 2.0 * ss[u] / n
-            sa[u] = a
-            sc[u] = c
-            ss[u] = s
-            a_out[v, u] = a
-            b_out[v, u] = math.sqrt(c * c + s * s)
-            phi_out[v, u] = _phase_0_2pi(s, c)
-        rss = np.zeros(w)
-        best = np.full(w, -1.0)
-        worst = np.zeros(w, np.int64)
-        for k in range(n):
-            ck = cos_d[k]
-            sk = sin_d[k]
-            row = images[k, v]
-            for u in range(w):
-                r = np.float64(row[u]) - sa[u] - sc[u] * ck - ss[u] * sk
-                rss[u] += r * r
-                ar = abs(r)
-                gt = ar > best[u]
-                best[u] = ar if gt else best[u]
-                worst[u] = k if gt else worst[u]
-        for u in range(w):
+            a_out[v, u] = sa[u]
+            b_out[v, u] = math.sqrt(sc[u] * sc[u] + ss[u] * ss[u])
+            phi_out[v, u] = _phase_0_2pi(ss[u], sc[u])
             rss_out[v, u] = rss[u]
             worst_out[v, u] = worst[u]
 
 
 def _stack_stats(stack):
     """A, B, φ, RSS and argmax_k |r_k| of one (N, H, W) stack (equal shifts), each (H, W)."""
-    arr = np.asarray(stack)
-    if arr.dtype.kind not in "uif" or not arr.dtype.isnative:
-        arr = arr.astype(np.float64)
-    arr = np.ascontiguousarray(arr)
+    arr = stack_array(stack)
     n, h, w = arr.shape
     d = equal_shifts(n)
     out = [np.empty((h, w)) for _ in range(4)]
@@ -261,112 +228,6 @@ def _stack_stats(stack):
     if n <= 3:
         out[3][:] = 0.0  # an exact fit: no residual
     return (*out, worst)
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _sigma2_kernel(a_map, lines, given2, tested, out):
-    """σ_I²(A) = max(min_s (a_s + b_s·A), σ_given²) per pixel, A = clip(nan_to_num(A), 0); returns
-    the largest σ_I² over the tested pixels (0 if none): the arithmetic of the numpy expression
-    in :func:`check_consistency`, without its (S, H, W) temporary."""
-    h, w = a_map.shape
-    big = np.finfo(np.float64).max
-    top = 0.0
-    for v in range(h):
-        for u in range(w):
-            a = a_map[v, u]
-            if np.isnan(a):
-                a = 0.0
-            elif a > big:
-                a = big
-            elif a < -big:
-                a = -big
-            if a < 0.0:
-                a = 0.0
-            est = lines[0, 0] + lines[0, 1] * a
-            for k in range(1, lines.shape[0]):
-                e = lines[k, 0] + lines[k, 1] * a
-                if e < est or np.isnan(e):
-                    est = e
-            g = given2[v, u]
-            s2 = est if (est > g or np.isnan(est)) else g
-            out[v, u] = s2
-            if tested[v, u] and s2 > top:
-                top = s2
-    return top
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _fit_level_kernel(rss, s2, thr, worst, first, tested, fit_ratio, worst_image, bad):
-    """The FIT_RESIDUAL test of one stack: ratio = RSS/σ_I²/threshold; keeps the largest ratio
-    (and its worst image) per pixel; ``bad`` = tested & ratio > 1. Returns the count of bad."""
-    h, w = rss.shape
-    n_bad = 0
-    for v in range(h):
-        for u in range(w):
-            if not tested[v, u]:
-                bad[v, u] = False
-                continue
-            ratio = rss[v, u] / s2[v, u] / thr
-            cur = fit_ratio[v, u]
-            if np.isnan(cur) or ratio > cur:
-                fit_ratio[v, u] = ratio
-                worst_image[v, u] = first + worst[v, u]
-            b = ratio > 1.0
-            bad[v, u] = b
-            n_bad += b
-    return n_bad
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _sigma_kernel(s2, b_map, k, out):
-    """σ of the coordinate, k·√σ_I²/B (the decoder's σ model, module docstring)."""
-    h, w = s2.shape
-    for v in range(h):
-        for u in range(w):
-            out[v, u] = k * math.sqrt(s2[v, u]) / b_map[v, u]
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _coarse_kernel(phi, p0, origin, upper, out):
-    """The coarsest period's coordinate p₀·φ/2π in [origin, upper] (minus one period above it)."""
-    h, w = phi.shape
-    two_pi = 2.0 * math.pi
-    for v in range(h):
-        for u in range(w):
-            r = p0 * (phi[v, u] / two_pi) - origin
-            c = origin + (r - p0 * math.floor(r / p0))
-            out[v, u] = c - p0 if c > upper else c
-
-
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _period_level_kernel(c, phi, p, sig_prev, sig, z, tested, mis_ratio, bad, rev, con, con_prev):
-    """The PERIOD_MISMATCH test of one finer period: c_k from the coarser c (updated in place),
-    ratio = |c − c_k|/(z·hypot(σ_prev, σ)); keeps the largest ratio; ``bad`` = tested & ratio
-    > 1. Where ``rev`` (the decoder corrected a reversed contrast), φ is corrected as the
-    decoder did (contrasts ``con``, ``con_prev``: B/A of this and the coarser period). Returns
-    the count of bad."""
-    h, w = c.shape
-    two_pi = 2.0 * math.pi
-    n_bad = 0
-    for v in range(h):
-        for u in range(w):
-            fine = p * phi[v, u] / two_pi
-            cc = c[v, u]
-            ck = fine + p * math.floor((cc - fine) / p + 0.5)
-            if rev[v, u]:
-                ck, _, _ = _refine_reversal(cc, phi[v, u], p, 1.0 / p, 0.5, con[v, u], con_prev[v, u],
-                                            REVERSAL_CONTRAST_RATIO)
-            ratio = abs(cc - ck) / (z * math.hypot(sig_prev[v, u], sig[v, u]))
-            c[v, u] = ck
-            if not tested[v, u]:
-                bad[v, u] = False
-                continue
-            if not (ratio <= mis_ratio[v, u]):
-                mis_ratio[v, u] = ratio
-            b = ratio > 1.0
-            bad[v, u] = b
-            n_bad += b
-    return n_bad
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
@@ -591,16 +452,6 @@ def check_consistency(
     all_items = [it for _, items in per_dir for it in items]
     mask, lines = _noise_pass(all_items, tested)
 
-    def sigma2(a_map):
-        """σ_I² at offset A — the lowest of the stacks' lines (robust to bad stacks), at least
-        the given σ² — and its largest value over the tested pixels."""
-        if lines is None:
-            return given2, float(np.nanmax(np.where(tested, given2, 0.0)))
-        out = np.empty((h, w))
-        top = _sigma2_kernel(np.asarray(a_map, dtype=np.float64), np.ascontiguousarray(lines, dtype=np.float64),
-                             given2, tested, out)
-        return out, top
-
     flags = np.zeros((h, w), np.uint8)
     fit_ratio = np.full((h, w), np.nan, np.float32)
     mis_ratio = np.full((h, w), np.nan, np.float32)
@@ -616,59 +467,55 @@ def check_consistency(
     n_tested = int(np.count_nonzero(tested))
     limit = float(defect_fraction) * n_tested
 
+    # One pass per stack (:mod:`.consistency_levels`): the N-step fit, σ_I², both tests, the
+    # coordinate; what the next stack needs stays in buffers reused for every stack.
+    buf = LevelBuffers(h, w)
+    if lines is None:
+        top_given = float(np.nanmax(np.where(tested, given2, 0.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
         for axis, (direction, items) in enumerate(per_dir):
             p0 = items[0]["p"]
             ext = float(size[axis])
             margin = 0.5 * (p0 - ext) if margin_mm is None else float(margin_mm)
-            c = None
-            sig_prev = None
             dir_bad = np.zeros((h, w), bool)
-            bad = np.empty((h, w), bool)
             rev = np.ascontiguousarray(decoded.reversed[..., axis])
-            ratio_prev = None
             for level, it in enumerate(items):
-                st_a, st_b, st_phi, st_rss, st_worst = _item_stats(it)
-                if axis == 0 and level == 0 and lines is not None and mask.any():  # all_items[0]
-                    a_typical = np.nanmedian(st_a[mask])
-                s2, top = sigma2(st_a)
-                noise_max = max(noise_max, float(np.sqrt(top)))
+                typical = axis == 0 and level == 0 and lines is not None and mask.any()  # all_items[0]
+                thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3)) if it["n"] > 3 else 0.0
+                n_fit, n_per, top, a_mask = check_level(
+                    buf, it["stack"], first=it["first"], thr=thr, lines=lines, given2=given2, tested=tested,
+                    level=level, p=it["p"], origin=float(origin[axis]), upper=float(origin[axis] + ext + margin),
+                    z=z, rev=rev, fit_ratio=fit_ratio, worst_image=worst_image, mis_ratio=mis_ratio,
+                    mask=mask if typical else None)
+                if typical:
+                    a_typical = np.nanmedian(a_mask)
+                noise_max = max(noise_max, float(np.sqrt(top_given if lines is None else top)))
                 if it["n"] > 3:
-                    thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3))
-                    n_bad = _fit_level_kernel(st_rss, s2, thr, st_worst, it["first"], tested, fit_ratio,
-                                              worst_image, bad)
-                    if n_tested and n_bad > limit:
+                    bad = buf.bad_fit
+                    if n_tested and n_fit > limit:
                         # A frame of this stack is bad as a whole: its other pixels agree by chance.
-                        k = int(np.bincount(st_worst[bad], minlength=it["n"] + 1).argmax())
+                        k = int(np.bincount(_item_stats(it)[4][bad], minlength=it["n"] + 1).argmax())
                         defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
-                                       f"sinusoid in {n_bad / n_tested:.0%} of the pixels")
+                                       f"sinusoid in {n_fit / n_tested:.0%} of the pixels")
                         escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
                         fit_bad |= tested
                     else:
                         fit_bad |= bad
-                sig = np.empty((h, w))
-                _sigma_kernel(s2, st_b, it["p"] / (2.0 * math.pi) * math.sqrt(2.0 / it["n"]), sig)
-                ratio = st_b / st_a
-                if level == 0:
-                    c = np.empty((h, w))
-                    _coarse_kernel(st_phi, p0, float(origin[axis]), float(origin[axis] + ext + margin), c)
-                else:
-                    n_bad = _period_level_kernel(c, st_phi, it["p"], sig_prev, sig, z, tested, mis_ratio, bad,
-                                                 rev, ratio, ratio_prev)
-                    if n_tested and n_bad > limit:
+                if level > 0:
+                    bad = buf.bad_per
+                    if n_tested and n_per > limit:
                         # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
                         # where it agrees, it does so by chance.
                         defects.append(f"direction {direction}, period {it['p']:g} mm disagrees with the "
                                        f"{items[level - 1]['p']:g} mm period in "
-                                       f"{n_bad / n_tested:.0%} of the pixels")
+                                       f"{n_per / n_tested:.0%} of the pixels")
                         bad = tested.copy()
                     new = np.count_nonzero(bad & ~dir_bad)
                     if new:
                         period_counts[(direction, it["p"])] = int(new)
                     dir_bad |= bad
-                sig_prev = sig
-                ratio_prev = ratio
-                del st_a, st_b, st_phi, st_rss, st_worst, s2
+                buf.swap()
+            c = buf.c
             final[..., axis] = c
             flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
             tol = OUTSIDE_SCREEN_FRACTION * ext
@@ -714,17 +561,25 @@ def _orientation_flipped(measured_xy: np.ndarray, expected_xy: np.ndarray) -> np
 
 
 def with_consistency(decoded: ScreenCoordinates, result: ConsistencyResult, *,
-                     rescale_std: bool = False) -> ScreenCoordinates:
+                     rescale_std: bool = False, in_place: bool = False) -> ScreenCoordinates:
     """``decoded`` with the consistency flags OR-ed in; newly flagged pixels become invalid (NaN).
 
     ``rescale_std``: scale ``std_xy_mm`` (∝ σ_I, :func:`.phase.decode_direction`) from the noise
     the decoder was given to the noise the checks found in the images
     (:meth:`ConsistencyResult.noise_std_at` of the finest periods' offsets).
+    ``in_place``: write the NaN into ``decoded``'s ``screen_xy_mm`` and ``std_xy_mm`` (no (H, W, 2)
+    copies; for a caller that drops ``decoded``, issue 25).
     """
     flags = decoded.flags | result.flags
     valid = flags == 0
-    xy = np.where(valid[..., None], decoded.screen_xy_mm, np.nan)
-    std = np.where(valid[..., None], decoded.std_xy_mm, np.nan)
+    xy, std = decoded.screen_xy_mm, decoded.std_xy_mm
+    if in_place and xy.flags.writeable and std.flags.writeable and not np.may_share_memory(xy, std):
+        invalid = ~valid
+        xy[invalid] = np.nan
+        std[invalid] = np.nan
+    else:
+        xy = np.where(valid[..., None], xy, np.nan)
+        std = np.where(valid[..., None], std, np.nan)
     if rescale_std:
         given = np.broadcast_to(np.asarray(result.given_noise_std, dtype=np.float64), valid.shape)
         for d in range(2):
