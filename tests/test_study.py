@@ -422,7 +422,7 @@ def test_unreachable_scheduler_is_one_clear_error(tmp_path):
         port = s.getsockname()[1]
     study = load_study(_write(tmp_path, GOOD))
     with pytest.raises(StudyError, match=rf"cannot connect to the Dask scheduler 'tcp://127\.0\.0\.1:{port}'"):
-        run_study(study, tmp_path / "out", scheduler=f"tcp://127.0.0.1:{port}", connect_timeout_s=2)
+        run_study(study, tmp_path / "out", scheduler=f"tcp://127.0.0.1:{port}", connect_timeout_s=1)
     assert not list((tmp_path / "out" / CASES_DIR).glob("*.json"))
 
 
@@ -575,7 +575,7 @@ def test_bad_scheduler_is_one_line_and_leaves_nothing(tmp_path, address, expecte
             address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
     study = _write(tmp_path, GOOD)
     res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(tmp_path / "out"),
-                          "--scheduler", address, "--connect-timeout", "2"], env=_env(), capture_output=True,
+                          "--scheduler", address, "--connect-timeout", "1"], env=_env(), capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
