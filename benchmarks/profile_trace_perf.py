@@ -1,7 +1,7 @@
 """Where the tracer's time goes, by compiled function: ``perf record`` with numba's JIT symbols.
 
     NUMBA_NUM_THREADS=1 python benchmarks/profile_trace_perf.py [--bulge-mm 3] [--glass-mm 3] [--traces 15]
-        [--out perf.data] [--dump-code DIR]
+        [--out perf.data] [--dump-code DIR] [--cached]
 
 perf cannot name numba's JIT code (no symbol table), so this script compiles the tracer in the
 process (numba's cache loading switched off: a library loaded from the cache has no LLVM module
@@ -11,7 +11,10 @@ function of the compiled library and the libraries it links) and runs ``perf rec
 ``perf report``'s functions with their share and the time per trace. ``--dump-code DIR`` also
 writes the machine code of the tracer's row and glass kernels (``DIR/NAME_ADDRESS.bin``), to be
 disassembled with ``objdump -D -b binary -mi386:x86-64 --adjust-vma=0xADDRESS`` and matched
-against ``perf script -F ip,sym``. The compile takes 1–2 min (not timed).
+against ``perf script -F ip,sym``. The compile takes 1–2 min (not timed). ``--cached`` loads the
+kernels from numba's cache instead (seconds): the JIT functions are then unnamed addresses, the
+kernel's and libraries' symbols (page clearing, ``clear_page_erms``) are not — to compare those
+between the traces with and without glass.
 """
 
 from __future__ import annotations
@@ -25,11 +28,7 @@ import time
 
 import numba.core.caching as _caching
 
-# Compile in this process (see the docstring); nothing is written to the cache either.
-_caching.Cache.load_overload = lambda *args, **kwargs: None
-_caching.Cache.save_overload = lambda *args, **kwargs: None
-
-_DUMPED = ("glass_block", "_foot_run", "trace_row", "_patches_at", "_glass_rows_update", "_newton_run")
+_DUMPED = ("glass_block", "_foot_run", "skip_check_run", "trace_row", "_patches_at", "_glass_rows_update", "_newton_run")
 
 
 def _symbols(dispatcher) -> dict[int, str]:
@@ -62,7 +61,11 @@ def main() -> None:
     ap.add_argument("--traces", type=int, default=15)
     ap.add_argument("--out", default="perf.data")
     ap.add_argument("--dump-code", default="")
+    ap.add_argument("--cached", action="store_true", help="kernels from numba's cache (JIT code unnamed)")
     args = ap.parse_args()
+    if not args.cached:  # compile in this process (see the docstring); nothing is written to the cache either
+        _caching.Cache.load_overload = lambda *args, **kwargs: None
+        _caching.Cache.save_overload = lambda *args, **kwargs: None
     from pmdsim.geometry.cover_glass import CoverGlass
     from pmdsim.setup import default_setup
     from pmdsim.simulation import trace
@@ -76,7 +79,8 @@ def main() -> None:
         return trace.trace_camera(cam.camera, cam.T_world_cam, setup.sample.T_world_sample, setup.sample.surface,
                                   setup.screen.T_world_screen, setup.screen.surface, rays=rays, glass=glass)
 
-    run()  # compile
+    run()  # compile (or load from the cache)
+    run()  # the process's first touch of the allocator's memory, outside the profile
     syms = _symbols(trace._trace_kernel_glass if glass is not None else trace._trace_kernel)
     addresses = sorted(syms)
     ends = addresses[1:] + [addresses[-1] + 0x10000] if addresses else []
