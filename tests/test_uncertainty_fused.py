@@ -87,3 +87,47 @@ def test_combined_noise_part_is_returned_exactly_when_the_root_sum_square_equals
     g[~S] = np.nan
     g[S.nonzero()[0][5], S.nonzero()[1][5], 1] = np.inf
     assert U._count_not_finite_on(S, g) == 1
+
+
+def _widest_wavefront(S, seed):
+    """The largest number of pixels at one 4-connected geodesic distance from ``seed`` within S
+    (a breadth-first search in Python, independent of the kernels)."""
+    from collections import deque
+
+    H, W = S.shape
+    dist = np.full((H, W), -1)
+    dist[seed] = 0
+    todo = deque([seed])
+    count = {}
+    while todo:
+        v, u = todo.popleft()
+        count[dist[v, u]] = count.get(dist[v, u], 0) + 1
+        for a, b in ((v - 1, u), (v + 1, u), (v, u - 1), (v, u + 1)):
+            if 0 <= a < H and 0 <= b < W and S[a, b] and dist[a, b] < 0:
+                dist[a, b] = dist[v, u] + 1
+                todo.append((a, b))
+    return max(count.values())
+
+
+def test_a_hole_beside_the_seed_widens_the_wavefront_beyond_the_frames():
+    """A 6×6 hole beside the seed makes a wavefront wider than two pixels per row and column (46
+    pixels on a 20×32 frame; the pass started with 2·min(H, W) + 2 = 42 and wrote past its
+    buffers: a segmentation fault in `pmdsim evaluate` of a set with a flagged patch near the
+    seed). The buffers grow; σ equals the four stages' bit for bit."""
+    o, d, q, _, _ = _scene(H=20, W=32)
+    d = d.copy()
+    d[..., 2] = -np.abs(d[..., 2])  # no failing steps: the mask is the hole only
+    valid = np.ones((20, 32), bool)
+    valid[4:10, 13:19] = False
+    rec = reconstruct_stepwise(o, d, q, valid, seed_pixel=(10, 16), seed_height_mm=0.25)
+    S = rec.reconstructed
+    assert np.array_equal(S, valid)
+    assert _widest_wavefront(S, (10, 16)) > 2 * min(S.shape) + 2
+    std = np.random.default_rng(5).uniform(1e-3, 5e-3, size=valid.shape + (2,))
+    dq = np.ascontiguousarray(np.linalg.qr(np.random.default_rng(6).normal(size=(3, 3)))[0][:, :2])
+    h, g, status = stepwise_noise_sigma(o, d, q, rec, dq, std, 64, 99)
+    assert status == 0
+    lin = U._LinearisedIntegration(o, d, q, rec)
+    A, g_ref = U._jacobian_scaled(o, rec.p_sample_mm, q, dq, S, std)
+    assert np.array_equal(h, U._sampled_std(lin, A, 64, 99, overwrite=True), equal_nan=True)
+    assert np.array_equal(g, g_ref, equal_nan=True)

@@ -68,6 +68,12 @@ def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
     return ok
 
 
+@numba.njit(cache=True)
+def _doubled(a):
+    """``a`` (n, ...) with n more rows of zeros after its own (a wavefront buffer widened)."""
+    return np.concatenate((a, np.zeros_like(a)))
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
     """The heights' σ sqrt(Σ_k δz_k² / K) into ``acc`` (H, W) (zeros on entry; NaN off S) and the
@@ -75,7 +81,7 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
     (module docstring). Returns 0, or 1 if a reached pixel's geometry is not finite, 2 if a
     pixel's coefficient Σ J_b vanishes."""
     H, W = S.shape
-    cap = 2 * min(H, W) + 2  # a wavefront holds at most two pixels per row and per column
+    cap = 2 * min(H, W) + 2  # the unobstructed frame's widest wavefront; grown where holes widen it
     n_chunks = (K + 31) // 32
     per_pixel = 0 if T.shape[0] == 1 else 1
     pos = np.full((H, W), -1, dtype=np.int32)  # index within its wavefront; −1: not reached
@@ -105,11 +111,30 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
                 vv = v + dv
                 uu = u + du
                 if 0 <= vv < H and 0 <= uu < W and S[vv, uu] and pos[vv, uu] < 0:
+                    if n_nxt == nxt_idx.shape[0]:  # a mask with holes: the wavefront is wider
+                        nxt_idx = _doubled(nxt_idx)
                     pos[vv, uu] = n_nxt
                     nxt_idx[n_nxt] = vv * W + uu
                     n_nxt += 1
         if n_nxt == 0:
             break
+        while geo_c.shape[0] < n_nxt:  # every per-wavefront buffer as wide (the previous one's kept)
+            cur_idx = _doubled(cur_idx)
+            geo_p = _doubled(geo_p)
+            geo_c = _doubled(geo_c)
+            A_p = _doubled(A_p)
+            A_c = _doubled(A_c)
+            prev = _doubled(prev)
+            cur = _doubled(cur)
+            w_prev = _doubled(w_prev)
+            w_cur = _doubled(w_cur)
+            n_in = _doubled(n_in)
+            e_pos = _doubled(e_pos)
+            e_c = _doubled(e_c)
+            b_c = _doubled(b_c)
+            s_out = _doubled(s_out)
+        while nxt_idx.shape[0] < geo_c.shape[0]:  # the index buffers swap: keep them as wide
+            nxt_idx = _doubled(nxt_idx)
         for i in range(n_nxt):  # its pixels' inputs and coefficients
             if i + PREFETCH_AHEAD < n_nxt:
                 _prefetch_pixel(d, q, z, p, sig, nxt_idx[i + PREFETCH_AHEAD])
