@@ -335,6 +335,21 @@ def _cold_kernel_packages(packages=_KERNEL_PACKAGES, root: str | None = None) ->
     return cold
 
 
+def _passive_openmp_wait() -> None:
+    """Let numba's OpenMP worker threads sleep, not spin, while they wait (unless the user set
+    ``OMP_WAIT_POLICY``).
+
+    numba's default threading layer here is GNU OpenMP, whose threads spin-wait at each parallel
+    kernel's barrier and between kernels. On a machine whose other CPUs are busy (the 2-vCPU
+    machine under load 2–3) a spinning thread takes the CPU from the one it waits for: two small
+    parallel kernels called 8 352 times took 52–75 s instead of 3.4 s with passive waiting
+    (docs/benchmarks.md, "Parallel kernels under load: passive OpenMP waiting"). libgomp reads
+    the variable when numba first loads it, at the first parallel kernel; nothing is imported here.
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+_passive_openmp_wait()
 _numba_cache_fallback()
 _drop_stale_kernel_cache()
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads
 from .multigrid import _CGWork, _pcg
 from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
@@ -100,6 +101,12 @@ def least_squares_sum_sq(lin, A, seed: int, K: int) -> np.ndarray:
     integration ``lin`` (``uncertainty._LinearisedIntegration``), from A = J·diag(σ_xy)
     (H, W, 2, 2), 0 off S; the samples' ξ as ``uncertainty._sampled_std``."""
     S = lin.S
+    # Small grids on one numba thread (the parallel kernels' barrier dominates: kernel_args).
+    with numba_threads(1 if S.size < SERIAL_BELOW_PX else numba.get_num_threads()):
+        return _least_squares_sum_sq(lin, S, A, seed, K)
+
+
+def _least_squares_sum_sq(lin, S, A, seed, K):
     solver = _SigmaSolver(lin)
     acc = np.zeros(S.shape)
     dg = np.empty(S.shape + (2,))

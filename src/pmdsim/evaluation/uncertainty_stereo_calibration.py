@@ -42,12 +42,12 @@ from __future__ import annotations
 
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import numba_threads
 from ..setup.covariance import perturbed_setup
 from .integration import _points_and_normals
 from .least_squares import _assemble_gauss_newton
@@ -90,17 +90,6 @@ def _std_maps(var, S, h_um, g_urad):
                 h_um[v, u] = np.nan
                 g_urad[v, u, 0] = np.nan
                 g_urad[v, u, 1] = np.nan
-
-
-@contextmanager
-def _numba_threads(n: int):
-    """Run the block with at most ``n`` numba threads (this thread's setting), restored after."""
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(int(n), before)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
 
 
 @dataclass(frozen=True, eq=False)
@@ -369,7 +358,7 @@ def stereo_calibration_contribution(setup, decoded: dict, stereo: StereoReconstr
     s = default_stereo_stride(stereo.cameras[cams[0]].reconstructed.shape) if stride is None else int(stride)
     names = stereo_calibration_parameters(setup, cams, screen_model=screen_model)
     axes = principal_axes(cov.subset(names))
-    with _numba_threads(threads):
+    with numba_threads(threads):
         lin = StereoLinearisation(setup, decoded, stereo, names, screen_model=screen_model, stride=s)
         fields = {c: [] for c in cams}
         var_a = {c: np.zeros(lin.a_base[c].size) for c in cams}

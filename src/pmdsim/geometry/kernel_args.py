@@ -12,9 +12,20 @@ suite, minutes each on a cold cache. The kernels' wrappers pass their *input* ar
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
+import numba
 import numpy as np
 
-__all__ = ["readonly"]
+__all__ = ["SERIAL_BELOW_PX", "numba_threads", "readonly"]
+
+#: Below this many pixels a parallel kernel runs on one numba thread (:func:`numba_threads`):
+#: its work is shorter than the wait at the threading layer's barrier, which under load (the
+#: second vCPU busy) can last a scheduler slice — measured 7.5 ms per call of two small
+#: parallel kernels, 20–66 s for one test's 8 352 calls at load 2–3 against 2.1 s on one
+#: thread (docs/benchmarks.md, "A load amplifier"). The same bound as
+#: ``evaluation.synthetic_decode``'s serial kernel.
+SERIAL_BELOW_PX = 200_000
 
 
 def readonly(a: np.ndarray) -> np.ndarray:
@@ -35,3 +46,23 @@ def readonly(a: np.ndarray) -> np.ndarray:
     v = a.view()
     v.flags.writeable = False
     return v
+
+
+@contextmanager
+def numba_threads(n: int):
+    """Run the block with at most ``n`` numba threads (this thread's setting, restored after).
+
+    ``numba.set_num_threads`` applies to parallel kernels launched from the calling thread; the
+    results do not depend on it (the kernels' reductions are per pixel or in a fixed order).
+
+    Parameters
+    ----------
+    n : int
+        Thread limit, ≥ 1 (values above the current setting leave it unchanged).
+    """
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(n), before)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
