@@ -465,7 +465,7 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     # The reflected ray (origin _QOX…, direction _WX…: six consecutive fields) kept for the scalar
     # path in _OOX … _ODZ: one contiguous copy of the six fields (the unused tail of each field
     # too). Copied field by field inside the loop below, each store was followed by a load from
-    # an address 4096·k bytes away (fields are 1 kB apart), which the processor holds back as a
+    # an address 4096·k bytes away (fields were 1 kB apart), which the processor holds back as a
     # possible dependence ("4K aliasing"): that loop took ≈ 12 ms of the image's 100 ms
     # (docs/benchmarks.md, "Cover glass (issue 21): the glass trace at 1.5×?").
     for j in range(6 * B):

@@ -40,9 +40,13 @@ from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, intersect_kernel, intersect_solve,
 )
 
-#: Pixels per block (the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 38 kB, of
-#: which the glass-free trace uses 26 kB: within a 32 kB L1 data cache).
-_BLK = 128
+#: Pixels per block: the scratch of a band holds ``_NF`` fields of ``_BLK`` float64 = 19 kB (the
+#: glass-free trace uses 13 kB of it), which stays in a 32–48 kB L1 data cache together with the
+#: warm-start rows of the block (4 or, with a cover glass, 14 rows of ``_BLK`` values). With 128
+#: (38 kB of scratch and 14 kB of rows) the trace with a glass ran 6–13 ms slower on Table 1, the
+#: glass-free one the same (docs/benchmarks.md, "Cover glass (issue 21): blocks of 64 pixels").
+#: Results do not depend on it (the pixels of a row are independent).
+_BLK = 64
 
 # Scratch fields (float64; codes stored as small integers in float64). The intersection
 # stages work on the generic fields _AX … _C (first for the sample, then for the screen).
