@@ -71,14 +71,17 @@ def _edge_jac(geo, va, ua, vb, ub):
 
 
 @numba.njit(cache=True, inline="always")
-def _edge_coeffs(ga, gb, Aa, Ab, e_c, i, m):
-    """The edge a → b's coefficients of the recursion: e_c[i, m] = ½ (A_a^T Δxy) x, y and J_a;
-    returns J_b and ½ (A_b^T Δxy) x, y (Aa, Ab (2, 2): J·diag(σ) of a and b)."""
+def _add_edge(ga, gb, Aa, Ab, e_c, e_pos, i, m, pa, den, ux, uy):
+    """Pixel i's m-th upstream edge a → b (a at ``pa`` in the previous wavefront; ga, gb (8,)
+    geometry rows, Aa, Ab (2, 2) J·diag(σ)): e_c[i, m] = ½ (A_a^T Δxy) x, y and J_a, e_pos[i, m] =
+    pa; returns den + J_b, ux, uy + ½ (A_b^T Δxy) x, y and m + 1."""
     Ja, Jb, dx, dy = _edge_jac_rows(ga, gb)
     e_c[i, m, 0] = 0.5 * (Aa[0, 0] * dx + Aa[1, 0] * dy)
     e_c[i, m, 1] = 0.5 * (Aa[0, 1] * dx + Aa[1, 1] * dy)
     e_c[i, m, 2] = Ja
-    return Jb, 0.5 * (Ab[0, 0] * dx + Ab[1, 0] * dy), 0.5 * (Ab[0, 1] * dx + Ab[1, 1] * dy)
+    e_pos[i, m] = pa
+    return (den + Jb, ux + 0.5 * (Ab[0, 0] * dx + Ab[1, 0] * dy), uy + 0.5 * (Ab[0, 1] * dx + Ab[1, 1] * dy),
+            m + 1)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -215,12 +218,8 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
                 ua = ub + du
                 if not (0 <= va < H and 0 <= ua < W) or layer[va, ua] != L - 1:
                     continue
-                Jb, tx, ty = _edge_coeffs(geo[va, ua], geo[vb, ub], A[va, ua], A[vb, ub], e_c, i, m)
-                den += Jb
-                ux += tx
-                uy += ty
-                e_pos[i, m] = pos[va, ua]
-                m += 1
+                den, ux, uy, m = _add_edge(geo[va, ua], geo[vb, ub], A[va, ua], A[vb, ub], e_c, e_pos, i, m, pos[va, ua],
+                                           den, ux, uy)
             n_in[i] = m
             b_c[i, 0] = ux
             b_c[i, 1] = uy

@@ -18,7 +18,7 @@ so when wavefront L + 1 is gathered, its pixels' reached neighbours are exactly 
 neighbours in wavefront L: one (H, W) int32 map of each reached pixel's index within its
 wavefront replaces the layer, order and position maps. Every value is computed by the same
 functions in the same order as in the four stages (the geometry as ``_row_geometry``, A and the
-slopes' σ by ``_pixel_jacobian``, the coefficients by ``_edge_coeffs``, the samples by
+slopes' σ by ``_pixel_jacobian``, the coefficients by ``_add_edge``, the samples by
 ``_wavefront_samples``), so σ is bit-identical to theirs (tests/test_uncertainty_fused.py).
 """
 
@@ -30,7 +30,7 @@ import numpy as np
 from .least_squares import _point_geometry
 from .prefetch import prefetch as _prefetch
 from .uncertainty import _pixel_jacobian, _tangent_array
-from .uncertainty_stepwise import _draw_word, _edge_coeffs, _seed_key, _wavefront_buffers, _wavefront_samples
+from .uncertainty_stepwise import _draw_word, _add_edge, _seed_key, _wavefront_buffers, _wavefront_samples
 
 __all__ = ["stepwise_noise_sigma"]
 
@@ -157,12 +157,7 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
                 pa = pos[va, ua]
                 if pa < 0:  # not reached; reached neighbours are in the previous wavefront
                     continue
-                Jb, tx, ty = _edge_coeffs(geo_p[pa], gb, A_p[pa], Ab, e_c, i, m)
-                den += Jb
-                ux += tx
-                uy += ty
-                e_pos[i, m] = pa
-                m += 1
+                den, ux, uy, m = _add_edge(geo_p[pa], gb, A_p[pa], Ab, e_c, e_pos, i, m, pa, den, ux, uy)
             n_in[i] = m
             b_c[i, 0] = ux
             b_c[i, 1] = uy
