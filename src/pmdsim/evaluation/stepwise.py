@@ -247,7 +247,7 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
     n_unconverged = 0
     while n_cur > 0:
         # The next wavefront: valid, unreached neighbours of the current one.
-        n_nxt = 0
+        n_nxt = np.int64(0)  # not a literal 0: one signature of the wavefront kernels
         for i in range(n_cur):
             idx = cur[i]
             va = idx // W

@@ -50,6 +50,7 @@ import numpy as np
 
 from ..errors import PmdsimError
 from ..geometry.compact import compact_repr
+from ..geometry.kernel_args import readonly
 from .least_squares import _assemble_gauss_newton, _row_geometry
 from .multigrid import _CGWork, _Multigrid, _pcg
 from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key, stepwise_sampled
@@ -193,7 +194,7 @@ def _tangent_array(dq_dxy) -> np.ndarray:
         T = T[None, None]
     elif T.strides[0] == 0 and T.strides[1] == 0:
         T = T[:1, :1]
-    return np.ascontiguousarray(T)
+    return readonly(np.ascontiguousarray(T))  # one kernel signature whoever owns the array
 
 
 def _jacobian_scaled(o, p, q, dq_dxy, S, sig):
@@ -590,7 +591,7 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
     dq = _screen_tangents(R, screen_model, decoded.screen_xy_mm)
     std = np.asarray(decoded.std_xy_mm, dtype=float)
     S = np.ascontiguousarray(S, dtype=bool)
-    bad = int(_count_not_finite_on(S, np.ascontiguousarray(std)))  # (no copy of std[S])
+    bad = int(_count_not_finite_on(S, readonly(np.ascontiguousarray(std))))  # (no copy of std[S])
     if bad:
         raise UncertaintyError(f"camera {camera!r}: the decoder's σ (std_xy_mm) is not finite at {bad} reconstructed "
                                f"pixel(s); no σ of the surface")
@@ -619,7 +620,7 @@ def surface_uncertainty(setup, camera: str, decoded, reg, rec, *, method: str, s
         dz_da = anchor_height_derivative(reg, anchor, method, T_world_ref=setup.sample.T_world_sample)
         h_noise = combine(h_noise, dz_da * float(anchor_std_mm))
         notes.append(f"anchor standard uncertainty {float(anchor_std_mm):g} mm included")
-    if _count_not_finite_on(S, np.ascontiguousarray(h_noise)[..., None]):
+    if _count_not_finite_on(S, readonly(np.ascontiguousarray(h_noise)[..., None])):
         raise UncertaintyError("the height σ is not finite at some reconstructed pixel")
     cov = getattr(setup, "calibration_covariance", None)
     if cov is not None:

@@ -192,7 +192,7 @@ def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
     """
     H, W = layer.shape
     n_layers = starts.size - 1
-    width = 1
+    width = np.int64(1)  # not a literal: one signature of _wavefront_buffers
     for L in range(n_layers):
         width = max(width, starts[L + 1] - starts[L])
     n_chunks = (K + 31) // 32

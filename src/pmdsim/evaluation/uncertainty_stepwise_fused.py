@@ -27,6 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import readonly
 from .least_squares import _point_geometry
 from .prefetch import prefetch as _prefetch
 from .uncertainty import _pixel_jacobian, _tangent_array
@@ -102,7 +103,7 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
         w_prev[0, c] = _draw_word(key, sv * W + su, c, n_chunks)
     status = 0
     while True:
-        n_nxt = 0  # the next wavefront
+        n_nxt = np.int64(0)  # the next wavefront (not a literal 0: one signature of _wavefront_samples)
         for i in range(n_cur):
             k = cur_idx[i]
             v = k // W
@@ -217,5 +218,5 @@ def stepwise_noise_sigma(o, d, q, rec, dq_dxy, std_xy_mm, samples: int, rng_seed
     status = _fused_kernel(np.asarray(o, dtype=float), np.ascontiguousarray(d, dtype=float),
                            np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(rec.height_mm, dtype=float),
                            S, sv, su, np.ascontiguousarray(rec.p_sample_mm, dtype=float), _tangent_array(dq_dxy),
-                           np.ascontiguousarray(std_xy_mm, dtype=float), int(rng_seed) % (1 << 63), K, acc, gstd)
+                           readonly(np.ascontiguousarray(std_xy_mm, dtype=float)), int(rng_seed) % (1 << 63), K, acc, gstd)
     return acc, gstd, int(status)
