@@ -52,8 +52,11 @@ def readonly(a: np.ndarray) -> np.ndarray:
 def numba_threads(n: int):
     """Run the block with at most ``n`` numba threads (this thread's setting, restored after).
 
-    ``numba.set_num_threads`` applies to parallel kernels launched from the calling thread; the
-    results do not depend on it (the kernels' reductions are per pixel or in a fixed order).
+    ``numba.set_num_threads`` applies to parallel kernels launched from the calling thread.
+    Per-pixel kernels give the same values with any thread count; a ``prange`` reduction (e.g.
+    the conjugate-gradient dot products of ``evaluation.poisson``) adds its per-thread partial
+    sums, so its last bits follow the thread count — one thread makes them independent of
+    ``NUMBA_NUM_THREADS``.
 
     Parameters
     ----------
