@@ -12,7 +12,8 @@ from pmdsim.geometry.surface import SplineSurface
 from pmdsim.simulation.glass_rows import _foot_run
 from pmdsim.simulation.glass_skip import skip_check_run
 from pmdsim.simulation.trace_rows import (
-    _AX, _AY, _BLK, _BX, _BY, _C, _NF, _QOX, _QOY, _QOZ, _UX, _UY, _VX, _VY, _WX, _WY, _WZ,
+    _AX, _AY, _BLK, _BX, _BY, _C, _NF, _QOX, _QOY, _QOZ, _TDX, _TDY, _TDZ, _TOX, _TOY, _TOZ, _UX, _UY, _VX, _VY,
+    _WX, _WY, _WZ,
 )
 
 T_MM, N_GLASS = 3.0, 1.52
@@ -56,8 +57,9 @@ def _run(screen, o, d, u_lin):
     assert (S[_C * _BLK:_C * _BLK + n] == 0.0).all()
     q = np.empty((n, 2))
     for i in range(n):
-        p = np.array([S[f * _BLK + i] for f in (_QOX, _QOY, _QOZ)])
-        r = np.array([S[f * _BLK + i] for f in (_WX, _WY, _WZ)])
+        p = np.array([S[f * _BLK + i] for f in (_TOX, _TOY, _TOZ)])  # the refracted ray
+        r = np.array([S[f * _BLK + i] for f in (_TDX, _TDY, _TDZ)])
+        assert S[_QOZ * _BLK + i] == p[2]  # its origin's z also where the intersection stage reads it
         r /= np.linalg.norm(r)
         f1 = lambda s: (p + s * r)[2] - float(screen.height(*(p + s * r)[:2]))
         q[i] = (p + brentq(f1, 0.0, 10.0 * T_MM, xtol=1e-14) * r)[:2]

@@ -53,12 +53,12 @@ from ..geometry.cover_glass import _FOOT_TOL_MM, through_glass_full
 from ..geometry.surface import (
     _KIND_PLANE, _KIND_SPLINE, _NEEDS_SOLVE, _interval, eval2_kernel, intersect_kernel, intersect_solve,
 )
-from .glass_skip import skip_check_run
+from .glass_skip import _in_box, skip_check_run
 from .trace_rows import patch_rows
 from .trace_rows import (
-    _AX, _AY, _BLK, _BX, _BY, _C, _CONV, _GAZ, _GM, _GMX, _GMY, _HX, _HY, _INV, _JIT, _ODX, _ODY, _ODZ, _OOX,
-    _OOY, _OOZ, _PID, _PIY, _QOX, _QOY, _QOZ, _SC, _SMALL_GRID, _UX, _UY, _VX, _VY, _WX, _WY, _WZ, _X, _Y, _Z, _ZG,
-    _fixup, _intersect_block,
+    _AX, _AY, _BLK, _BX, _BY, _C, _CONV, _GM, _GMX, _GMY, _HX, _HY, _INV, _JIT, _PID, _PIY, _QOX, _QOY, _QOZ,
+    _ROZ, _SC, _SMALL_GRID, _TDX, _TDY, _TDZ, _TOX, _TOY, _TOZ, _UX, _UY, _VX, _VY, _VZ, _WX, _WY, _WZ, _X, _Y, _Z,
+    _ZG, _fixup, _intersect_block,
 )
 
 __all__ = ["foot_newton", "glass_ray", "glass_block", "glass_pixel", "glass_pixel_at", "fallback_trace",
@@ -82,12 +82,17 @@ def glass_band_rows(n_rows: int, band_rows: int) -> int:
     return max(band_rows, min(4 * band_rows, n_rows // _MIN_BANDS))
 
 
-# glass_block copies the reflected ray's six fields in one piece: the same order in both places.
-assert (_QOY, _QOZ, _WX, _WY, _WZ) == tuple(range(_QOX + 1, _QOX + 6))
-assert (_OOY, _OOZ, _ODX, _ODY, _ODZ) == tuple(range(_OOX + 1, _OOX + 6))
+# _fixup reads the refracted ray's origin and direction from three consecutive fields each.
+assert (_TOY, _TOZ, _TDY, _TDZ) == (_TOX + 1, _TOX + 2, _TDX + 1, _TDX + 2)
+# ... and stores the foot-point step's two fields (_VX, _VY) in a loop over both.
+assert _VY == _VX + 1
 
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0
+#: Scratch field of :func:`glass_block`: 1.0 where the pixel had the linear prediction (A_z, m of
+#: both rows above finite: their extrapolation is finite — the same test for values below the
+#: largest float's half), else 0.0 — the view ray's _VZ, unused after the reflection.
+_LIN = _VZ
 
 
 @numba.njit(**_JIT, inline="always")
@@ -269,26 +274,31 @@ def _in_patch(n, gx, gy, i0, j0, S):
     :func:`_foot_run`. A point on a grid line, or NaN, answers False (the search per pixel
     decides). One loop without branches (vectorised)."""
     B = _BLK
-    inf = np.inf
-    nx = gx.shape[0]
-    ny = gy.shape[0]
-    x_lo = -inf if i0 == 0 else gx[i0]
-    x_hi = inf if i0 == nx - 2 else gx[i0 + 1]
-    y_lo = -inf if j0 == 0 else gy[j0]
-    y_hi = inf if j0 == ny - 2 else gy[j0 + 1]
+    x_lo, x_hi, y_lo, y_hi = _patch_box(gx, gy, i0, j0)
     n_in = 0
     for i in range(n):
-        ux = S[_UX * B + i]
-        uy = S[_UY * B + i]
-        n_in += (ux > x_lo) & (ux < x_hi) & (uy > y_lo) & (uy < y_hi)
+        n_in += _in_box(S[_UX * B + i], S[_UY * B + i], x_lo, x_hi, y_lo, y_hi)
     return n_in == n
+
+
+@numba.njit(**_JIT, inline="always")
+def _patch_box(gx, gy, i0, j0):
+    """The open box (x_lo, x_hi, y_lo, y_hi) of grid interval i0 of ``gx`` and j0 of ``gy``
+    where that patch's polynomial is the surface (the edge intervals open outwards)."""
+    inf = np.inf
+    x_lo = -inf if i0 == 0 else gx[i0]
+    x_hi = inf if i0 == gx.shape[0] - 2 else gx[i0 + 1]
+    y_lo = -inf if j0 == 0 else gy[j0]
+    y_hi = inf if j0 == gy.shape[0] - 2 else gy[j0 + 1]
+    return x_lo, x_hi, y_lo, y_hi
 
 
 @numba.njit(**_JIT)
 def _patches_at(n, gx, gy, S, P):
     """Patch offsets of the foot points (_UX, _UY) of n pixels (as ``trace_rows._patches_small``:
     counting grid lines on small grids, bisection otherwise). Where all of them lie inside the
-    first one's patch (:func:`_in_patch`: nearly every block), that patch without a search."""
+    first one's patch (:func:`_in_patch`: nearly every block), that patch without a search,
+    written for the first pixel only, and returns True (else False: every pixel's written)."""
     B = _BLK
     nx = gx.shape[0]
     ny = gy.shape[0]
@@ -296,14 +306,12 @@ def _patches_at(n, gx, gy, S, P):
     i0 = _interval(gx, S[_UX * B])
     j0 = _interval(gy, S[_UY * B])
     if _in_patch(n, gx, gy, i0, j0, S):
-        b = (j0 * nx1 + i0) * 16
-        for i in range(n):
-            P[_PID * B + i] = b
-        return
+        P[_PID * B] = (j0 * nx1 + i0) * 16
+        return True
     if nx1 + ny - 1 > _SMALL_GRID:
         for i in range(n):
             P[_PID * B + i] = (_interval(gy, S[_UY * B + i]) * nx1 + _interval(gx, S[_UX * B + i])) * 16
-        return
+        return False
     for i in range(n):
         P[_PID * B + i] = 0
         P[_PIY * B + i] = 0
@@ -325,15 +333,17 @@ def _patches_at(n, gx, gy, S, P):
             P[_PIY * B + i] -= S[_UY * B + i] == g
     for i in range(n):
         P[_PID * B + i] = (P[_PIY * B + i] * nx1 + P[_PID * B + i]) * 16
+    return False
 
 
 @numba.njit(**_JIT, inline="always")
 def _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S):
     """Step 2 for pixel i of the block after its foot step: the refracted ray in the fields of the
-    intersection stage (origin _QOX…, direction _WX…, by height _AX … _INV; the start _ZG from
-    the rows above is kept — where there is none the scalar kernels start from scratch), the
-    warm-start values (_GAZ, _GMX, _GMY) and the code (_C: _FALLBACK where the step is not
-    accepted or the ray does not enter the plate)."""
+    intersection stage (origin _TOX… and its z in _QOZ, direction _TDX…, by height _AX … _INV;
+    the start _ZG from the rows above is kept — where there is none the scalar kernels start
+    from scratch), the warm-start values (A_z in _QOZ, _GMX, _GMY) and the code (_C: _FALLBACK
+    where the step is not accepted or the ray does not enter the plate). The reflected ray's
+    origin and direction (_QOX, _QOY, _ROZ, _WX…) stay for the scalar path."""
     B = _BLK
     a_x, a_y, a_z, rx, ry, rz, mx, my, enters = glass_ray(ux, uy, h, hx, hy, g, S[_AX * B + i], S[_AY * B + i],
                                                           S[_BX * B + i], S[_BY * B + i], S[_WX * B + i],
@@ -349,18 +359,18 @@ def _refracted_store(i, a_x, a_y, a_z, rx, ry, rz, mx, my, ok, S):
     inv = 1.0 / rz
     cx = rx * inv
     cy = ry * inv
-    S[_QOX * B + i] = a_x
-    S[_QOY * B + i] = a_y
+    S[_TOX * B + i] = a_x
+    S[_TOY * B + i] = a_y
+    S[_TOZ * B + i] = a_z
+    S[_TDX * B + i] = rx
+    S[_TDY * B + i] = ry
+    S[_TDZ * B + i] = rz
     S[_QOZ * B + i] = a_z
-    S[_WX * B + i] = rx
-    S[_WY * B + i] = ry
-    S[_WZ * B + i] = rz
     S[_AX * B + i] = a_x - a_z * cx
     S[_AY * B + i] = a_y - a_z * cy
     S[_BX * B + i] = cx
     S[_BY * B + i] = cy
     S[_INV * B + i] = inv
-    S[_GAZ * B + i] = a_z
     S[_GMX * B + i] = mx
     S[_GMY * B + i] = my
     c = S[_C * B + i]
@@ -408,13 +418,9 @@ def _foot_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol, s1x
     The step taken (or its estimate) is stored in _VX, _VY."""
     B = _BLK
     if skip_check_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, d2, s1x, s1y, s2x, s2y, S) == n:
-        for i in range(n):
-            s_x = S[_GMX * B + i]
-            s_y = S[_GMY * B + i]
+        for i in range(n):  # (the check stored the steps' estimates in _VX, _VY)
             _foot_store(i, S[_X * B + i], S[_Y * B + i], S[_Z * B + i], S[_HX * B + i], S[_HY * B + i],
                         S[_CONV * B + i], True, t, n_idx, S)
-            S[_VX * B + i] = s_x
-            S[_VY * B + i] = s_y
         return
     c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
     c8, c9, c10, c11, c12, c13, c14, c15 = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
@@ -442,69 +448,100 @@ def _foot_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol, s1x
         _foot_store(i, ux, uy, h, hx, hy, g, ok, t, n_idx, S)
 
 
+@numba.njit(**_JIT, inline="always")
+def _predict(i, a1, a2, mx1, mx2, my1, my2, t, plane, S):
+    """Pixel i of :func:`glass_block`: the outer-surface height A_z and plate normal m extrapolated
+    linearly from the two rows above (``a1`` … ``my2``: row − 1, row − 2; where not finite,
+    row − 1's; on a plane z = −t and (0, 0, −1)), and the foot point u = a + b·A_z − t·m_xy of the
+    reflected ray x = a + b·z. Loads only. Returns ``(u_x, u_y, linear, b_x, b_y)``."""
+    B = _BLK
+    ax = S[_AX * B + i]
+    ay = S[_AY * B + i]
+    bx = S[_BX * B + i]
+    by = S[_BY * B + i]
+    azg = 2.0 * a1[i] - a2[i]
+    mxg = 2.0 * mx1[i] - mx2[i]
+    myg = 2.0 * my1[i] - my2[i]
+    lin = np.isfinite(azg + mxg + myg)
+    if not lin:
+        azg = a1[i]
+        mxg = mx1[i]
+        myg = my1[i]
+    if plane:
+        azg = -t
+        mxg = 0.0
+        myg = 0.0
+    ux = ax + bx * azg - t * mxg
+    uy = ay + by * azg - t * myg
+    return ux, uy, lin, bx, by
+
+
 @numba.njit(**_JIT)
-def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P):
+def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot, S, P):
     """The glass stage of the row kernel for the n pixels of a block (replaces the glass-free
     screen stage; module docstring). On entry the fields of ``trace_rows._to_screen`` (reflected
-    ray, code _C, start _ZG from the rows above); ``zr[4:10]``: A_z, m_x, m_y of the two rows above
-    (from column ``col0`` on). On return _X, _Y, _Z hold the emitting-surface point, _C the
-    screen code (0 … 3), _GAZ, _GMX, _GMY the warm-start values (for the rows below)."""
+    ray, code _C, start _ZG from the rows above); ``zr[4:10]``: A_z, m_x, m_y of the two rows above,
+    ``zr[10:14]``: their foot-point steps (x, y), from column ``col0`` on, each value in two slots
+    (``trace_rows._glass_rows_update``): row − 1 in slot 1 − ``slot``, row − 2 in slot ``slot``,
+    which this row's steps replace. On return _X, _Y, _Z hold the emitting-surface point, _C the
+    screen code (0 … 3), _QOZ, _GMX, _GMY the warm-start values A_z, m_x, m_y (for the rows
+    below)."""
     B = _BLK
-    a1 = zr[4][col0:]
-    a2 = zr[5][col0:]
-    mx1 = zr[6][col0:]
-    mx2 = zr[7][col0:]
-    my1 = zr[8][col0:]
-    my2 = zr[9][col0:]
-    s1x = zr[10][col0:]
-    s1y = zr[11][col0:]
-    s2x = zr[12][col0:]
-    s2y = zr[13][col0:]
+    other = 1 - slot
+    a1 = zr[4 + other][col0:]
+    a2 = zr[4 + slot][col0:]
+    mx1 = zr[6 + other][col0:]
+    mx2 = zr[6 + slot][col0:]
+    my1 = zr[8 + other][col0:]
+    my2 = zr[8 + slot][col0:]
+    s1x = zr[10 + 2 * other][col0:]
+    s1y = zr[11 + 2 * other][col0:]
+    s2x = zr[10 + 2 * slot][col0:]
+    s2y = zr[11 + 2 * slot][col0:]
     nan = np.nan
     plane = kind == _KIND_PLANE
-    # The reflected ray (origin _QOX…, direction _WX…: six consecutive fields) kept for the scalar
-    # path in _OOX … _ODZ: one contiguous copy of the six fields (the unused tail of each field
-    # too). Copied field by field inside the loop below, each store was followed by a load from
-    # an address 4096·k bytes away (fields were 1 kB apart), which the processor holds back as a
-    # possible dependence ("4K aliasing"): that loop took ≈ 12 ms of the image's 100 ms
-    # (docs/benchmarks.md, "Cover glass (issue 21): the glass trace at 1.5×?").
-    for j in range(6 * B):
-        S[_OOX * B + j] = S[_QOX * B + j]
+    # Each pixel's foot point predicted from the rows above (the first pixel's first: the loop
+    # also checks every foot point against its patch, which then is the block's one run — what
+    # _patches_at would find — without a pass of its own). The reflected ray (origin _QOX…,
+    # direction _WX…) stays for the scalar path: the refracted ray goes to _TOX … _TDZ, except
+    # its origin's z (A_z), which the intersection stage reads from _QOZ — the reflected one is
+    # kept in _ROZ (it was a copy of the six fields, ≈ 2 ms of Table 1's trace:
+    # docs/benchmarks.md "Cover glass (issue 21): the glass's rows as a ring").
+    i0 = j0 = 0
+    x_lo = x_hi = y_lo = y_hi = nan
+    if kind == _KIND_SPLINE:
+        ux, uy, _lin, _bx, _by = _predict(0, a1, a2, mx1, mx2, my1, my2, t, plane, S)
+        i0 = _interval(gx, ux)
+        j0 = _interval(gy, uy)
+        x_lo, x_hi, y_lo, y_hi = _patch_box(gx, gy, i0, j0)
+    n_in = 0
     for i in range(n):
-        ax = S[_AX * B + i]
-        ay = S[_AY * B + i]
-        bx = S[_BX * B + i]
-        by = S[_BY * B + i]
-        azg = 2.0 * a1[i] - a2[i]
-        mxg = 2.0 * mx1[i] - mx2[i]
-        myg = 2.0 * my1[i] - my2[i]
-        if not np.isfinite(azg + mxg + myg):
-            azg = a1[i]
-            mxg = mx1[i]
-            myg = my1[i]
-        if plane:
-            azg = -t
-            mxg = 0.0
-            myg = 0.0
-        ux = ax + bx * azg - t * mxg
-        uy = ay + by * azg - t * myg
+        ux, uy, lin, bx, by = _predict(i, a1, a2, mx1, mx2, my1, my2, t, plane, S)
+        n_in += _in_box(ux, uy, x_lo, x_hi, y_lo, y_hi)
         S[_UX * B + i] = ux
         S[_UY * B + i] = uy
         c = S[_C * B + i]
         S[_GM * B + i] = 3.0 * t * (1.0 + abs(bx) + abs(by)) if c == 0.0 else -1.0
         S[_C * B + i] = c if (c != 0.0) | np.isfinite(ux + uy) else _FALLBACK
+        S[_LIN * B + i] = 1.0 if lin else 0.0
+        S[_ROZ * B + i] = S[_QOZ * B + i]
     d2 = dmax[0]
     d3 = dmax[1]
     if plane:
         for i in range(n):
             _plane_store(i, t, n_idx, S)
     elif kind == _KIND_SPLINE:
-        _patches_at(n, gx, gy, S, P)
         nx1 = gx.shape[0] - 1
+        if n_in == n:
+            P[_PID * B] = (j0 * nx1 + i0) * 16
+            one = True
+        else:
+            one = _patches_at(n, gx, gy, S, P)
         b0 = P[_PID * B]
         n_other = 0
-        for i in range(n):
-            n_other += P[_PID * B + i] != b0
+        if not one:
+            for i in range(n):
+                n_other += P[_PID * B + i] != b0
         i = 0
         while i < n:
             s = i
@@ -517,10 +554,7 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
             bi = b // 16
             i0 = bi % nx1
             j0 = bi // nx1
-            x_lo = -np.inf if i0 == 0 else gx[i0]
-            x_hi = np.inf if i0 == nx1 - 1 else gx[i0 + 1]
-            y_lo = -np.inf if j0 == 0 else gy[j0]
-            y_hi = np.inf if j0 == gy.shape[0] - 2 else gy[j0 + 1]
+            x_lo, x_hi, y_lo, y_hi = _patch_box(gx, gy, i0, j0)
             _foot_run(i - s, coef[b:b + 16], gx[i0], gy[j0], x_lo, x_hi, y_lo, y_hi, t, n_idx, d2, d3, tol,
                       s1x[s:], s1y[s:], s2x[s:], s2y[s:], S[s:])
     else:
@@ -529,7 +563,8 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
                 S[_C * B + i] = _FALLBACK
     # The emitting-surface hit of the refracted rays (the tracer's intersection stage).
     _intersect_block(n, kind, gx, gy, coef, dmax, tol, False, S, P)
-    _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_WX), S)
+    _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, np.bool_(False), np.int64(_TOX), np.int64(_TDX),
+           S)
     # Pixels the fast path did not settle: more foot-point steps (scalar), else the refracting
     # pass's trace. Counted first in a loop without calls (vectorised): most blocks have none.
     n_left = 0
@@ -540,16 +575,15 @@ def glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_i
     if n_left > 0:
         _scalar_left(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, S)
     # The foot-point steps of this row, for the skip's prediction in the rows below (glass_skip):
-    # where the pixel is valid and had the linear prediction (both rows above valid).
+    # where the pixel is valid and had the linear prediction (both rows above valid), into this
+    # row's slot (over row − 2's). One loop per row: a loop storing into both is not vectorised.
     if kind != _KIND_SPLINE:
         return
-    for i in range(n):
-        valid = (S[_SC * B + i] == 0.0) & (S[_C * B + i] == 0.0) & np.isfinite(
-            a1[i] + a2[i] + mx1[i] + mx2[i] + my1[i] + my2[i])
-        s2x[i] = s1x[i]
-        s2y[i] = s1y[i]
-        s1x[i] = S[_VX * B + i] if valid else nan
-        s1y[i] = S[_VY * B + i] if valid else nan
+    for f in range(2):
+        s_new = zr[10 + 2 * slot + f][col0:]
+        for i in range(n):
+            valid = (S[_SC * B + i] == 0.0) & (S[_C * B + i] == 0.0) & (S[_LIN * B + i] != 0.0)
+            s_new[i] = S[(_VX + f) * B + i] if valid else nan
 
 
 @numba.njit(**_JIT)
@@ -564,15 +598,15 @@ def _scalar_left(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_
             continue
         if S[_C * B + i] == 0.0 and _inside(gx, gy, S[_X * B + i], S[_Y * B + i], mg):
             continue
-        x, y, z, st, az, mx, my = glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_OOX * B + i],
-                                                 S[_OOY * B + i], S[_OOZ * B + i], S[_ODX * B + i], S[_ODY * B + i],
-                                                 S[_ODZ * B + i], S[_UX * B + i], S[_UY * B + i], S[_ZG * B + i], tol,
+        x, y, z, st, az, mx, my = glass_pixel_at(kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx, S[_QOX * B + i],
+                                                 S[_QOY * B + i], S[_ROZ * B + i], S[_WX * B + i], S[_WY * B + i],
+                                                 S[_WZ * B + i], S[_UX * B + i], S[_UY * B + i], S[_ZG * B + i], tol,
                                                  max_iter)
         S[_X * B + i] = x
         S[_Y * B + i] = y
         S[_Z * B + i] = z
         S[_C * B + i] = float(st)
-        S[_GAZ * B + i] = az
+        S[_QOZ * B + i] = az
         S[_GMX * B + i] = mx
         S[_GMY * B + i] = my
         S[_VX * B + i] = np.nan

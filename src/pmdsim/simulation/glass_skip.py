@@ -47,7 +47,7 @@ import math
 import numba
 
 from ..geometry.cover_glass import _FOOT_TOL_MM
-from .trace_rows import _AX, _AY, _BLK, _BX, _BY, _CONV, _GMX, _GMY, _HX, _HY, _JIT, _UX, _UY, _X, _Y, _Z, patch_rows
+from .trace_rows import _AX, _AY, _BLK, _BX, _BY, _CONV, _HX, _HY, _JIT, _UX, _UY, _VX, _VY, _X, _Y, _Z, patch_rows
 
 __all__ = ["foot_skip_bound", "skip_check_run"]
 
@@ -68,6 +68,12 @@ def foot_skip_bound(vx, vy, hx, hy, g, h, ax, ay, bx, by, t, d2):
     return fx, fy, ok
 
 
+@numba.njit(**_JIT, inline="always")
+def _in_box(x, y, x_lo, x_hi, y_lo, y_hi):
+    """Whether (x, y) lies strictly inside the open box (x_lo, x_hi) × (y_lo, y_hi) (NaN: False)."""
+    return (x > x_lo) & (x < x_hi) & (y > y_lo) & (y < y_hi)
+
+
 @numba.njit(**_JIT)
 def skip_check_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, d2, s1x, s1y, s2x, s2y, S):
     """The skip's check for pixels 0 … n − 1 of ``S`` (a view from the run's first pixel), all on
@@ -75,9 +81,9 @@ def skip_check_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, d2, s1x, s1y, s2x,
     (x_lo, x_hi) × (y_lo, y_hi)): at each pixel's predicted foot point v = u_lin + 2·s₁ − s₂
     (u_lin in _UX, _UY; the steps of the two rows above in ``s1x`` … ``s2y``; v stored in _X,
     _Y) the height, gradient and g (stored in _Z, _HX, _HY, _CONV), the residual's bound
-    (:func:`foot_skip_bound`), and the step estimate v − F(v) − u_lin (stored in _GMX, _GMY; u_lin
-    in _UX, _UY). Returns the number of pixels that pass. One loop without branches
-    (vectorised)."""
+    (:func:`foot_skip_bound`), and the step estimate v − F(v) − u_lin (stored in _VX, _VY, where
+    :func:`.glass_rows._foot_run` keeps the step for the rows below; u_lin in _UX, _UY). Returns
+    the number of pixels that pass. One loop without branches (vectorised)."""
     c0, c1, c2, c3, c4, c5, c6, c7 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]
     c8, c9, c10, c11, c12, c13, c14, c15 = c[8], c[9], c[10], c[11], c[12], c[13], c[14], c[15]
     B = _BLK
@@ -95,14 +101,14 @@ def skip_check_run(n, c, gxi, gyj, x_lo, x_hi, y_lo, y_hi, t, d2, s1x, s1y, s2x,
         g = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
         fx, fy, ok = foot_skip_bound(vx, vy, hx, hy, g, h, S[_AX * B + i], S[_AY * B + i], S[_BX * B + i],
                                      S[_BY * B + i], t, d2)
-        inside = (vx > x_lo) & (vx < x_hi) & (vy > y_lo) & (vy < y_hi)
+        inside = _in_box(vx, vy, x_lo, x_hi, y_lo, y_hi)
         S[_X * B + i] = vx
         S[_Y * B + i] = vy
         S[_Z * B + i] = h
         S[_HX * B + i] = hx
         S[_HY * B + i] = hy
         S[_CONV * B + i] = g
-        S[_GMX * B + i] = (vx - fx) - S[_UX * B + i]
-        S[_GMY * B + i] = (vy - fy) - S[_UY * B + i]
+        S[_VX * B + i] = (vx - fx) - S[_UX * B + i]
+        S[_VY * B + i] = (vy - fy) - S[_UY * B + i]
         n_ok += ok & inside
     return n_ok

@@ -33,7 +33,8 @@ def glass_pixel_if(with_glass, kind, gx, gy, coef, z_min, z_max, dmax, t, n_idx,
     raise TypeError("glass_pixel_if is called from numba-compiled code only")
 
 
-def glass_block_if(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P):
+def glass_block_if(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot, S,
+                   P):
     """:func:`pmdsim.simulation.glass_rows.glass_block` where ``with_glass`` is ``True`` (compiled
     code only; ``with_glass`` a literal)."""
     raise TypeError("glass_block_if is called from numba-compiled code only")
@@ -61,13 +62,16 @@ def _ov_glass_pixel_if(with_glass, kind, gx, gy, coef, z_min, z_max, dmax, t, n_
 
 
 @overload(glass_block_if, prefer_literal=True)
-def _ov_glass_block_if(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S,
-                       P):
+def _ov_glass_block_if(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot,
+                       S, P):
     if _literal_false(with_glass):
-        def stub(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P):
+        def stub(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot, S,
+                 P):
             return None
         return stub
 
-    def impl(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P):
-        glass_rows.glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, S, P)
+    def impl(with_glass, n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot, S,
+             P):
+        glass_rows.glass_block(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, t, n_idx, zr, col0, slot,
+                               S, P)
     return impl

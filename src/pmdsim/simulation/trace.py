@@ -110,9 +110,11 @@ def _trace_run(
     through it (:mod:`pmdsim.simulation.glass_rows`, warm started from the pixels two and
     three to the left in the first row of a band, from the rows above in the others:
     ``z_rows[band]`` has 14 rows then, the screen heights being those of the emitting-surface
-    points seen through the glass). ``with_glass`` is a boolean literal: the glass-free entry
-    kernel :func:`_trace_kernel` passes ``False`` and does not compile the glass stage
-    (:mod:`pmdsim.simulation.glass_switch`); :func:`_trace_kernel_glass` passes ``True``.
+    points seen through the glass; the glass's rows 4–13 are two slots per value, written
+    alternately, the first row of a band in slot 0: :func:`.trace_rows._glass_rows_update`).
+    ``with_glass`` is a boolean literal: the glass-free entry kernel :func:`_trace_kernel` passes
+    ``False`` and does not compile the glass stage (:mod:`pmdsim.simulation.glass_switch`);
+    :func:`_trace_kernel_glass` passes ``True``.
     """
     n = d_cam.shape[0]
     nan = np.nan
@@ -143,7 +145,7 @@ def _trace_run(
                 s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
                 p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
                 tol, max_iter, sample_codes, screen_codes,
-                screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass,
+                screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass, (row - row0) % 2,
             )
             continue
         zs_prev = nan  # sample height of the previous pixel
@@ -283,11 +285,10 @@ def _trace_run(
                 gy3 = gy2
                 gy2 = gy1
                 gy1 = gmy
-                zr[5, col] = zr[4, col]
+                # The glass's rows are a ring of two slots per value (trace_rows._glass_rows_update):
+                # the first row of a band writes slot 0; slot 1 (row − 2) is still NaN.
                 zr[4, col] = gaz
-                zr[7, col] = zr[6, col]
                 zr[6, col] = gmx
-                zr[9, col] = zr[8, col]
                 zr[8, col] = gmy
 
 

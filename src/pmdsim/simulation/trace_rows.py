@@ -52,10 +52,11 @@ _BLK = 64
 # stages work on the generic fields _AX … _C (first for the sample, then for the screen).
 (_VX, _VY, _VZ, _PX, _PY, _PZ, _SC, _QOX, _QOY, _QOZ, _WX, _WY, _WZ,
  _AX, _AY, _BX, _BY, _INV, _ZG, _Z, _X, _Y, _HX, _HY, _CONV, _C) = range(26)
-# With a cover glass (pmdsim.simulation.glass_rows): the foot point, the outer-surface height and
-# plate normal (warm starts of the rows below), the edge margin (−1: pixel not traced through the
-# glass), the reflected ray's origin and direction (kept for the scalar fallback).
-(_UX, _UY, _GAZ, _GMX, _GMY, _GM, _OOX, _OOY, _OOZ, _ODX, _ODY, _ODZ) = range(26, 38)
+# With a cover glass (pmdsim.simulation.glass_rows): the foot point, the reflected ray's origin z
+# (kept for the scalar path: _QOZ then holds the refracted ray's, the outer-surface height A_z, a
+# warm start of the rows below as the plate normal's m_x, m_y), the edge margin (−1: pixel not
+# traced through the glass), the refracted ray's origin and direction (for _fixup).
+(_UX, _UY, _ROZ, _GMX, _GMY, _GM, _TOX, _TOY, _TOZ, _TDX, _TDY, _TDZ) = range(26, 38)
 _NF = 38
 # As pmdsim.simulation.trace._trace_run: nothing is allocated (no reference counting), and
 # fastmath only fuses a·b + c into FMAs (no assumptions about NaN or infinity).
@@ -276,16 +277,17 @@ def intersect_ray(kind, gx, gy, coef, z_min, z_max, dmax, ox, oy, oz, dx, dy, dz
 
 
 @numba.njit(**_JIT)
-def _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, gradient, fd, S):
+def _fixup(n, kind, gx, gy, coef, z_min, z_max, dmax, tol, max_iter, gradient, fo, fd, S):
     """The scalar kernels for the pixels the vectorised stage left (_C == _NEEDS_SOLVE):
     ``intersect_kernel`` from the warm start (_ZG), then ``intersect_solve`` from its result
-    (the sequence of the pixel-by-pixel tracer, :func:`intersect_ray`). The ray: origin (_QOX,
-    _QOY, _QOZ), direction in the fields fd, fd + 1, fd + 2 (_VX: view ray, _WX: reflected ray)."""
+    (the sequence of the pixel-by-pixel tracer, :func:`intersect_ray`). The ray: origin in the
+    fields fo, fo + 1, fo + 2 (_QOX; with a cover glass the refracted ray's, _TOX), direction in
+    fd, fd + 1, fd + 2 (_VX: view ray, _WX: reflected ray, _TDX: refracted ray)."""
     B = _BLK
     for i in range(n):
         if S[_C * B + i] == _NEEDS_SOLVE:
-            t, x, y, z, hx, hy, st = intersect_ray(kind, gx, gy, coef, z_min, z_max, dmax, S[_QOX * B + i],
-                                                   S[_QOY * B + i], S[_QOZ * B + i], S[fd * B + i],
+            t, x, y, z, hx, hy, st = intersect_ray(kind, gx, gy, coef, z_min, z_max, dmax, S[fo * B + i],
+                                                   S[(fo + 1) * B + i], S[(fo + 2) * B + i], S[fd * B + i],
                                                    S[(fd + 1) * B + i], S[(fd + 2) * B + i], tol, max_iter,
                                                    S[_ZG * B + i], gradient)
             S[_X * B + i] = x
@@ -355,19 +357,22 @@ def trace_row(
     s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax,
     p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax,
     tol, max_iter, sample_codes, screen_codes,
-    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass,
+    screen_xy, status, p_sample, q_screen, store, glass_t, glass_n, with_glass, slot,
 ):
     """Trace the m pixels kb … kb + m − 1 of one image row, warm started from the rows above.
 
     The arguments are those of :func:`pmdsim.simulation.trace._trace_run`; ``zr`` (4, m), or
-    (10, m) with a cover glass: the sample and screen heights of the two rows above (updated
-    here for the next row), then the glass's warm starts (:func:`.glass_rows.glass_block`);
+    (14, m) with a cover glass: the sample and screen heights of the two rows above (updated
+    here for the next row), then the glass's warm starts in two slots each
+    (:func:`.glass_rows.glass_block`, :func:`_glass_rows_update`);
     ``S`` and ``P``: the band's float64 (_NF·_BLK) and int64 (_NI·_BLK) scratch; ``cos2_max``:
     the squared cosine of the largest angle of incidence on the sample; ``glass_t``,
     ``glass_n``: the cover glass's thickness (0: none) and index — with a glass, stage 4 is
     :func:`.glass_rows.glass_block` (the screen point is the emitting-surface point seen
     through the glass); ``with_glass``: a boolean literal, ``False`` in the glass-free tracer,
-    which then does not compile the glass stage (:mod:`.glass_switch`).
+    which then does not compile the glass stage (:mod:`.glass_switch`); ``slot``: the slot (0, 1)
+    of the glass's rows in ``zr`` that this row writes (:func:`_glass_rows_update`: the row's
+    index in its band modulo 2).
     """
     B = _BLK
     nan = np.nan
@@ -461,7 +466,7 @@ def trace_row(
             # np.bool_/np.int64: run-time values, not literals, so that numba compiles _fixup once
             # for both calls (a literal specialisation each cost 10–20 s of a cold start).
             _fixup(n, s_kind, s_gx, s_gy, s_coef, s_zmin, s_zmax, s_dmax, tol, max_iter, np.bool_(True),
-                   np.int64(_VX), S)
+                   np.int64(_QOX), np.int64(_VX), S)
         # 3. Grazing incidence, reflection (eq. 17), the reflected ray in the screen frame.
         for i in range(n):
             _to_screen(i, S[_C * B + i], S[_VX * B + i], S[_VY * B + i], S[_VZ * B + i], S[_X * B + i],
@@ -469,11 +474,11 @@ def trace_row(
         # 4. The screen intersection (through the cover glass, if any).
         if glass_t > 0.0:
             _glass_switch.glass_block_if(with_glass, n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol,
-                                         max_iter, glass_t, glass_n, zr, col0, S, P)
+                                         max_iter, glass_t, glass_n, zr, col0, slot, S, P)
         else:
             _intersect_block(n, p_kind, p_gx, p_gy, p_coef, p_dmax, tol, False, S, P)
             _fixup(n, p_kind, p_gx, p_gy, p_coef, p_zmin, p_zmax, p_dmax, tol, max_iter, np.bool_(False),
-                   np.int64(_WX), S)
+                   np.int64(_QOX), np.int64(_WX), S)
         # 5. Status codes and stores (three loops: each vectorises with few alias checks).
         for i in range(n):
             k = kc + np.uint64(i)
@@ -492,7 +497,7 @@ def trace_row(
             zq2[i] = zq1[i]
             zq1[i] = S[_Z * B + i] if (sc == 0.0) & (qc == 0.0) else nan
         if glass_t > 0.0:
-            _glass_rows_update(n, zr, col0, S)
+            _glass_rows_update(n, zr, col0, slot, S)
         if store:
             for i in range(n):
                 k = kc + np.uint64(i)
@@ -509,18 +514,25 @@ def trace_row(
 
 
 @numba.njit(**_JIT)
-def _glass_rows_update(n, zr, col0, S):
-    """The glass's warm starts for the rows below: row − 1 becomes row − 2 (zr[4:10], from
-    column ``col0`` on), this row's A_z, m_x, m_y (NaN where the pixel is not valid)."""
+def _glass_rows_update(n, zr, col0, slot, S):
+    """The glass's warm starts for the rows below: this row's A_z, m_x, m_y (fields _QOZ, _GMX,
+    _GMY; NaN where the pixel is not valid) into slot ``slot`` of ``zr[4:10]`` (from column
+    ``col0`` on).
+
+    Each value has two rows, ``zr[4 + 2·f + slot]`` (f = 0, 1, 2: A_z, m_x, m_y), written by the
+    rows of a band alternately: the other slot holds row − 1, this one held row − 2, which this
+    row's values replace — no copy of row − 1 into row − 2 (which, with the row of each value
+    written in one loop, took 2.9 ms of Table 1's trace with a glass: docs/benchmarks.md
+    "Cover glass (issue 21): the glass's rows as a ring"). One loop per row: a loop storing into
+    several rows is not vectorised."""
     B = _BLK
     nan = np.nan
     for f in range(3):
-        r1 = zr[4 + 2 * f][col0:]
-        r2 = zr[5 + 2 * f][col0:]
+        r = zr[4 + 2 * f + slot][col0:]
+        fs = _QOZ if f == 0 else _GMX + f - 1
         for i in range(n):
             valid = (S[_SC * B + i] == 0.0) & (S[_C * B + i] == 0.0)
-            r2[i] = r1[i]
-            r1[i] = S[(_GAZ + f) * B + i] if valid else nan
+            r[i] = S[fs * B + i] if valid else nan
 
 
 # (glass_rows uses this module's stages and scratch fields: imported last, as a module)
