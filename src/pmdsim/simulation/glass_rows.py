@@ -90,8 +90,8 @@ assert _VY == _VX + 1
 #: Code (field _C) of a pixel left to :func:`fallback_trace`.
 _FALLBACK = 6.0
 #: Scratch field of :func:`glass_block`: 1.0 where the pixel had the linear prediction (A_z, m of
-#: both rows above finite: their extrapolation is finite — the same test for values below the
-#: largest float's half), else 0.0 — the view ray's _VZ, unused after the reflection.
+#: both rows above finite, tested as their extrapolation being finite: the same for values below
+#: 1e300), else 0.0 — the view ray's _VZ, unused after the reflection.
 _LIN = _VZ
 
 
