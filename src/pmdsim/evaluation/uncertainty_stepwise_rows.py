@@ -9,11 +9,11 @@ path — each pixel's wavefront is its L1 distance (induction on the distance: s
 is reached one wavefront earlier, and no path is shorter than the L1 distance) and its upstream
 neighbours are its 4-neighbours in S at L1 distance one less: the row towards the seed and the
 pixel beside it towards the seed column. Then :func:`rows_kernel` visits the rows from the
-seed's outwards (the seed's row, the rows below it, then the rows above it), each row from the
-seed's column outwards (the pixel in the seed's column, the pixels right of it left to right,
-then the pixels left of it right to left): it reads the inputs row by row (contiguous, where
-the wavefront pass reads each pixel of a diagonal on another image row) and keeps the samples δz
-of two rows. Each pixel's values are computed by the same functions in the same order as in the
+seed's outwards (the seed's row, then the rows below it and the rows above it: two independent
+halves, in parallel), each row from the seed's column outwards (the pixel in the seed's column,
+the pixels right of it left to right, then the pixels left of it right to left): it reads the
+inputs row by row (contiguous, where the wavefront pass reads each pixel of a diagonal on
+another image row) and keeps the samples δz of two rows per half. Each pixel's values are computed by the same functions in the same order as in the
 wavefront pass (the geometry and A by :func:`_pixel_inputs`, the edge coefficients by
 ``_add_edge`` in the neighbour order (−1, 0), (1, 0), (0, −1), (0, 1), the samples by
 ``_pixel_samples``), so σ is bit-identical to it (tests/test_uncertainty_rows.py). Other masks
@@ -69,83 +69,99 @@ def l1_layered(S, sv, su):
     return True
 
 
-@numba.njit(cache=True, inline="always")
-def _row_of(r, sv, H):
-    """The r-th row visited: the seed's row, the rows below it, then the rows above it."""
-    return sv + r if r < H - sv else sv - (r - (H - sv) + 1)
-
-
 @numba.njit(cache=True, error_model="numpy")
+def _row(o, d, q, z, S, sv, su, p, T, per_pixel, sig, key, K, acc, gstd, v, Z, WD, G, AA, e_c, e_pos):
+    """Row v of :func:`rows_kernel`: its pixels of S from the seed's column outwards (the seed's
+    column, the pixels right of it left to right, then those left of it right to left), their
+    geometry, A and samples in the slots (v % 2)·W + u of the two-row buffers Z (2W, K) (δz), WD
+    (2W, ⌈K/32⌉) (draws), G (2W, 8) (geometry) and AA (2W, 2, 2), the previous row (towards the
+    seed's) in the other slots; σ into acc[v] (NaN off S), the slopes' σ into gstd[v]. Returns 0,
+    1 if a pixel's geometry is not finite (at once), 2 if a pixel's Σ J_b vanishes."""
+    H, W = S.shape
+    n_chunks = (K + 31) // 32
+    cs = (v % 2) * W
+    ps = W - cs
+    status = 0
+    for t in range(W):
+        u = su + t if t < W - su else su - (t - (W - su) + 1)
+        if not S[v, u]:
+            acc[v, u] = np.nan
+            continue
+        slot = cs + u
+        if not _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, G[slot], AA[slot], gstd):
+            return 1
+        kb = v * W + u
+        if v == sv and u == su:  # the seed: δz = 0, its draws enter its neighbours' equations
+            for c in range(n_chunks):
+                WD[slot, c] = _draw_word(key, kb, c, n_chunks)
+            for k in range(K):
+                Z[slot, k] = 0.0
+            acc[v, u] = 0.0
+            continue
+        dist = abs(v - sv) + abs(u - su)
+        ux = 0.0
+        uy = 0.0
+        den = 0.0
+        m = 0
+        for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            va = v + dv
+            ua = u + du
+            if not (0 <= va < H and 0 <= ua < W) or not S[va, ua] or abs(va - sv) + abs(ua - su) != dist - 1:
+                continue
+            pa = (cs if va == v else ps) + ua
+            den, ux, uy, m = _add_edge(G[pa], G[slot], AA[pa], AA[slot], e_c, e_pos, 0, m, pa, den, ux, uy)
+        s = _pixel_samples(kb, key, K, m, e_pos[0], e_c[0], ux, uy, den, Z, Z, slot, WD, WD)
+        if s < 0.0:
+            status = 2
+            s = 0.0
+        acc[v, u] = np.sqrt(s / K)  # (the wavefront pass: 0.0 + s, then sqrt(acc / K): the same)
+    return status
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
 def rows_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
     """The heights' σ sqrt(Σ_k δz_k² / K) into ``acc`` (H, W) (NaN off S) and the slopes' σ into
     ``gstd`` (H, W, 2) (left as they are off S) in row order (module docstring); the arguments
-    as ``uncertainty_stepwise_fused._fused_kernel``'s. Returns −1 (nothing written) if S is not
-    :func:`l1_layered` from the seed, else 0, or 1 if a pixel's geometry is not finite, 2 if a
-    pixel's coefficient Σ J_b vanishes."""
+    as ``uncertainty_stepwise_fused._fused_kernel``'s. The seed's row first, then the rows below
+    it and the rows above it in parallel (each half from the seed's row outwards, with its own
+    two-row buffers: :func:`_row`). Returns −1 (nothing written) if S is not :func:`l1_layered`
+    from the seed, else 0, or 1 if a pixel's geometry is not finite, 2 if a pixel's coefficient
+    Σ J_b vanishes."""
     H, W = S.shape
     if not l1_layered(S, sv, su):
         return -1
     n_chunks = (K + 31) // 32
     per_pixel = 0 if T.shape[0] == 1 else 1
-    # Two rows of each per-pixel buffer: row v in slots (v % 2)·W + u, the previous row in the others.
-    Z = np.empty((2 * W, K))
-    WD = np.empty((2 * W, n_chunks), dtype=np.uint64)
-    G = np.empty((2 * W, 8))
-    AA = np.empty((2 * W, 2, 2))
-    Z_s = np.empty((W, K))  # the seed's row, kept for the rows above it
-    WD_s = np.empty((W, n_chunks), dtype=np.uint64)
-    G_s = np.empty((W, 8))
-    AA_s = np.empty((W, 2, 2))
-    e_c = np.empty((1, 4, 3))
-    e_pos = np.empty((1, 4), dtype=np.int64)
+    Z = np.empty((2, 2 * W, K))  # per half: two rows of each buffer (:func:`_row`)
+    WD = np.empty((2, 2 * W, n_chunks), dtype=np.uint64)
+    G = np.empty((2, 2 * W, 8))
+    AA = np.empty((2, 2 * W, 2, 2))
+    e_c = np.empty((2, 1, 4, 3))
+    e_pos = np.empty((2, 1, 4), dtype=np.int64)
     key = _seed_key(seed)
-    status = 0
-    s0 = (sv % 2) * W
-    for r in range(H):
-        v = _row_of(r, sv, H)
-        if r == H - sv:  # the first row above the seed's: its previous row is the seed's
-            Z[s0:s0 + W] = Z_s
-            WD[s0:s0 + W] = WD_s
-            G[s0:s0 + W] = G_s
-            AA[s0:s0 + W] = AA_s
-        cs = (v % 2) * W
-        ps = W - cs
-        for t in range(W):
-            u = su + t if t < W - su else su - (t - (W - su) + 1)
-            if not S[v, u]:
-                acc[v, u] = np.nan
-                continue
-            slot = cs + u
-            if not _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, G[slot], AA[slot], gstd):
-                return 1
-            kb = v * W + u
-            if v == sv and u == su:  # the seed: δz = 0, its draws enter its neighbours' equations
-                for c in range(n_chunks):
-                    WD[slot, c] = _draw_word(key, kb, c, n_chunks)
-                for k in range(K):
-                    Z[slot, k] = 0.0
-                acc[v, u] = 0.0
-                continue
-            dist = abs(v - sv) + abs(u - su)
-            ux = 0.0
-            uy = 0.0
-            den = 0.0
-            m = 0
-            for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                va = v + dv
-                ua = u + du
-                if not (0 <= va < H and 0 <= ua < W) or not S[va, ua] or abs(va - sv) + abs(ua - su) != dist - 1:
-                    continue
-                pa = (cs if va == v else ps) + ua
-                den, ux, uy, m = _add_edge(G[pa], G[slot], AA[pa], AA[slot], e_c, e_pos, 0, m, pa, den, ux, uy)
-            s = _pixel_samples(kb, key, K, m, e_pos[0], e_c[0], ux, uy, den, Z, Z, slot, WD, WD)
-            if s < 0.0:
-                status = 2
-                s = 0.0
-            acc[v, u] = np.sqrt(s / K)  # (the wavefront pass: 0.0 + s, then sqrt(acc / K): the same)
-        if r == 0:
-            Z_s[:] = Z[s0:s0 + W]
-            WD_s[:] = WD[s0:s0 + W]
-            G_s[:] = G[s0:s0 + W]
-            AA_s[:] = AA[s0:s0 + W]
+    status = _row(o, d, q, z, S, sv, su, p, T, per_pixel, sig, key, K, acc, gstd, sv, Z[0], WD[0], G[0], AA[0], e_c[0],
+                  e_pos[0])
+    if status == 1:
+        return 1
+    s0 = (sv % 2) * W  # the seed's row: the previous row of both halves' first rows
+    Z[1, s0:s0 + W] = Z[0, s0:s0 + W]
+    WD[1, s0:s0 + W] = WD[0, s0:s0 + W]
+    G[1, s0:s0 + W] = G[0, s0:s0 + W]
+    AA[1, s0:s0 + W] = AA[0, s0:s0 + W]
+    half = np.zeros(2, dtype=np.int64)
+    for h in numba.prange(0, 2):  # the rows below the seed's, the rows above it
+        n_rows = H - 1 - sv if h == 0 else sv
+        for r in range(n_rows):
+            v = sv + 1 + r if h == 0 else sv - 1 - r
+            st = _row(o, d, q, z, S, sv, su, p, T, per_pixel, sig, key, K, acc, gstd, v, Z[h], WD[h], G[h], AA[h],
+                      e_c[h], e_pos[h])
+            if st == 1:
+                half[h] = 1
+                break
+            if st == 2:
+                half[h] = 2
+    if half[0] == 1 or half[1] == 1:
+        return 1
+    if half[0] == 2 or half[1] == 2:
+        return 2
     return status
