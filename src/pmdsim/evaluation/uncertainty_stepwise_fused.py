@@ -54,22 +54,17 @@ def _prefetch_pixel(d, q, z, p, sig, k):
 
 
 @numba.njit(cache=True)
-def _doubled(a):
-    """``a`` (n,) float64 or int64 with n zeros after its own (one signature per dtype)."""
-    return np.concatenate((a, np.zeros_like(a)))
+def _doubled(b):
+    """``b`` (n,) uint8 with n zero bytes after its own: one signature for every buffer's growth
+    (:func:`_grown`)."""
+    return np.concatenate((b, np.zeros_like(b)))
 
 
 @numba.njit(cache=True, inline="always")
 def _grown(a):
-    """``a`` (n, ...) float64 or int64 with n more rows of zeros after its own (a wavefront buffer
-    widened): :func:`_doubled` of its flat view."""
-    return _doubled(a.reshape(-1)).reshape((2 * a.shape[0],) + a.shape[1:])
-
-
-@numba.njit(cache=True, inline="always")
-def _grown_words(w):
-    """:func:`_grown` of the draws' words (n, ⌈K/32⌉) uint64, as int64 bits."""
-    return _grown(w.view(np.int64)).view(np.uint64)
+    """``a`` (n, ...) (C-contiguous, any dtype) with n more rows of zeros after its own (a
+    wavefront buffer widened): :func:`_doubled` of its bytes, viewed as ``a``'s dtype and shape."""
+    return _doubled(a.reshape(-1).view(np.uint8)).view(a.dtype).reshape((2 * a.shape[0],) + a.shape[1:])
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -110,29 +105,29 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
                 uu = u + du
                 if 0 <= vv < H and 0 <= uu < W and S[vv, uu] and pos[vv, uu] < 0:
                     if n_nxt == nxt_idx.shape[0]:  # a mask with holes: the wavefront is wider
-                        nxt_idx = _doubled(nxt_idx)
+                        nxt_idx = _grown(nxt_idx)
                     pos[vv, uu] = n_nxt
                     nxt_idx[n_nxt] = vv * W + uu
                     n_nxt += 1
         if n_nxt == 0:
             break
         while geo_c.shape[0] < n_nxt:  # every per-wavefront buffer as wide (the previous one's kept)
-            cur_idx = _doubled(cur_idx)
+            cur_idx = _grown(cur_idx)
             geo_p = _grown(geo_p)
             geo_c = _grown(geo_c)
             A_p = _grown(A_p)
             A_c = _grown(A_c)
             prev = _grown(prev)
             cur = _grown(cur)
-            w_prev = _grown_words(w_prev)
-            w_cur = _grown_words(w_cur)
-            n_in = _doubled(n_in)
+            w_prev = _grown(w_prev)
+            w_cur = _grown(w_cur)
+            n_in = _grown(n_in)
             e_pos = _grown(e_pos)
             e_c = _grown(e_c)
             b_c = _grown(b_c)
-            s_out = _doubled(s_out)
+            s_out = _grown(s_out)
         while nxt_idx.shape[0] < geo_c.shape[0]:  # the index buffers swap: keep them as wide
-            nxt_idx = _doubled(nxt_idx)
+            nxt_idx = _grown(nxt_idx)
         for i in range(n_nxt):  # its pixels' inputs and coefficients
             if i + PREFETCH_AHEAD < n_nxt:
                 _prefetch_pixel(d, q, z, p, sig, nxt_idx[i + PREFETCH_AHEAD])
