@@ -84,7 +84,7 @@ def _add_edge(ga, gb, Aa, Ab, e_c, e_pos, i, m, pa, den, ux, uy):
             m + 1)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _edge_samples(cur, i, prev, pa, k0, n, w, vx, vy, Ja):
     """cur[i, k0 + k] += ±vx ± vy − J_a·prev[pa, k0 + k], k < n, for the samples of one word
     (signs: its bits 2k, 2k + 1)."""
@@ -96,17 +96,36 @@ def _edge_samples(cur, i, prev, pa, k0, n, w, vx, vy, Ja):
         z[k] += tx + ty - Ja * za[k]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _own_samples(cur, i, k0, n, w, ux, uy, den):
-    """z_k = (z_k ± ux ± uy) / den for the samples k < n of one word, z = cur[i, k0:]; returns
-    Σ_k z_k² (in order)."""
+    """z_k = (z_k ± ux ± uy) / den for the samples k < n of one word, z = cur[i, k0:]."""
     z = cur[i, k0:k0 + n]
-    s = 0.0
     for k in range(n):
         tx = -ux if (w >> np.uint64(2 * k)) & np.uint64(1) else ux
         ty = -uy if (w >> np.uint64(2 * k + 1)) & np.uint64(1) else uy
         z[k] = (z[k] + tx + ty) / den
-    for k in range(z.size):
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _sum_squares(z):
+    """Σ_k z_k² of z (K,) on 8 lanes: lane j sums z_k² for k ≡ j (mod 8) in sample order, then
+    the lanes are added pairwise, ((0 + 1) + (2 + 3)) + ((4 + 5) + (6 + 7)), and the samples past
+    the last group of 8 in order after them. Equal to the in-order sum to K·ε relative (all
+    terms ≥ 0); the lanes vectorise where the in-order sum is a chain of K dependent adds."""
+    K = z.size
+    K8 = K - K % 8
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
+    for k in range(0, K8, 8):
+        s0 += z[k] * z[k]
+        s1 += z[k + 1] * z[k + 1]
+        s2 += z[k + 2] * z[k + 2]
+        s3 += z[k + 3] * z[k + 3]
+        s4 += z[k + 4] * z[k + 4]
+        s5 += z[k + 5] * z[k + 5]
+        s6 += z[k + 6] * z[k + 6]
+        s7 += z[k + 7] * z[k + 7]
+    s = ((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))
+    for k in range(K8, K):
         s += z[k] * z[k]
     return s
 
@@ -125,40 +144,49 @@ def _wavefront_buffers(width, K):
             np.zeros((width, 4), dtype=np.int64), np.zeros((width, 4, 3)), np.zeros((width, 3)), np.zeros(width))
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _pixel_samples(kb, key, K, m, e_pos, e_c, ux, uy, den, prev, cur, i, w_prev, w_cur):
+    """All K samples of pixel kb (flat index) into cur[i] (K,) and its draws into w_cur[i], from
+    its m upstream edges (δz in the rows e_pos[:m] of ``prev``, their draws in ``w_prev``; e_c[:m]
+    (m, 3) their ½ (A_a^T Δxy) x, y and J_a) and its own ux, uy and Σ J_b = ``den``. Returns
+    Σ_k δz_k² (:func:`_sum_squares`), or −1.0 if den = 0 (δz is then 0). ``prev`` may be
+    ``cur`` (other rows)."""
+    n_chunks = (K + 31) // 32
+    for c in range(n_chunks):
+        w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
+    z = cur[i]
+    for k in range(K):
+        z[k] = 0.0
+    for j in range(m):
+        vx = e_c[j, 0]
+        vy = e_c[j, 1]
+        Ja = e_c[j, 2]
+        pa = e_pos[j]
+        for c in range(n_chunks):
+            _edge_samples(cur, i, prev, pa, 32 * c, min(32, K - 32 * c), w_prev[pa, c], vx, vy, Ja)
+    if den == 0.0:
+        for k in range(K):
+            z[k] = 0.0
+        return -1.0
+    for c in range(n_chunks):
+        _own_samples(cur, i, 32 * c, min(32, K - 32 * c), w_cur[i, c], ux, uy, den)
+    return _sum_squares(z)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _wavefront_samples(idx, nL, key, K, n_in, e_pos, e_c, b_c, prev, cur, w_prev, w_cur, s_out):
     """All K samples of the wavefront's pixels idx[:nL] (flat indices) from their gathered
     coefficients (n_in, e_pos, e_c, b_c) and the previous wavefront's δz ``prev`` and draws
-    ``w_prev``: δz into ``cur``, the draws into ``w_cur``, Σ_k δz_k² into ``s_out``. Returns False
-    if a pixel's coefficient Σ J_b vanishes (its δz is then 0)."""
-    n_chunks = (K + 31) // 32
+    ``w_prev``: δz into ``cur``, the draws into ``w_cur``, Σ_k δz_k² into ``s_out``
+    (:func:`_pixel_samples`). Returns False if a pixel's coefficient Σ J_b vanishes (its δz is
+    then 0)."""
     ok = True
-    for i in range(nL):  # all K samples of each pixel
-        kb = idx[i]
-        for c in range(n_chunks):
-            w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
-        z = cur[i]
-        for k in range(K):
-            z[k] = 0.0
-        for j in range(n_in[i]):
-            vx = e_c[i, j, 0]
-            vy = e_c[i, j, 1]
-            Ja = e_c[i, j, 2]
-            pa = e_pos[i, j]
-            for c in range(n_chunks):
-                _edge_samples(cur, i, prev, pa, 32 * c, min(32, K - 32 * c), w_prev[pa, c], vx, vy, Ja)
-        den = b_c[i, 2]
-        if den == 0.0:
+    for i in range(nL):
+        s = _pixel_samples(idx[i], key, K, n_in[i], e_pos[i], e_c[i], b_c[i, 0], b_c[i, 1], b_c[i, 2], prev, cur, i,
+                           w_prev, w_cur)
+        if s < 0.0:
             ok = False
-            for k in range(K):
-                z[k] = 0.0
-            s_out[i] = 0.0
-            continue
-        ux = b_c[i, 0]
-        uy = b_c[i, 1]
-        s = 0.0
-        for c in range(n_chunks):  # Σ_k δz_k² per 32 samples, in order (as the sample-chunked loop)
-            s += _own_samples(cur, i, 32 * c, min(32, K - 32 * c), w_cur[i, c], ux, uy, den)
+            s = 0.0
         s_out[i] = s
     return ok
 

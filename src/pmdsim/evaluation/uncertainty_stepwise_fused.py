@@ -20,6 +20,9 @@ wavefront replaces the layer, order and position maps. Every value is computed b
 functions in the same order as in the four stages (the geometry as ``_row_geometry``, A and the
 slopes' σ by ``_pixel_jacobian``, the coefficients by ``_add_edge``, the samples by
 ``_wavefront_samples``), so σ is bit-identical to theirs (tests/test_uncertainty_fused.py).
+Where the wavefronts are the seed's L1 diamonds (a mask without holes that bend them),
+:func:`stepwise_noise_sigma` runs the same computation in image-row order instead
+(:mod:`pmdsim.evaluation.uncertainty_stepwise_rows`: contiguous reads, the same values).
 """
 
 from __future__ import annotations
@@ -28,10 +31,10 @@ import numba
 import numpy as np
 
 from ..geometry.kernel_args import readonly
-from .least_squares import _point_geometry
 from .prefetch import prefetch as _prefetch
-from .uncertainty import _pixel_jacobian, _tangent_array
+from .uncertainty import _tangent_array
 from .uncertainty_stepwise import _draw_word, _add_edge, _seed_key, _wavefront_buffers, _wavefront_samples
+from .uncertainty_stepwise_rows import _pixel_inputs, rows_kernel
 
 __all__ = ["stepwise_noise_sigma"]
 
@@ -50,29 +53,18 @@ def _prefetch_pixel(d, q, z, p, sig, k):
     _prefetch(sig, 2 * k)
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
-def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
-    """Pixel (v, u): its geometry row geo (8,) (as ``least_squares._row_geometry``), A (2, 2) and
-    the slopes' σ gstd[v, u] (``uncertainty._pixel_jacobian``). Returns False if the geometry is
-    not finite."""
-    idz = 1.0 / d[v, u, 2]
-    ex = d[v, u, 0] * idz  # dp/dz = (ex, ey, 1)
-    ey = d[v, u, 1] * idz
-    geo[0], geo[1], geo[2], geo[3], geo[4], geo[5] = _point_geometry(
-        o[0], o[1], o[2], ex, ey, z[v, u], q[v, u, 0], q[v, u, 1], q[v, u, 2])
-    geo[6] = ex
-    geo[7] = ey
-    _pixel_jacobian(o, p, q, T, v, u, v * per_pixel, u * per_pixel, sig, A, gstd[v, u])
-    ok = True
-    for c in range(8):
-        ok = ok and np.isfinite(geo[c])
-    return ok
-
-
 @numba.njit(cache=True)
-def _doubled(a):
-    """``a`` (n, ...) with n more rows of zeros after its own (a wavefront buffer widened)."""
-    return np.concatenate((a, np.zeros_like(a)))
+def _doubled(b):
+    """``b`` (n,) uint8 with n zero bytes after its own: one signature for every buffer's growth
+    (:func:`_grown`)."""
+    return np.concatenate((b, np.zeros_like(b)))
+
+
+@numba.njit(cache=True, inline="always")
+def _grown(a):
+    """``a`` (n, ...) (C-contiguous, any dtype) with n more rows of zeros after its own (a
+    wavefront buffer widened): :func:`_doubled` of its bytes, viewed as ``a``'s dtype and shape."""
+    return _doubled(a.reshape(-1).view(np.uint8)).view(a.dtype).reshape((2 * a.shape[0],) + a.shape[1:])
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -113,29 +105,29 @@ def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
                 uu = u + du
                 if 0 <= vv < H and 0 <= uu < W and S[vv, uu] and pos[vv, uu] < 0:
                     if n_nxt == nxt_idx.shape[0]:  # a mask with holes: the wavefront is wider
-                        nxt_idx = _doubled(nxt_idx)
+                        nxt_idx = _grown(nxt_idx)
                     pos[vv, uu] = n_nxt
                     nxt_idx[n_nxt] = vv * W + uu
                     n_nxt += 1
         if n_nxt == 0:
             break
         while geo_c.shape[0] < n_nxt:  # every per-wavefront buffer as wide (the previous one's kept)
-            cur_idx = _doubled(cur_idx)
-            geo_p = _doubled(geo_p)
-            geo_c = _doubled(geo_c)
-            A_p = _doubled(A_p)
-            A_c = _doubled(A_c)
-            prev = _doubled(prev)
-            cur = _doubled(cur)
-            w_prev = _doubled(w_prev)
-            w_cur = _doubled(w_cur)
-            n_in = _doubled(n_in)
-            e_pos = _doubled(e_pos)
-            e_c = _doubled(e_c)
-            b_c = _doubled(b_c)
-            s_out = _doubled(s_out)
+            cur_idx = _grown(cur_idx)
+            geo_p = _grown(geo_p)
+            geo_c = _grown(geo_c)
+            A_p = _grown(A_p)
+            A_c = _grown(A_c)
+            prev = _grown(prev)
+            cur = _grown(cur)
+            w_prev = _grown(w_prev)
+            w_cur = _grown(w_cur)
+            n_in = _grown(n_in)
+            e_pos = _grown(e_pos)
+            e_c = _grown(e_c)
+            b_c = _grown(b_c)
+            s_out = _grown(s_out)
         while nxt_idx.shape[0] < geo_c.shape[0]:  # the index buffers swap: keep them as wide
-            nxt_idx = _doubled(nxt_idx)
+            nxt_idx = _grown(nxt_idx)
         for i in range(n_nxt):  # its pixels' inputs and coefficients
             if i + PREFETCH_AHEAD < n_nxt:
                 _prefetch_pixel(d, q, z, p, sig, nxt_idx[i + PREFETCH_AHEAD])
@@ -215,8 +207,11 @@ def stepwise_noise_sigma(o, d, q, rec, dq_dxy, std_xy_mm, samples: int, rng_seed
     acc = np.zeros((H, W))
     gstd = np.full((H, W, 2), np.nan)
     sv, su = (int(x) for x in rec.seed_pixel)
-    status = _fused_kernel(np.asarray(o, dtype=float), np.ascontiguousarray(d, dtype=float),
-                           np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(rec.height_mm, dtype=float),
-                           S, sv, su, np.ascontiguousarray(rec.p_sample_mm, dtype=float), _tangent_array(dq_dxy),
-                           readonly(np.ascontiguousarray(std_xy_mm, dtype=float)), int(rng_seed) % (1 << 63), K, acc, gstd)
+    args = (np.asarray(o, dtype=float), np.ascontiguousarray(d, dtype=float), np.ascontiguousarray(q, dtype=float),
+            np.ascontiguousarray(rec.height_mm, dtype=float), S, sv, su,
+            np.ascontiguousarray(rec.p_sample_mm, dtype=float), _tangent_array(dq_dxy),
+            readonly(np.ascontiguousarray(std_xy_mm, dtype=float)), int(rng_seed) % (1 << 63), K, acc, gstd)
+    status = rows_kernel(*args)  # the same values in image-row order where the wavefronts are diamonds
+    if status < 0:
+        status = _fused_kernel(*args)
     return acc, gstd, int(status)
