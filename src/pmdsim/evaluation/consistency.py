@@ -247,12 +247,12 @@ def _grad(xy, v, u, d, axis):
     return (xy[v + 1, u, d] - xy[v - 1, u, d]) / 2.0
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _orientation_kernel(measured, expected, out):
-    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`)."""
+    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`); rows in parallel."""
     h, w = measured.shape[0], measured.shape[1]
     nan = np.nan
-    for v in range(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             # J[i, k] = ∂xy_i/∂(u, v)_k (k = 0: along u, 1: along v); NaN where an axis has one pixel.
             j00 = _grad(measured, v, u, 0, 1) if w >= 2 else nan
@@ -621,12 +621,13 @@ def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sampl
     return xy
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _nominal_kernel(d_cam, ok, r_wc, o, n, p0, m, t_scr, r_sw, t_sw, out):
     """Per pixel of :func:`nominal_screen_xy`: the view ray d = R·d_cam from o, reflected at the
-    plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw)."""
+    plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw); rows
+    in parallel."""
     h, w = d_cam.shape[0], d_cam.shape[1]
-    for v in range(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             dc0, dc1, dc2 = d_cam[v, u, 0], d_cam[v, u, 1], d_cam[v, u, 2]
             d0 = dc0 * r_wc[0, 0] + dc1 * r_wc[0, 1] + dc2 * r_wc[0, 2]
