@@ -50,6 +50,31 @@ def stack_images(stacks) -> "numba.typed.List":
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+def _fit4_row(r0, r1, r2, r3, cos_d, sin_d, sa, sc, ss, rss):  # pragma: no cover - compiled
+    """:func:`fit_row` of N = 4 rows ``r0`` … ``r3`` with the residual sum of squares, in one loop
+    along the row: per pixel the same sums in the same order (from 0.0, shift by shift; x/4 as
+    x·0.25, exactly), the same values bit for bit."""
+    c0, c1, c2, c3 = cos_d[0], cos_d[1], cos_d[2], cos_d[3]
+    s0, s1, s2, s3 = sin_d[0], sin_d[1], sin_d[2], sin_d[3]
+    for u in range(sa.shape[0]):
+        x0 = np.float64(r0[u])
+        x1 = np.float64(r1[u])
+        x2 = np.float64(r2[u])
+        x3 = np.float64(r3[u])
+        a = ((((0.0 + x0) + x1) + x2) + x3) * 0.25
+        c = 2.0 * ((((0.0 + x0 * c0) + x1 * c1) + x2 * c2) + x3 * c3) * 0.25
+        s = 2.0 * ((((0.0 + x0 * s0) + x1 * s1) + x2 * s2) + x3 * s3) * 0.25
+        sa[u] = a
+        sc[u] = c
+        ss[u] = s
+        e0 = x0 - a - c * c0 - s * s0
+        e1 = x1 - a - c * c1 - s * s1
+        e2 = x2 - a - c * c2 - s * s2
+        e3 = x3 - a - c * c3 - s * s3
+        rss[u] = (((0.0 + e0 * e0) + e1 * e1) + e2 * e2) + e3 * e3
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
 def fit_row(images, first, n, v, cos_d, sin_d, sa, sc, ss, rss, best, worst, residuals):  # pragma: no cover
     """The N-step fit of row v of the stack ``images[first]`` … ``images[first + n − 1]`` (a
     list of (H, W) images) with equal shifts (``cos_d``, ``sin_d`` (n,)): A, C = B cos φ,
@@ -58,6 +83,10 @@ def fit_row(images, first, n, v, cos_d, sin_d, sa, sc, ss, rss, best, worst, res
     along the row (contiguous, vectorised across pixels; per pixel the sums run over k in
     order)."""
     w = sa.shape[0]
+    if n == 4 and residuals == 1:  # the usual case: sums and residuals in one pass over the four rows
+        _fit4_row(images[first][v], images[first + 1][v], images[first + 2][v], images[first + 3][v], cos_d, sin_d,
+                  sa, sc, ss, rss)
+        return
     sa[:] = 0.0
     sc[:] = 0.0
     ss[:] = 0.0
