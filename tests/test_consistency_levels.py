@@ -226,3 +226,33 @@ def test_with_consistency_in_place_equals_the_copy():
     got = with_consistency(dec.__class__(**{**dec.__dict__, "screen_xy_mm": ro}), types.SimpleNamespace(flags=extra),
                            in_place=True)
     assert got.screen_xy_mm is not ro
+
+
+def test_four_step_row_fit_matches_numpy_sums_bit_for_bit():
+    """N = 4 (the one-pass fit of the four rows) and N = 5 (the general loops): A, C, S and RSS of
+    a row against the numpy sums in the same order — from 0.0, shift by shift — bit for bit, for
+    uint8 and float images (−0.0 and a NaN sample included)."""
+    from pmdsim.evaluation.consistency_levels import fit_row, stack_images
+
+    rng = np.random.default_rng(17)
+    for n, dtype in ((4, np.uint8), (4, np.float64), (5, np.uint8)):
+        d = 2 * np.pi * np.arange(n) / n
+        stack = 120 + 90 * np.cos(rng.uniform(0, 6, (1, 3, 41)) - d[:, None, None]) + rng.normal(0, 2, (n, 3, 41))
+        stack = stack.astype(dtype) if dtype is np.uint8 else stack
+        if dtype is np.float64:
+            stack[:, 1, 3] = -0.0
+            stack[2, 1, 7] = np.nan
+        x = stack[:, 1].astype(np.float64)
+        sa, sc, ss = np.zeros(41), np.zeros(41), np.zeros(41)
+        for k in range(n):
+            sa, sc, ss = sa + x[k], sc + x[k] * np.cos(d[k]), ss + x[k] * np.sin(d[k])
+        a, c, s = sa / n, 2.0 * sc / n, 2.0 * ss / n
+        rss = np.zeros(41)
+        for k in range(n):
+            r = x[k] - a - c * np.cos(d[k]) - s * np.sin(d[k])
+            rss = rss + r * r
+        got = [np.empty(41) for _ in range(5)]
+        fit_row(stack_images([stack]), 0, n, 1, np.cos(d), np.sin(d), *got, np.empty(41, np.int64), 1)
+        for g, e in zip(got, (a, c, s, rss)):
+            np.testing.assert_array_equal(g, e)
+            np.testing.assert_array_equal(np.signbit(g), np.signbit(e))
