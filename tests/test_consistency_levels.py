@@ -65,8 +65,8 @@ def test_both_directions_match_numpy(n, with_lines, dtype):
     rev[rev_px[0] + (0,)] = rev[rev_px[1] + (1,)] = True
     mask = tested & (u % 3 == 0)
     thr = 9.0 if n > 3 else 0.0
-    dirs = [[dict(stack=st, p=p, first=3 + 10 * (2 * ax + k), thr=thr) for k, (st, p) in enumerate(zip(stacks[ax], periods[ax]))]
-            for ax in range(2)]
+    dirs = [[dict(stack=st, p=p, first=3 + 10 * (2 * ax + k), thr=thr)
+             for k, (st, p) in enumerate(zip(stacks[ax], periods[ax]))] for ax in range(2)]
     origin, upper, z = (0.0, 0.0), (300.0, 250.0), 4.9
     lo, hi = (15.0, 9.0), (200.0, 150.0)
     out = check_stacks(dirs, lines=lines, given2=given2, tested=tested, rev=rev, z=z, origin=origin, upper=upper,

@@ -180,12 +180,15 @@ def _fit_ratio_row(rss, s2, thr, cur, out, exact):  # pragma: no cover - compile
     :func:`_same_outcome` holds and σ_I²·threshold is normal and finite; elsewhere the two
     divisions (``exact`` (W,) bool: scratch)."""
     w = out.shape[0]
+    n_exact = 0
     for u in range(w):
         d = s2[u] * thr
         r = rss[u] / d
         out[u] = r
-        exact[u] = not ((d > 1e-300) & (d < 1e300) & _same_outcome(r, cur[u]))
-    for u in range(w):
+        ex = not ((d > 1e-300) & (d < 1e300) & _same_outcome(r, cur[u]))
+        exact[u] = ex
+        n_exact += ex
+    for u in range(w if n_exact else 0):
         if exact[u]:
             out[u] = rss[u] / s2[u] / thr
 
@@ -202,6 +205,7 @@ def _mismatch_ratio_row(c, ck, s2_prev, b2_prev, k_prev, s2, b2, k, z, cur, out,
     w = out.shape[0]
     kp2 = k_prev * k_prev
     k2 = k * k
+    n_exact = 0
     for u in range(w):
         a2 = b2_prev[u]
         bq = b2[u]
@@ -209,9 +213,11 @@ def _mismatch_ratio_row(c, ck, s2_prev, b2_prev, k_prev, s2, b2, k, z, cur, out,
         f = s2[u]
         r = abs(c[u] - ck[u]) * math.sqrt(a2 * bq / (kp2 * e * bq + k2 * f * a2)) / z
         out[u] = r
-        exact[u] = not ((a2 > 1e-100) & (a2 < 1e100) & (bq > 1e-100) & (bq < 1e100) & (e > 1e-100) & (e < 1e100)
-                        & (f > 1e-100) & (f < 1e100) & _same_outcome(r, cur[u]))
-    for u in range(w):
+        ex = not ((a2 > 1e-100) & (a2 < 1e100) & (bq > 1e-100) & (bq < 1e100) & (e > 1e-100) & (e < 1e100)
+                  & (f > 1e-100) & (f < 1e100) & _same_outcome(r, cur[u]))
+        exact[u] = ex
+        n_exact += ex
+    for u in range(w if n_exact else 0):
         if exact[u]:
             sig_prev = k_prev * math.sqrt(s2_prev[u]) / math.sqrt(b2_prev[u])
             sig = k * math.sqrt(s2[u]) / math.sqrt(b2[u])
@@ -219,7 +225,7 @@ def _mismatch_ratio_row(c, ck, s2_prev, b2_prev, k_prev, s2, b2, k, z, cur, out,
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig, st_level, origin,
+def _stack_row(images, v, s, ax, n_rev, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig, st_level, origin,
                upper, lines, given2, tested, rev, z, a_stack, mask, a_offs, a_buf, fit_ratio, worst_image, mis_ratio,
                bits_fit, bits_per, counts, top, c, sa_prev, b2_prev, s2_prev, dir_bad, sa, sc, ss, rss, best, worst,
                b2, ph, s2, tmp, ck, exact):  # pragma: no cover - compiled
@@ -227,7 +233,8 @@ def _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, 
     the coordinate and its PERIOD_MISMATCH test (:func:`_checks_kernel`). Row buffers (W,): ``c``
     (in: the coarser stack's coordinate; out: this one's), ``sa_prev``, ``b2_prev``, ``s2_prev``
     (the coarser stack's A, B² and σ_I²), ``sa``, ``b2``, ``s2`` (out: this stack's), ``dir_bad``
-    (PERIOD_MISMATCH at a coarser level of this direction; updated); the others scratch. B, σ
+    (PERIOD_MISMATCH at a coarser level of this direction; updated); the others scratch.
+    ``n_rev``: the row's pixels with a corrected reversal in this direction. B, σ
     and the contrast B/A are computed only where a test needs them (:func:`_mismatch_ratio_row`,
     the reversal correction)."""
     w = sa.shape[0]
@@ -255,10 +262,15 @@ def _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, 
     else:
         for u in range(w):
             s2[u] = given2[v, u]
-    t_max = 0.0
+    # the largest tested σ_I² > 0: positive floats order as their bit patterns (an integer
+    # maximum, vectorised; NaN and values ≤ 0 never count, as in a running `s2 > t_max`)
+    s2_bits = s2.view(np.int64)
+    t_bits = np.int64(0)
     for u in range(w):
-        if tested[v, u] and s2[u] > t_max:
-            t_max = s2[u]
+        t_bits = max(t_bits, s2_bits[u] if (tested[v, u] & (s2[u] > 0.0)) else np.int64(0))
+    tmp[0] = 0.0
+    tmp.view(np.int64)[0] = t_bits
+    t_max = tmp[0]
     if s == a_stack:
         j = a_offs[v]
         for u in range(w):
@@ -297,7 +309,7 @@ def _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, 
             for u in range(w):
                 fine = p * ph[u] / two_pi
                 ck[u] = fine + p * math.floor((c[u] - fine) / p + 0.5)
-        for u in range(w):
+        for u in range(w if n_rev else 0):
             if rev[v, u, ax]:
                 ck[u], _, _ = _refine_reversal(c[u], ph[u], p, 1.0 / p, 0.5, math.sqrt(b2[u]) / sa[u],
                                                math.sqrt(b2_prev[u]) / sa_prev[u], REVERSAL_CONTRAST_RATIO)
@@ -322,7 +334,7 @@ def _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, 
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _checks_kernel(images, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig, st_level, dir_st, origin,
                    upper, lo, hi, lines, given2, tested, rev, z, a_stack, mask, a_offs, a_buf, fit_ratio, worst_image,
-                   mis_ratio, final, bits_fit, bits_per, geometry, flags, counts, top, n_out):  # pragma: no cover - compiled
+                   mis_ratio, final, bits_fit, bits_per, geometry, flags, counts, top, n_out):  # pragma: no cover
     """Every stack of both directions, one parallel pass over blocks of image rows (module
     docstring). Stack s: images ``st_img[s]`` … ``st_img[s + 1] − 1`` of the list ``images``,
     per image ``cos_d``/``sin_d`` of its shift; direction d: stacks ``dir_st[d]`` …
@@ -352,9 +364,12 @@ def _checks_kernel(images, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, 
             bits_per[v] = 0
             for ax in range(2):
                 dir_bad[:] = False
+                n_rev = 0  # pixels of the row whose contrast reversal the decoder corrected
+                for u in range(w):
+                    n_rev += rev[v, u, ax]
                 sa, sa_prev, b2, b2_prev, s2, s2_prev = sa_a, sa_b, b2_a, b2_b, s2_a, s2_b
                 for s in range(dir_st[ax], dir_st[ax + 1]):
-                    _stack_row(images, v, s, ax, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig,
+                    _stack_row(images, v, s, ax, n_rev, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig,
                                st_level, origin, upper, lines, given2, tested, rev, z, a_stack, mask, a_offs, a_buf,
                                fit_ratio, worst_image, mis_ratio, bits_fit, bits_per, counts, top, c, sa_prev, b2_prev,
                                s2_prev, dir_bad, sa, sc, ss, rss, best, worst, b2, ph, s2, tmp, ck, exact)
@@ -486,7 +501,8 @@ def check_stacks(dirs, *, lines, given2, tested, rev, z: float, origin, upper, l
         f([0, len(dirs[0]), len(stacks)], np.int64), f(origin, float), f(upper, float), f(lo, float), f(hi, float),
         readonly(ln), readonly(np.asarray(given2, dtype=np.float64)), readonly(tested), readonly(rev), float(z),
         np.int64(a_stack if want_a else -1), readonly(mask), offs, a_buf, out.fit_ratio, out.worst_image,
-        out.mis_ratio, out.final, out.bits_fit, out.bits_per, np.uint8(PhaseFlag.GEOMETRY), out.flags, counts, top, n_out)
+        out.mis_ratio, out.final, out.bits_fit, out.bits_per, np.uint8(PhaseFlag.GEOMETRY), out.flags, counts, top,
+        n_out)
     sums = counts.sum(axis=1)
     out.n_fit, out.n_per, out.n_new = (sums[:, i] for i in range(3))
     out.top = top.max(axis=1) if h else np.zeros(len(stacks))
