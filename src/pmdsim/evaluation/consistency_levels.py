@@ -9,10 +9,17 @@ directions in one pass over image rows, as the fused decoder
 (:mod:`pmdsim.evaluation.decoding_fused`) decodes them: per row, direction by direction, its
 stacks coarse → fine, each step a loop along the row, with the expressions of the per-stack
 kernels it replaces in the same order (no fast-math), so the values are the same bit for bit
-(tests/test_consistency_levels.py). What a finer stack needs from the coarser one — c, σ, B/A —
-stays in row buffers: no (H, W) map per stack. Each image is read once. Per stack and pixel
-the two tests' outcomes are kept as bits of (H, W, ⌈S/8⌉) uint8 maps, for the whole-stack
-defect rules of ``check_consistency``.
+(tests/test_consistency_levels.py). What a finer stack needs from the coarser one — c, A, B²,
+σ_I² — stays in row buffers: no (H, W) map per stack. Each image is read once. Per stack and
+pixel the two tests' outcomes are kept as bits of (H, W, ⌈S/8⌉) uint8 maps, for the
+whole-stack defect rules of ``check_consistency``.
+
+Divisions and square roots bound the pass. The two test ratios are computed in fewer of them
+than their defining expressions (the period ratio without σ and libm's ``hypot``) and used
+where they provably decide as those would — the same test outcome, the same update of the
+stored maximum, the same float32 (:func:`_same_outcome`); elsewhere the defining expression is
+evaluated. Why the decoder's own pass is not shared: docs/benchmarks.md, "`evaluate` end to end:
+the checks in one pass over image rows".
 """
 
 from __future__ import annotations
