@@ -196,8 +196,9 @@ class ConsistencyResult:
 
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
-    """Per pixel of one stack (a list of N (H, W) images) with equal shifts: A, B, φ ∈ [0, 2π), RSS of the N-step
-    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns").
+    """Per pixel of one stack (a typed list of its N (H, W) images) with equal shifts: A, B,
+    φ ∈ [0, 2π), RSS of the N-step fit and argmax_k |r_k| (docs/conventions.md, "Fringe
+    patterns").
 
     Row by row, image by image along the row (contiguous, vectorised across pixels; per pixel
     the sums run over k in order, so A, B, RSS and the worst image are those of the pixel-by-
