@@ -198,8 +198,9 @@ def test_writable_and_read_only_inputs_reach_one_compiled_kernel(monkeypatch, sm
     for images in (img, _readonly_copy(img)):
         wrapped_phase(images)
         consistency._stack_stats(images)
-    for seen in (decoded, stacked):
-        assert len(seen) == 2 and seen[0] == seen[1] and not seen[0][0].mutable, seen
+    assert len(decoded) == 2 and decoded[0] == decoded[1] and not decoded[0][0].mutable, decoded
+    # the checks' stack kernel takes a typed list of read-only (H, W) images, as the fused decoder
+    assert len(stacked) == 2 and stacked[0] == stacked[1] and not stacked[0][0].dtype.mutable, stacked
     # decode_screen_coordinates (the fused kernel): per-image lists and stacks, writable or not
     fused = _argument_types(monkeypatch, decoding_fused, "_fused_kernel")
     for images in (img, _readonly_copy(img), list(img), [_readonly_copy(im) for im in img]):

@@ -53,7 +53,6 @@ import numba
 import numpy as np
 
 from ..geometry.camera import Camera
-from ..geometry.kernel_args import readonly
 from ..geometry.transform import RigidTransform
 from .phase import (
     QUANTISATION_NOISE_STD,
@@ -62,7 +61,7 @@ from .phase import (
     ScreenCoordinates,
     equal_shifts,
 )
-from .consistency_levels import LevelBuffers, check_level, fit_row, stack_array
+from .consistency_levels import check_stacks, fit_row, stack_images
 from .fast_atan import _phase_0_2pi
 
 __all__ = [
@@ -197,18 +196,20 @@ class ConsistencyResult:
 
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
-    """Per pixel of one (N, H, W) stack with equal shifts: A, B, φ ∈ [0, 2π), RSS of the N-step
-    fit and argmax_k |r_k| (docs/conventions.md, "Fringe patterns").
+    """Per pixel of one stack (a typed list of its N (H, W) images) with equal shifts: A, B,
+    φ ∈ [0, 2π), RSS of the N-step fit and argmax_k |r_k| (docs/conventions.md, "Fringe
+    patterns").
 
     Row by row, image by image along the row (contiguous, vectorised across pixels; per pixel
     the sums run over k in order, so A, B, RSS and the worst image are those of the pixel-by-
     pixel loop bit for bit), φ by the decoder's branch-free atan2 (:mod:`.fast_atan`, within
     1e-15 rad of libm's)."""
-    n, h, w = images.shape
+    n = len(images)
+    h, w = a_out.shape
     for v in numba.prange(0, h):
         sa, sc, ss, rss, best = np.empty(w), np.empty(w), np.empty(w), np.empty(w), np.empty(w)
         worst = np.empty(w, np.int64)
-        fit_row(images, v, cos_d, sin_d, sa, sc, ss, rss, best, worst)
+        fit_row(images, 0, n, v, cos_d, sin_d, sa, sc, ss, rss, best, worst, 2)
         for u in range(w):
             a_out[v, u] = sa[u]
             b_out[v, u] = math.sqrt(sc[u] * sc[u] + ss[u] * ss[u])
@@ -219,12 +220,11 @@ def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_ou
 
 def _stack_stats(stack):
     """A, B, φ, RSS and argmax_k |r_k| of one (N, H, W) stack (equal shifts), each (H, W)."""
-    arr = stack_array(stack)
-    n, h, w = arr.shape
+    n, h, w = np.shape(stack)
     d = equal_shifts(n)
     out = [np.empty((h, w)) for _ in range(4)]
     worst = np.empty((h, w), np.int16)
-    _stack_kernel(readonly(arr), np.cos(d), np.sin(d), *out, worst)
+    _stack_kernel(stack_images([stack]), np.cos(d), np.sin(d), *out, worst)
     if n <= 3:
         out[3][:] = 0.0  # an exact fit: no residual
     return (*out, worst)
@@ -248,12 +248,12 @@ def _grad(xy, v, u, d, axis):
     return (xy[v + 1, u, d] - xy[v - 1, u, d]) / 2.0
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _orientation_kernel(measured, expected, out):
-    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`)."""
+    """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`); rows in parallel."""
     h, w = measured.shape[0], measured.shape[1]
     nan = np.nan
-    for v in range(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             # J[i, k] = ∂xy_i/∂(u, v)_k (k = 0: along u, 1: along v); NaN where an axis has one pixel.
             j00 = _grad(measured, v, u, 0, 1) if w >= 2 else nan
@@ -452,80 +452,91 @@ def check_consistency(
     all_items = [it for _, items in per_dir for it in items]
     mask, lines = _noise_pass(all_items, tested)
 
-    flags = np.zeros((h, w), np.uint8)
-    fit_ratio = np.full((h, w), np.nan, np.float32)
-    mis_ratio = np.full((h, w), np.nan, np.float32)
-    worst_image = np.full((h, w), -1, np.int16)
-    fit_bad = np.zeros((h, w), bool)
-    escalated = np.full((h, w), -1, np.int16)  # the defective stack's label, where only it flags
     period_counts: dict = {}
     geometry_counts = {"outside_screen": 0, "orientation": 0}
     defects: list[str] = []
     z = float(sst.norm.isf(float(false_alarm) / 2.0))
-    noise_max = 0.0
-    final = np.empty((h, w, 2))
     n_tested = int(np.count_nonzero(tested))
     limit = float(defect_fraction) * n_tested
 
-    # One pass per stack (:mod:`.consistency_levels`): the N-step fit, σ_I², both tests, the
-    # coordinate; what the next stack needs stays in buffers reused for every stack.
-    buf = LevelBuffers(h, w)
-    if lines is None:
-        top_given = float(np.nanmax(np.where(tested, given2, 0.0)))
+    # One pass over image rows for every stack of both directions (:mod:`.consistency_levels`):
+    # the N-step fit, σ_I², both tests, the coordinates, the outside-screen test; per stack the
+    # tests' pixels as bits, their counts, and the largest σ_I².
+    bounds = []
+    for axis, (direction, items) in enumerate(per_dir):
+        ext = float(size[axis])
+        margin = 0.5 * (items[0]["p"] - ext) if margin_mm is None else float(margin_mm)
+        tol = OUTSIDE_SCREEN_FRACTION * ext
+        bounds.append((float(origin[axis]), float(origin[axis] + ext + margin), origin[axis] - tol,
+                       origin[axis] + ext + tol))
+        for it in items:
+            it["thr"] = float(sst.chi2.isf(float(false_alarm), it["n"] - 3)) if it["n"] > 3 else 0.0
+    typical = lines is not None and mask.any()  # A of all_items[0] at the noise pixels
     with np.errstate(invalid="ignore", divide="ignore"):
-        for axis, (direction, items) in enumerate(per_dir):
-            p0 = items[0]["p"]
-            ext = float(size[axis])
-            margin = 0.5 * (p0 - ext) if margin_mm is None else float(margin_mm)
-            dir_bad = np.zeros((h, w), bool)
-            rev = np.ascontiguousarray(decoded.reversed[..., axis])
-            for level, it in enumerate(items):
-                typical = axis == 0 and level == 0 and lines is not None and mask.any()  # all_items[0]
-                thr = float(sst.chi2.isf(float(false_alarm), it["n"] - 3)) if it["n"] > 3 else 0.0
-                n_fit, n_per, top, a_mask = check_level(
-                    buf, it["stack"], first=it["first"], thr=thr, lines=lines, given2=given2, tested=tested,
-                    level=level, p=it["p"], origin=float(origin[axis]), upper=float(origin[axis] + ext + margin),
-                    z=z, rev=rev, fit_ratio=fit_ratio, worst_image=worst_image, mis_ratio=mis_ratio,
-                    mask=mask if typical else None)
-                if typical:
-                    a_typical = np.nanmedian(a_mask)
-                noise_max = max(noise_max, float(np.sqrt(top_given if lines is None else top)))
-                if it["n"] > 3:
-                    bad = buf.bad_fit
-                    if n_tested and n_fit > limit:
-                        # A frame of this stack is bad as a whole: its other pixels agree by chance.
-                        k = int(np.bincount(_item_stats(it)[4][bad], minlength=it["n"] + 1).argmax())
-                        defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
-                                       f"sinusoid in {n_fit / n_tested:.0%} of the pixels")
-                        escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
-                        fit_bad |= tested
-                    else:
-                        fit_bad |= bad
-                if level > 0:
-                    bad = buf.bad_per
-                    if n_tested and n_per > limit:
-                        # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
-                        # where it agrees, it does so by chance.
-                        defects.append(f"direction {direction}, period {it['p']:g} mm disagrees with the "
-                                       f"{items[level - 1]['p']:g} mm period in "
-                                       f"{n_per / n_tested:.0%} of the pixels")
-                        bad = tested.copy()
-                    new = np.count_nonzero(bad & ~dir_bad)
-                    if new:
-                        period_counts[(direction, it["p"])] = int(new)
+        rows = check_stacks([items for _, items in per_dir], lines=lines, given2=given2, tested=tested,
+                            rev=np.ascontiguousarray(decoded.reversed), z=z, origin=[b[0] for b in bounds],
+                            upper=[b[1] for b in bounds], lo=[b[2] for b in bounds], hi=[b[3] for b in bounds],
+                            a_stack=0 if typical else -1, mask=mask if typical else None)
+    if typical:
+        a_typical = np.nanmedian(rows.a_at_mask)
+    top_given = float(np.nanmax(np.where(tested, given2, 0.0))) if lines is None else 0.0
+    noise_max = max(float(np.sqrt(top_given if lines is None else t)) for t in rows.top)
+    flags = rows.flags  # GEOMETRY outside the screen
+    geometry_counts["outside_screen"] = int(rows.n_outside.sum())
+    fit_ratio, mis_ratio, final = rows.fit_ratio, rows.mis_ratio, rows.final
+    # The whole-stack rules, stack by stack in the pass's order (x then y, coarse → fine).
+    fit_stacks, escalated, fit_defect = [], None, False
+    s = 0
+    for axis, (direction, items) in enumerate(per_dir):
+        dir_stacks, dir_bad = [], None
+        for level, it in enumerate(items):
+            if it["n"] > 3:
+                fit_stacks.append(s)
+                n_fit = int(rows.n_fit[s])
+                if n_tested and n_fit > limit:
+                    # A frame of this stack is bad as a whole: its other pixels agree by chance.
+                    bad = rows.bad_fit(s)
+                    k = int(np.bincount(_item_stats(it)[4][bad], minlength=it["n"] + 1).argmax())
+                    defects.append(f"image ({labels[it['first'] + k]}) deviates from its period's "
+                                   f"sinusoid in {n_fit / n_tested:.0%} of the pixels")
+                    if escalated is None:
+                        escalated = np.full((h, w), -1, np.int16)  # the defective stack's label, where only it flags
+                    escalated[tested & ~bad & (escalated < 0)] = it["first"] + k
+                    fit_defect = True
+            if level > 0:
+                n_per = int(rows.n_per[s])
+                whole = bool(n_tested and n_per > limit)
+                if whole:
+                    # The period disagrees as a whole (wrong period, shifted images, wrong shifts):
+                    # where it agrees, it does so by chance.
+                    defects.append(f"direction {direction}, period {it['p']:g} mm disagrees with the "
+                                   f"{items[level - 1]['p']:g} mm period in "
+                                   f"{n_per / n_tested:.0%} of the pixels")
+                if whole or dir_bad is not None:  # the pixels new to this level, counted anew
+                    if dir_bad is None:
+                        dir_bad = rows.any_bit(rows.bits_per, dir_stacks)
+                    bad = tested.copy() if whole else rows.bad_per(s)
+                    new = int(np.count_nonzero(bad & ~dir_bad))
                     dir_bad |= bad
-                buf.swap()
-            c = buf.c
-            final[..., axis] = c
-            flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
-            tol = OUTSIDE_SCREEN_FRACTION * ext
-            out = tested & ((c < origin[axis] - tol) | (c > origin[axis] + ext + tol))
-            flags[out] |= np.uint8(PhaseFlag.GEOMETRY)
-            geometry_counts["outside_screen"] += int(np.count_nonzero(out))
+                else:  # counted in the pass
+                    new = int(rows.n_new[s])
+                    dir_stacks.append(s)
+                if new:
+                    period_counts[(direction, it["p"])] = new
+            s += 1
+        if dir_bad is None:
+            dir_bad = rows.any_bit(rows.bits_per, dir_stacks)
+        flags[dir_bad] |= np.uint8(PhaseFlag.PERIOD_MISMATCH)
 
-        flags[fit_bad] |= np.uint8(PhaseFlag.FIT_RESIDUAL)
+    fit_bad = tested.copy() if fit_defect else rows.any_bit(rows.bits_fit, fit_stacks)
+    flags[fit_bad] |= np.uint8(PhaseFlag.FIT_RESIDUAL)
+    worst_image = rows.worst_image
+    if escalated is None:
+        worst_image[~(fit_bad & (fit_ratio > 1.0))] = -1
+    else:
         worst_image = np.where(fit_ratio > 1.0, worst_image, escalated).astype(np.int16)
         worst_image[~fit_bad] = -1
+    with np.errstate(invalid="ignore", divide="ignore"):
         if expected_xy_mm is not None:
             flipped = tested & _orientation_flipped(final, np.asarray(expected_xy_mm, dtype=np.float64))
             if n_tested and np.count_nonzero(flipped) > 0.9 * n_tested:  # mirrored as a whole
@@ -535,7 +546,6 @@ def check_consistency(
                 flipped = tested
             flags[flipped] |= np.uint8(PhaseFlag.GEOMETRY)
             geometry_counts["orientation"] = int(np.count_nonzero(flipped))
-
     idx, cnt = np.unique(worst_image[worst_image >= 0], return_counts=True)
     image_counts = {labels[int(i)]: int(n) for i, n in zip(idx, cnt)}
     return ConsistencyResult(
@@ -612,12 +622,13 @@ def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sampl
     return xy
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _nominal_kernel(d_cam, ok, r_wc, o, n, p0, m, t_scr, r_sw, t_sw, out):
     """Per pixel of :func:`nominal_screen_xy`: the view ray d = R·d_cam from o, reflected at the
-    plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw)."""
+    plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw); rows
+    in parallel."""
     h, w = d_cam.shape[0], d_cam.shape[1]
-    for v in range(h):
+    for v in numba.prange(0, h):
         for u in range(w):
             dc0, dc1, dc2 = d_cam[v, u, 0], d_cam[v, u, 1], d_cam[v, u, 2]
             d0 = dc0 * r_wc[0, 0] + dc1 * r_wc[0, 1] + dc2 * r_wc[0, 2]

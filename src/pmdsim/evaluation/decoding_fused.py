@@ -32,7 +32,7 @@ from .phase_flags import _NONFINITE, _UNWRAP_INCONSISTENT
 from .phase_noise import coordinate_std_scale
 from .unwrapping import REVERSAL_PHASE_TOLERANCE, _coarse_coord, _refine
 
-__all__ = ["ImageList", "as_image_list", "decode_both_directions"]
+__all__ = ["ImageList", "as_image_list", "common_image_list", "decode_both_directions"]
 
 
 class ImageList(list):
@@ -235,6 +235,17 @@ def _image_list(images) -> "numba.typed.List":
     return out
 
 
+def common_image_list(images) -> "numba.typed.List":
+    """:func:`_image_list` of (H, W) images of one dtype; images of mixed dtypes (rare) are first
+    promoted to their common type (one list type; the promotion keeps every grey level's
+    float64 value)."""
+    dtypes = {im.dtype for im in images}
+    if len(dtypes) > 1:
+        common = np.result_type(*dtypes)
+        images = [im.astype(common) for im in images]
+    return _image_list(images)
+
+
 def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
     """:func:`~pmdsim.evaluation.decoding.decode_screen_coordinates` from the validated inputs
     of both directions (``decoding._DirectionInput``, stacks as :class:`ImageList`) in one kernel
@@ -252,11 +263,6 @@ def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
         (H, W, 2) coordinates, σ, modulation, offset and reversal; (H, W) flags and valid.
     """
     px, py = preps
-    all_images = [im for p in preps for stack in p.stacks for im in stack]
-    dtypes = {im.dtype for im in all_images}
-    if len(dtypes) > 1:  # mixed dtypes (rare): one list type; the promotion keeps every grey level's float64
-        common = np.result_type(*dtypes)
-        all_images = [im.astype(common) for im in all_images]
     counts = [len(stack) for p in preps for stack in p.stacks]
     level_start = np.zeros(len(counts) + 1, np.int64)
     level_start[1:] = np.cumsum(counts)
@@ -271,7 +277,7 @@ def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
     valid = np.empty((h, w), np.bool_)
     rev = np.empty((h, w, 2), np.bool_)
     _fused_kernel(
-        _image_list(all_images), level_start,
+        common_image_list([im for p in preps for stack in p.stacks for im in stack]), level_start,
         np.concatenate([px.periods, py.periods]).astype(np.float64),
         np.array([0, len(px.stacks), len(px.stacks) + len(py.stacks)], np.int64),
         np.array([px.origin, py.origin]), np.array([px.upper, py.upper]),
