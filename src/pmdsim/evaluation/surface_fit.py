@@ -372,13 +372,13 @@ def _take(v, lo, hi, inv, nbins, kb):
 def _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, nbins, kb, buf):
     """One pass over the 2M values (residuals, or ``mode`` 1: |r − centre|): the number of
     values < lo, and the values in [lo, hi] whose bin (``nbins`` equal bins over [lo, hi]) is
-    ``kb`` or ``kb + 1`` copied to ``buf`` (as many as fit). Returns (below, inside); inside >
-    buf.size: the bracket held too many. Blocks are counted without branches and re-read only
+    ``kb`` or ``kb + 1`` copied to ``buf`` (as many as fit: the last slot takes the values not
+    kept). Returns (below, inside); inside ≥ buf.size: the bracket held too many. Blocks are counted without branches and re-read only
     where they hold a value to copy."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     below = 0
     inside = 0
-    cap = buf.size
+    last = buf.size - 1
     inv = nbins / (hi - lo) if hi > lo else 0.0
     bs = 256
     m = x.size
@@ -389,17 +389,13 @@ def _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, nbins, kb, buf):
             r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
             below += (r0 < lo) + (r1 < lo)
             cnt += _take(r0, lo, hi, inv, nbins, kb) + _take(r1, lo, hi, inv, nbins, kb)
-        if cnt:
+        if cnt:  # each value written to the next free slot, which only a value to keep advances (no branch)
             for i in range(start, stop):
                 r0, r1 = _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre)
-                if _take(r0, lo, hi, inv, nbins, kb):
-                    if inside < cap:
-                        buf[inside] = r0
-                    inside += 1
-                if _take(r1, lo, hi, inv, nbins, kb):
-                    if inside < cap:
-                        buf[inside] = r1
-                    inside += 1
+                buf[min(inside, last)] = r0
+                inside += _take(r0, lo, hi, inv, nbins, kb)
+                buf[min(inside, last)] = r1
+                inside += _take(r1, lo, hi, inv, nbins, kb)
     return below, inside
 
 
@@ -459,7 +455,7 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=
         expected = (np.searchsorted(s, hi, side="right") - np.searchsorted(s, lo)) / ns * n
         if expected <= 0.5 * buf.size:
             below, inside = _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, 1, 0, buf)
-            if inside <= buf.size:
+            if inside < buf.size:  # (its last slot takes the values not kept)
                 got = _pick(buf[:inside], below, k1, k2, lo, hi)
     if got is None:
         pos = k1 / max(n - 1, 1) * (ns - 1)
@@ -474,7 +470,7 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=
                 kb = int(np.searchsorted(cum, k1, side="right"))  # the bin holding rank k1
                 first = cum[kb - 1] if kb > 0 else below
                 _, inside = _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist.size, kb, buf)
-                if inside <= buf.size:
+                if inside < buf.size:  # (its last slot takes the values not kept)
                     got = _pick(buf[:inside], first, k1, k2, lo, hi)
     if got is None:  # the sample misled the bracket: select among all values
         vals = np.partition(_all_values(x, y, gx, gy, xc, yc, coef, mode, centre), (k1, k2))
@@ -575,9 +571,10 @@ def _residual_kernel(x, y, gx, gy, xc, yc, a2, b, c2, d, e, rx, ry):
         ry[i] = gyi - (b * xi + c2 * yi + e)
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, fastmath=True)
 def _max_abs_centred(x, xc):
-    """max_i |x_i − xc|."""
+    """max_i |x_i − xc| (exact in any order: fastmath only lets the maximum run on vector lanes;
+    the points are finite)."""
     m = 0.0
     for i in range(x.size):
         m = max(m, abs(x[i] - xc))
@@ -648,6 +645,7 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, np.zeros(5), 1.0, False))
     if robust:
         from .surface_fit_select import median_and_mad
+        from .surface_fit_window import WindowedMedians
 
         buf = np.empty(min(2 * n, max(4096, (2 * n) // 16)))
         hist = np.empty(_N_BINS_SELECT, np.int64)
@@ -658,12 +656,16 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         scale = 0.0
         buf_z = np.empty(buf.size)
         stride = max(1, n // _SAMPLE_POINTS)
+        windowed = WindowedMedians(x, y, gx, gy, reach, max(_max_abs_centred(gx, 0.0), _max_abs_centred(gy, 0.0)),
+                                   (ox, oy))
         for _ in range(max_iter):
             # Each order statistic moves by at most delta (the deviations by 2·delta): the next
             # brackets hold the two middle values, not only their mean (adjacent order
             # statistics of 9 M values lie ~1e-10 apart, wider than delta near convergence).
             both = None
-            if delta is not None:  # both medians from one pass (surface_fit_select), if the brackets allow
+            if delta is not None:  # both medians from a window of the points (surface_fit_window)
+                both = windowed(coef, (m1, m2), (d1, d2), delta)
+            if both is None and delta is not None:  # or from one pass (surface_fit_select), if the brackets allow
                 both = median_and_mad(x, y, gx, gy, coef, (m1 - delta, m2 + delta),
                                       (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta), buf, buf_z, origin=(ox, oy),
                                       sample=np.sort(_sample_values(x, y, gx, gy, ox, oy, coef, 0, 0.0, stride)))

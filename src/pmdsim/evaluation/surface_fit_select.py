@@ -34,13 +34,13 @@ _BLOCK = 256  # points counted before a block is re-read for its values to copy
 def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     """One pass over the 2M residuals r: the number < lo and those in [lo, hi] (to ``buf_r``);
     the number with hi − dlo < r < lo + dlo and the others in [lo − dhi, hi + dhi] (to
-    ``buf_z``), as many as fit (the latter two classes' bounds moved inwards, resp. outwards, by
-    8 ulps of |lo| + |hi| + dhi: the rounding of r − c and of the bounds cannot misclassify). Returns (below, n_r, sure, n_z); n > buffer size: too many.
+    ``buf_z``), as many as fit — one less than the buffer's size (the latter two classes' bounds moved inwards, resp. outwards, by
+    8 ulps of |lo| + |hi| + dhi: the rounding of r − c and of the bounds cannot misclassify). Returns (below, n_r, sure, n_z); n ≥ buffer size: too many.
     Blocks of 256 points are counted without branches and re-read only where they hold a value
     to copy."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
-    cap_r = buf_r.size
-    cap_z = buf_z.size
+    last_r = buf_r.size - 1
+    last_z = buf_z.size - 1
     # the classes' bounds moved by a few ulps towards "collect": r − c and the bounds are rounded
     tol = 8.0 * 2.220446049250313e-16 * (abs(lo) + abs(hi) + dhi)
     zlo = lo - dhi - tol
@@ -59,17 +59,13 @@ def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
             sure += s0 + s1
             cnt += ((r0 >= lo) * (r0 <= hi) + (r1 >= lo) * (r1 <= hi)
                     + (r0 >= zlo) * (r0 <= zhi) * (1 - s0) + (r1 >= zlo) * (r1 <= zhi) * (1 - s1))
-        if cnt:
-            for i in range(start, stop):
+        if cnt:  # each value is written to the next free slot, which only a value to keep advances
+            for i in range(start, stop):  # (no branch per value: they are unpredictable)
                 for r in _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0):
-                    if lo <= r <= hi:
-                        if n_r < cap_r:
-                            buf_r[n_r] = r
-                        n_r += 1
-                    if zlo <= r <= zhi and not (slo < r < shi):
-                        if n_z < cap_z:
-                            buf_z[n_z] = r
-                        n_z += 1
+                    buf_r[min(n_r, last_r)] = r
+                    n_r += (r >= lo) * (r <= hi)
+                    buf_z[min(n_z, last_z)] = r
+                    n_z += (r >= zlo) * (r <= zhi) * (1 - (r > slo) * (r < shi))
     return below, n_r, sure, n_z
 
 
@@ -126,7 +122,8 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     below, n_r, sure, n_z = _collect_both(x, y, gx, gy, float(origin[0]), float(origin[1]), coef, lo, hi, dlo, dhi, buf_r, buf_z)
-    if n_r > buf_r.size or n_z > min(buf_z.size, buf_r.size):  # (the deviations are written over buf_r)
+    # (the last slot of a buffer takes the values not kept: full at size − 1; the deviations are written over buf_r)
+    if n_r >= buf_r.size or n_z >= buf_z.size or n_z > buf_r.size:
         return None
     got = _pick(buf_r[:n_r], below, k1, k2, lo, hi)
     if got is None:
