@@ -426,6 +426,13 @@ def _all_values(x, y, gx, gy, xc, yc, coef, mode, centre):
     return out
 
 
+def _narrower(a, b):
+    """The narrower of two brackets (lo, hi), either None."""
+    if a is None or b is None:
+        return b if a is None else a
+    return a if a[1] - a[0] <= b[1] - b[0] else b
+
+
 def _pick(vals, below, k1, k2, lo, hi):
     """The values of rank k1 and k2 among all, given ``below`` values < lo and ``vals`` all
     those in [lo, hi]; None if the ranks are not inside the bracket."""
@@ -644,10 +651,10 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, np.zeros(5), 1.0, False))
     if robust:
-        from .surface_fit_select import median_and_mad
+        from .surface_fit_select import median_and_mad, sample_bracket
         from .surface_fit_window import WindowedMedians
 
-        buf = np.empty(min(2 * n, max(4096, (2 * n) // 16)))
+        buf = np.empty(min(2 * n, max(4096, (2 * n) // 12)))  # (a sample's bracket: ~3 % of the values)
         hist = np.empty(_N_BINS_SELECT, np.int64)
         ax, ay = _max_abs_centred(x, ox), _max_abs_centred(y, oy)
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
@@ -662,21 +669,25 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
             # Each order statistic moves by at most delta (the deviations by 2·delta): the next
             # brackets hold the two middle values, not only their mean (adjacent order
             # statistics of 9 M values lie ~1e-10 apart, wider than delta near convergence).
-            both = None
+            both = sample = None
             if delta is not None:  # both medians from a window of the points (surface_fit_window)
                 both = windowed(coef, (m1, m2), (d1, d2), delta)
-            if both is None and delta is not None:  # or from one pass (surface_fit_select), if the brackets allow
+            if both is None:  # or from one pass (surface_fit_select), if the brackets allow
+                sample = np.sort(_sample_values(x, y, gx, gy, ox, oy, coef, 0, 0.0, stride))
+            if both is None and delta is not None:
                 both = median_and_mad(x, y, gx, gy, coef, (m1 - delta, m2 + delta),
                                       (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta), buf, buf_z, origin=(ox, oy),
-                                      sample=np.sort(_sample_values(x, y, gx, gy, ox, oy, coef, 0, 0.0, stride)))
+                                      sample=sample)
             if both is not None:
                 (med, m1, m2), (mad, d1, d2) = both
-            else:
+            else:  # two selections, each in the narrower of the Lipschitz bracket and the sample's
                 med, m1, m2 = _median(x, y, gx, gy, coef, 0, 0.0, buf, hist,
-                                      None if delta is None else (m1 - delta, m2 + delta), ranks=True,
-                                      origin=(ox, oy))
+                                      _narrower(None if delta is None else (m1 - delta, m2 + delta),
+                                                sample_bracket(sample, 2 * n)), ranks=True, origin=(ox, oy))
                 mad, d1, d2 = _median(x, y, gx, gy, coef, 1, med, buf, hist,
-                                      None if delta is None else (max(d1 - 2.0 * delta, 0.0), d2 + 2.0 * delta),
+                                      _narrower(None if delta is None else (max(d1 - 2.0 * delta, 0.0),
+                                                                            d2 + 2.0 * delta),
+                                                sample_bracket(np.sort(np.abs(sample - med)), 2 * n)),
                                       ranks=True, origin=(ox, oy))
             s = mad / _MAD_TO_SIGMA
             scale = _TUKEY_C * s if s > 0 else 0.0

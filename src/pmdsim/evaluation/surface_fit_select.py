@@ -23,9 +23,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .surface_fit import _pair, _pick
+from .surface_fit import _BRACKET_SIGMAS, _pair, _pick
 
-__all__ = ["median_and_mad"]
+__all__ = ["median_and_mad", "sample_bracket"]
 
 _BLOCK = 256  # points counted before a block is re-read for its values to copy
 
@@ -139,3 +139,19 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     w1, w2 = got
     mad = float(w1) if n % 2 else float((w1 + w2) / 2.0)
     return (med, float(v1), float(v2)), (mad, float(w1), float(w2))
+
+
+
+def sample_bracket(sample, n):
+    """(lo, hi): the values of the sorted ``sample`` within ±6 binomial standard deviations of
+    the rank of the median of ``n`` values — a bracket that holds the two middle values of all
+    n unless the sample misleads (then the selection finds the ranks outside and selects
+    again) — or None if the sample is too small for it."""
+    ns = sample.size
+    k1 = (n - 1) // 2
+    pos = k1 / max(n - 1, 1) * (ns - 1)
+    half = _BRACKET_SIGMAS * np.sqrt(0.25 * ns) + 2.0
+    i_lo, i_hi = int(np.floor(pos - half)), int(np.ceil(pos + half))
+    if i_lo < 0 or i_hi >= ns or not sample[i_hi] > sample[i_lo]:
+        return None
+    return float(sample[i_lo]), float(sample[i_hi])

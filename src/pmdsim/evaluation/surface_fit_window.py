@@ -224,7 +224,7 @@ class WindowedMedians:
         self.g_max = g_max
         self.reach = reach
         self.origin = origin
-        self.capacity = max(4096, x.size // 32)
+        self.capacity = max(4096, x.size // 16)
         self.stride = max(1, x.size // 16_384)
         self.window = None
 
