@@ -244,9 +244,15 @@ def _sandwich_matrices(acc):
 def _sandwich_sums(xy, res, sig, xc, yc, scale):
     """N, B of :func:`_sandwich_kernel` over (M, 2) points, residuals and σ."""
     acc = np.zeros((4, 9))
-    _sandwich_kernel(xy, res, np.ascontiguousarray(sig, dtype=float).reshape(-1, 2), np.ones(len(xy), bool), 0,
-                     float(xc), float(yc), float(scale), acc)
+    _sandwich_kernel(_pairs(xy), _pairs(res), readonly(np.ascontiguousarray(sig, dtype=float).reshape(-1, 2)),
+                     readonly(np.ones(len(xy), bool)), 0, float(xc), float(yc), float(scale), acc)
     return _sandwich_matrices(acc)
+
+
+def _pairs(a):
+    """(M, 2) float64 read-only, Fortran order — the summary's (2, M) rows transposed, no copy — the
+    one argument type of the sandwich kernels (issue 25 item 4: one compile)."""
+    return readonly(np.asfortranarray(np.asarray(a, dtype=np.float64).reshape(-1, 2)))
 
 
 def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float, *, masks=None) -> ParaboloidFit:
@@ -267,14 +273,14 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float, *, m
         The pixels of each map that are the points, maps in order, pixels in C order (what
         :func:`surface_fit_summary` fitted): σ is read in the maps, not gathered (issue 25).
     """
-    xy = np.asarray(xy, dtype=float).reshape(-1, 2)  # any layout (the summary's (2, M) rows transposed: no copy)
-    res = np.asarray(fit.residual_slopes, dtype=float).reshape(-1, 2)  # any layout (the fit's rows: no copy)
+    xy = _pairs(xy)  # the summary's (2, M) rows transposed: no copy
+    res = _pairs(fit.residual_slopes)  # the fit's rows: no copy
     if masks is None:
-        sigs = [np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2)]
-        masks = [np.ones(len(sigs[0]), bool)]
+        sigs = [readonly(np.ascontiguousarray(slope_std, dtype=float).reshape(-1, 2))]
+        masks = [readonly(np.ones(len(sigs[0]), bool))]
     else:  # flat views of the maps (no copies)
-        sigs = [np.ascontiguousarray(s, dtype=float).reshape(-1, 2) for s in slope_std]
-        masks = [np.ascontiguousarray(m, dtype=bool).reshape(-1) for m in masks]
+        sigs = [readonly(np.ascontiguousarray(s, dtype=float).reshape(-1, 2)) for s in slope_std]
+        masks = [readonly(np.ascontiguousarray(m, dtype=bool).reshape(-1)) for m in masks]
         if (sum(int(np.count_nonzero(m)) for m in masks) != len(xy) or len(res) != len(xy)
                 or any(m.size != len(s) for s, m in zip(sigs, masks)) or len(sigs) != len(masks)):
             raise ValueError("with_uncertainty: the masks' pixels are not the fit's points (or σ maps of "
@@ -450,6 +456,7 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=
     value, upper middle value) — what the next iteration's bracket is built from. ``origin``: (xc, yc), the
     residuals at (x − xc, y − yc)."""
     xc, yc = float(origin[0]), float(origin[1])
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)  # one argument type of the kernels
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     got = None

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import readonly
 from .surface_fit import _BRACKET_SIGMAS, _pair, _pick
 
 __all__ = ["median_and_mad", "sample_bracket"]
@@ -108,6 +109,7 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     """
     lo, hi = bracket
     dlo, dhi = dev_bracket
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)  # one argument type of the kernel
     if not (lo <= hi and 0.0 <= dlo <= dhi):
         return None
     if hi - dlo >= lo + dlo:  # (about) no residual is surely within dlo of every centre: too many to keep

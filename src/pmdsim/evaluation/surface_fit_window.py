@@ -26,6 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..geometry.kernel_args import readonly
 from .surface_fit import _pair, _pick
 
 __all__ = ["Window", "WindowedMedians", "take_window"]
@@ -190,6 +191,7 @@ def take_window(x, y, gx, gy, coef, bracket, dev_bracket, capacity, reach, g_max
     if not bounds[4] < bounds[5]:
         return None
     xs, ys, gxs, gys = (np.empty(capacity + 1) for _ in range(4))
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)  # one argument type of the kernel
     below, sure, n = _take(x, y, gx, gy, float(origin[0]), float(origin[1]), np.asarray(coef, dtype=float),
                                   bounds, xs, ys, gxs, gys)
     if n > capacity:
