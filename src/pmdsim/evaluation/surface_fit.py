@@ -586,13 +586,15 @@ def _residual_kernel(x, y, gx, gy, xc, yc, a2, b, c2, d, e, rx, ry):
 
 
 @numba.njit(cache=True, fastmath=True)
-def _max_abs_centred(x, xc):
-    """max_i |x_i − xc| (exact in any order: fastmath only lets the maximum run on vector lanes;
-    the points are finite)."""
-    m = 0.0
-    for i in range(x.size):
-        m = max(m, abs(x[i] - xc))
-    return m
+def _extents(x, y, gx, gy, xc, yc):
+    """(max |x − xc|, max |y − yc|, max(|g_x|, |g_y|)) over the points, in one pass (exact in
+    any order: fastmath only lets the maxima run on vector lanes; the points are finite)."""
+    mx = my = mg = 0.0
+    for i in range(0, x.size):
+        mx = max(mx, abs(x[i] - xc))
+        my = max(my, abs(y[i] - yc))
+        mg = max(mg, max(abs(gx[i]), abs(gy[i])))
+    return mx, my, mg
 
 
 def _residuals(x, y, gx, gy, xc, yc, a, b, c, d, e, rx, ry):
@@ -663,15 +665,14 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
 
         buf = np.empty(min(2 * n, max(4096, (2 * n) // 12)))  # (a sample's bracket: ~3 % of the values)
         hist = np.empty(_N_BINS_SELECT, np.int64)
-        ax, ay = _max_abs_centred(x, ox), _max_abs_centred(y, oy)
+        ax, ay, g_max = _extents(x, y, gx, gy, ox, oy)
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
         m1 = m2 = d1 = d2 = 0.0  # the two middle values of the residuals and of their deviations
         scale = 0.0
         buf_z = np.empty(buf.size)
         stride = max(1, n // _SAMPLE_POINTS)
-        windowed = WindowedMedians(x, y, gx, gy, reach, max(_max_abs_centred(gx, 0.0), _max_abs_centred(gy, 0.0)),
-                                   (ox, oy))
+        windowed = WindowedMedians(x, y, gx, gy, reach, g_max, (ox, oy))
         for _ in range(max_iter):
             # Each order statistic moves by at most delta (the deviations by 2·delta): the next
             # brackets hold the two middle values, not only their mean (adjacent order
