@@ -70,6 +70,18 @@ def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     return below, n_r, sure, n_z
 
 
+@numba.njit(cache=True, fastmath=False, inline="always")
+def split_value(v, lo, hi, out, below, inside):
+    """``v`` counted (``below`` + 1) if < lo, written to ``out[inside]`` if in [lo, hi]; returns
+    the new (below, inside)."""
+    if v < lo:
+        return below + 1, inside
+    if v <= hi:
+        out[inside] = v
+        return below, inside + 1
+    return below, inside
+
+
 @numba.njit(cache=True, fastmath=False)
 def _deviations(z, centre, dlo, dhi, out):
     """|z − centre| of the collected residuals: the number < dlo, and those in [dlo, dhi]
@@ -77,12 +89,7 @@ def _deviations(z, centre, dlo, dhi, out):
     below = 0
     inside = 0
     for i in range(z.size):
-        v = abs(z[i] - centre)
-        if v < dlo:
-            below += 1
-        elif v <= dhi:
-            out[inside] = v
-            inside += 1
+        below, inside = split_value(abs(z[i] - centre), dlo, dhi, out, below, inside)
     return below, inside
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..geometry.kernel_args import readonly
 from .surface_fit import _pair, _pick
+from .surface_fit_select import split_value
 
 __all__ = ["Window", "WindowedMedians", "take_window"]
 
@@ -94,12 +95,8 @@ def _values(xs, ys, gxs, gys, xc, yc, coef, mode, centre, lo, hi, out):  # pragm
     inside = 0
     for i in range(0, xs.size):
         r0, r1 = _pair(xs, ys, gxs, gys, xc, yc, i, a2, b, c2, d, e, mode, centre)
-        for r in (r0, r1):
-            if r < lo:
-                below += 1
-            elif r <= hi:
-                out[inside] = r
-                inside += 1
+        below, inside = split_value(r0, lo, hi, out, below, inside)
+        below, inside = split_value(r1, lo, hi, out, below, inside)
     return below, inside
 
 
