@@ -47,8 +47,8 @@ def remove_piston_tilt(p_sample_mm, valid) -> tuple[np.ndarray, np.ndarray]:
     conditioned; equal to lstsq to ~1e-12, tests/test_surface_fit_kernels.py)."""
     p = np.asarray(p_sample_mm, dtype=float)
     shape = p.shape[:-1]
-    flat = np.ascontiguousarray(p.reshape(-1, 3))
-    okf = np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=bool), shape).reshape(-1))
+    flat = readonly(np.ascontiguousarray(p.reshape(-1, 3)))  # read-only: one argument type
+    okf = readonly(np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=bool), shape).reshape(-1)))
     out = np.empty(okf.size)
     coef = np.empty(3)
     status = _plane_kernel(flat, okf, np.empty(okf.size, np.bool_), out, coef)
