@@ -28,9 +28,12 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..geometry.camera import Camera
+from ..geometry.kernel_args import readonly
+from ..geometry.surface import height_kernel
 from ..geometry.cover_glass import CoverGlass
 from ..geometry.transform import RigidTransform
 from ..geometry.compact import compact_repr
@@ -126,6 +129,13 @@ def register(
     if ok.shape != camera.shape:
         raise ValueError(f"decoded must have shape {camera.shape}, got {ok.shape}")
     d_cam, converged = camera.sensor_rays() if rays is None else rays
+    T_ref_world = T_world_ref.inv()
+    T_ref_screen = T_ref_world @ T_world_screen
+    T_ref_cam = T_ref_world @ T_world_cam
+    o_ref = T_ref_cam.translation.copy()
+    if (glass is None or not glass.present) and getattr(screen_model, "kernel", None) is not None:
+        status, d_ref, q_ref = _register_blocks(xy, ok, converged, d_cam, screen_model, T_ref_screen, T_ref_cam)
+        return Registration(o_ref_mm=o_ref, d_ref=d_ref, q_ref_mm=q_ref, status=status)
     x = xy[..., 0]
     y = xy[..., 1]
     x0, x1, y0, y1 = screen_model.bounds_mm
@@ -142,10 +152,6 @@ def register(
     h = screen_model.height(np.where(valid, x, x0), np.where(valid, y, y0))
     q_screen = np.stack([x, y, h], axis=-1)
     q_screen[~valid] = np.nan
-    T_ref_world = T_world_ref.inv()
-    T_ref_screen = T_ref_world @ T_world_screen
-    T_ref_cam = T_ref_world @ T_world_cam
-    o_ref = T_ref_cam.translation.copy()
     d_ref = T_ref_cam.apply_vector(d_cam)
     if glass is not None and glass.present:
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -166,3 +172,79 @@ def register(
         q_ref_mm=T_ref_screen.apply(q_screen),
         status=status,
     )
+
+
+#: Pixels per block of the fused registration: the block's (x, y, h) rows (384 kB) stay in cache
+#: between the kernel that writes them and the rotation that reads them, and numpy's matmul of
+#: that many rows runs on one OpenBLAS thread (from 65 536 rows on it starts threads, which on
+#: a loaded 2-vCPU machine took 0.9–1.1 s instead of 20 ms for 2.3 M rows: docs/benchmarks.md).
+_BLOCK_PX = 16_384
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _screen_block(xy, ok, conv, bounds, kind, gx, gy, coef, start, stop, status, q):  # pragma: no cover - compiled
+    """Status (``status`` (P,), uint8) and screen points (x, y, h(x, y)) — NaN where the status is
+    not VALID — of the flat pixels start … stop − 1 (``xy`` (P, 2), ``ok``, ``conv`` (P,)) into
+    ``q[: stop − start]`` ((B, 3)); the status as :func:`register`'s masks set it (NOT_DECODED
+    over UNDISTORT_FAILED over OUTSIDE_SCREEN_MODEL)."""
+    x0, x1, y0, y1 = bounds[0], bounds[1], bounds[2], bounds[3]
+    for k in range(start, stop):
+        x = xy[k, 0]
+        y = xy[k, 1]
+        j = k - start
+        if not ok[k]:
+            st = 1
+        elif not conv[k]:
+            st = 2
+        elif not (x >= x0 and x <= x1 and y >= y0 and y <= y1):  # False for NaN
+            st = 3
+        else:
+            st = 0
+        status[k] = st
+        if st == 0:
+            q[j, 0] = x
+            q[j, 1] = y
+            q[j, 2] = height_kernel(kind, gx, gy, coef, x, y)
+        else:
+            q[j, 0] = np.nan
+            q[j, 1] = np.nan
+            q[j, 2] = np.nan
+
+
+def _register_blocks(xy, ok, converged, d_cam, screen_model, T_ref_screen, T_ref_cam):
+    """Status (H, W), view rays (H, W, 3) and screen points (H, W, 3) in the reference frame of
+    :func:`register` without a glass, in blocks of pixels: a compiled pass writes a block's
+    (x, y, h) rows, numpy rotates them into the result (``p @ R.T``, then ``+= t``:
+    :meth:`RigidTransform.apply`'s operations row for row — the same bits,
+    tests/test_registration_fused.py) while they are in cache, and rotates the block's view rays
+    (:meth:`RigidTransform.apply_vector`). No (H, W, 3) screen points, masks or heights of the
+    whole image are allocated; numpy's matmul runs on blocks of rows as on the whole array,
+    except a block of one row (another path, other bits), which the blocks avoid."""
+    shape = ok.shape
+    P = ok.size
+    k = screen_model.kernel
+    flat_xy = readonly(np.ascontiguousarray(xy, dtype=np.float64).reshape(P, 2))
+    flat_ok = readonly(np.ascontiguousarray(ok, dtype=np.bool_).reshape(P))
+    flat_cv = readonly(np.ascontiguousarray(converged, dtype=np.bool_).reshape(P))
+    flat_d = np.asarray(d_cam, dtype=np.float64).reshape(P, 3)
+    bounds = readonly(np.array(screen_model.bounds_mm, dtype=np.float64))
+    gx, gy, coef = (readonly(np.ascontiguousarray(a, dtype=np.float64)) for a in (k.grid_x, k.grid_y, k.coef))
+    kind = np.int64(k.kind)
+    status = np.empty(P, np.uint8)
+    q_ref = np.empty((P, 3))
+    d_ref = np.empty((P, 3))
+    block = np.empty((min(P, _BLOCK_PX + 1), 3))
+    rot_q, t_q, rot_d = T_ref_screen.rotation.T, T_ref_screen.translation, T_ref_cam.rotation.T
+    start = 0
+    while start < P:
+        stop = min(P, start + _BLOCK_PX)
+        if P - stop == 1:  # no block of one row
+            stop = P
+        q = block[: stop - start]
+        _screen_block(flat_xy, flat_ok, flat_cv, bounds, kind, gx, gy, coef, np.int64(start), np.int64(stop), status, q)
+        out = q_ref[start:stop]
+        np.matmul(q, rot_q, out=out)
+        out += t_q
+        np.matmul(flat_d[start:stop], rot_d, out=d_ref[start:stop])
+        start = stop
+    return status.reshape(shape), d_ref.reshape(shape + (3,)), q_ref.reshape(shape + (3,))

@@ -107,5 +107,6 @@ def scatter_residuals(residuals, ok, start: int) -> tuple[np.ndarray, int]:
     order), NaN elsewhere, and the next row index."""
     ok = readonly(np.ascontiguousarray(ok, dtype=np.bool_))
     out = np.empty(ok.shape + (2,))
-    j = _scatter_kernel(readonly(np.asarray(residuals, dtype=np.float64)), ok, int(start), out)  # any layout
+    # Fortran order: the fit's (2, M) rows transposed (no copy), the kernel's one argument type
+    j = _scatter_kernel(readonly(np.asfortranarray(residuals, dtype=np.float64)), ok, int(start), out)
     return out, int(j)

@@ -23,9 +23,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .surface_fit import _pair, _pick
+from ..geometry.kernel_args import readonly
+from .surface_fit import _BRACKET_SIGMAS, _pair, _pick
 
-__all__ = ["median_and_mad"]
+__all__ = ["median_and_mad", "sample_bracket"]
 
 _BLOCK = 256  # points counted before a block is re-read for its values to copy
 
@@ -34,13 +35,13 @@ _BLOCK = 256  # points counted before a block is re-read for its values to copy
 def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     """One pass over the 2M residuals r: the number < lo and those in [lo, hi] (to ``buf_r``);
     the number with hi − dlo < r < lo + dlo and the others in [lo − dhi, hi + dhi] (to
-    ``buf_z``), as many as fit (the latter two classes' bounds moved inwards, resp. outwards, by
-    8 ulps of |lo| + |hi| + dhi: the rounding of r − c and of the bounds cannot misclassify). Returns (below, n_r, sure, n_z); n > buffer size: too many.
+    ``buf_z``), as many as fit — one less than the buffer's size (the latter two classes' bounds moved inwards, resp. outwards, by
+    8 ulps of |lo| + |hi| + dhi: the rounding of r − c and of the bounds cannot misclassify). Returns (below, n_r, sure, n_z); n ≥ buffer size: too many.
     Blocks of 256 points are counted without branches and re-read only where they hold a value
     to copy."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
-    cap_r = buf_r.size
-    cap_z = buf_z.size
+    last_r = buf_r.size - 1
+    last_z = buf_z.size - 1
     # the classes' bounds moved by a few ulps towards "collect": r − c and the bounds are rounded
     tol = 8.0 * 2.220446049250313e-16 * (abs(lo) + abs(hi) + dhi)
     zlo = lo - dhi - tol
@@ -59,18 +60,26 @@ def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
             sure += s0 + s1
             cnt += ((r0 >= lo) * (r0 <= hi) + (r1 >= lo) * (r1 <= hi)
                     + (r0 >= zlo) * (r0 <= zhi) * (1 - s0) + (r1 >= zlo) * (r1 <= zhi) * (1 - s1))
-        if cnt:
-            for i in range(start, stop):
+        if cnt:  # each value is written to the next free slot, which only a value to keep advances
+            for i in range(start, stop):  # (no branch per value: they are unpredictable)
                 for r in _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, 0, 0.0):
-                    if lo <= r <= hi:
-                        if n_r < cap_r:
-                            buf_r[n_r] = r
-                        n_r += 1
-                    if zlo <= r <= zhi and not (slo < r < shi):
-                        if n_z < cap_z:
-                            buf_z[n_z] = r
-                        n_z += 1
+                    buf_r[min(n_r, last_r)] = r
+                    n_r += (r >= lo) * (r <= hi)
+                    buf_z[min(n_z, last_z)] = r
+                    n_z += (r >= zlo) * (r <= zhi) * (1 - (r > slo) * (r < shi))
     return below, n_r, sure, n_z
+
+
+@numba.njit(cache=True, fastmath=False, inline="always")
+def split_value(v, lo, hi, out, below, inside):
+    """``v`` counted (``below`` + 1) if < lo, written to ``out[inside]`` if in [lo, hi]; returns
+    the new (below, inside)."""
+    if v < lo:
+        return below + 1, inside
+    if v <= hi:
+        out[inside] = v
+        return below, inside + 1
+    return below, inside
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -80,12 +89,7 @@ def _deviations(z, centre, dlo, dhi, out):
     below = 0
     inside = 0
     for i in range(z.size):
-        v = abs(z[i] - centre)
-        if v < dlo:
-            below += 1
-        elif v <= dhi:
-            out[inside] = v
-            inside += 1
+        below, inside = split_value(abs(z[i] - centre), dlo, dhi, out, below, inside)
     return below, inside
 
 
@@ -112,6 +116,7 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     """
     lo, hi = bracket
     dlo, dhi = dev_bracket
+    x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)  # one argument type of the kernel
     if not (lo <= hi and 0.0 <= dlo <= dhi):
         return None
     if hi - dlo >= lo + dlo:  # (about) no residual is surely within dlo of every centre: too many to keep
@@ -126,7 +131,8 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     n = 2 * x.size
     k1, k2 = (n - 1) // 2, n // 2
     below, n_r, sure, n_z = _collect_both(x, y, gx, gy, float(origin[0]), float(origin[1]), coef, lo, hi, dlo, dhi, buf_r, buf_z)
-    if n_r > buf_r.size or n_z > min(buf_z.size, buf_r.size):  # (the deviations are written over buf_r)
+    # (the last slot of a buffer takes the values not kept: full at size − 1; the deviations are written over buf_r)
+    if n_r >= buf_r.size or n_z >= buf_z.size or n_z > buf_r.size:
         return None
     got = _pick(buf_r[:n_r], below, k1, k2, lo, hi)
     if got is None:
@@ -142,3 +148,19 @@ def median_and_mad(x, y, gx, gy, coef, bracket, dev_bracket, buf_r, buf_z, *, sa
     w1, w2 = got
     mad = float(w1) if n % 2 else float((w1 + w2) / 2.0)
     return (med, float(v1), float(v2)), (mad, float(w1), float(w2))
+
+
+
+def sample_bracket(sample, n):
+    """(lo, hi): the values of the sorted ``sample`` within ±6 binomial standard deviations of
+    the rank of the median of ``n`` values — a bracket that holds the two middle values of all
+    n unless the sample misleads (then the selection finds the ranks outside and selects
+    again) — or None if the sample is too small for it."""
+    ns = sample.size
+    k1 = (n - 1) // 2
+    pos = k1 / max(n - 1, 1) * (ns - 1)
+    half = _BRACKET_SIGMAS * np.sqrt(0.25 * ns) + 2.0
+    i_lo, i_hi = int(np.floor(pos - half)), int(np.ceil(pos + half))
+    if i_lo < 0 or i_hi >= ns or not sample[i_hi] > sample[i_lo]:
+        return None
+    return float(sample[i_lo]), float(sample[i_hi])
