@@ -16,18 +16,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from ..calibration import (
-    CalibrationResult,
-    calibrate,
-    calibrated_setup,
-    calibration_summary,
-    nominal_state,
-    observations_from_mapping,
-)
 from .. import interrupts
 from ..errors import ComputationError, PmdsimError
 from ..evaluation.phase import PhaseFlag
@@ -46,16 +38,15 @@ from ..io import (
 from ..io.hdf5 import write_consistency_h5
 from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
 from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
-from ..calibration.diagnostics import residual_report
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
 from .checks import check_memory
 from ..setup import Setup
-from ..simulation.imaging import needs_points
-from ..setup.sensor import SensorModel
-from ..simulation.render import image_specs, render_images, trace_setup_camera
-from .figures import write_height_map_png
+from .map_png import write_height_map_png
 from .uncertainty_job import uncertainty_line
 from .report import json_ready
+
+if TYPE_CHECKING:  # the calibration and the simulation are imported where used: not on evaluate's path (start-up)
+    from ..calibration import CalibrationResult
 
 __all__ = [
     "JobInputError",
@@ -90,6 +81,8 @@ def _tick(progress: Progress | None, msg: str) -> None:
 # ============================================================================ simulate
 def simulation_steps(setup: Setup) -> int:
     """Number of progress calls of :func:`simulate_to_dir`: one per traced camera and image."""
+    from ..simulation.render import image_specs
+
     return sum(1 + len(image_specs(setup, c)) for c in setup.cameras)
 
 
@@ -119,6 +112,10 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
     of the sample. ``inputs`` (e.g. the setup file) must not be replaced by ``out_dir``
     (:func:`pmdsim.io.outputs.atomic_output_dir`).
     """
+    from ..setup.sensor import SensorModel
+    from ..simulation.imaging import needs_points
+    from ..simulation.render import render_images, trace_setup_camera
+
     if calibration_pose is not None:
         setup = setup.with_mirror_pose(calibration_pose)
     check_memory(setup, "simulate")
@@ -319,6 +316,8 @@ def _expected_screen_xy(setup: Setup, cam: str) -> np.ndarray:
     if not s.curved:
         cs = setup.cameras[cam]
         return nominal_screen_xy(cs.camera, cs.T_world_cam, s.T_world_sample, setup.screen.T_world_screen)
+    from ..simulation.render import trace_setup_camera
+
     return trace_setup_camera(setup, cam).screen_xy_mm
 
 
@@ -717,6 +716,8 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
         If the calibration does not converge (nothing is written).
     """
     from .. import __version__
+    from ..calibration import calibrate, calibrated_setup, calibration_summary, nominal_state, observations_from_mapping
+    from ..calibration.diagnostics import residual_report
 
     nominal = nominal.with_bulge(0.0)
     poses = nominal.calibration.mirror_poses(nominal.sample)
