@@ -48,18 +48,9 @@ from .report import json_ready
 if TYPE_CHECKING:  # the calibration and the simulation are imported where used: not on evaluate's path (start-up)
     from ..calibration import CalibrationResult
 
-__all__ = [
-    "JobInputError",
-    "simulation_steps",
-    "simulate_to_dir",
-    "evaluate_image_set",
-    "evaluate_image_set_stereo",
-    "calibrate_image_sets",
-    "CalibrationNotConverged",
-    "ConsistencyFailure",
-    "check_image_sizes",
-    "DEFAULT_MIN_VALID_FRACTION",
-]
+__all__ = ["JobInputError", "simulation_steps", "simulate_to_dir", "evaluate_image_set", "evaluate_image_set_stereo",
+           "calibrate_image_sets", "CalibrationNotConverged", "ConsistencyFailure", "check_image_sizes",
+           "DEFAULT_MIN_VALID_FRACTION"]
 
 Progress = Callable[[str], None]
 
@@ -425,6 +416,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import write_slope_error_png
     from . import uncertainty_job as uj
+    from .evaluate_files import background_files
     from .evaluate_memory import kept_for_files, small_pages
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
@@ -454,8 +446,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     inst = manifest.instrument
     run_checks = consistency
     notes = []
-    # 4 kB pages for the arrays (evaluate_memory.small_pages: huge pages cost ≈ 2.8 ms/MB to first touch here)
-    with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
+    with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp, \
+            background_files() as figures:  # 4 kB pages (huge ones cost ≈ 2.8 ms/MB here); PNGs drawn in a thread
         for cam in manifest.cameras:
             decoded, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, run_checks)
             if cons is not None:
@@ -490,13 +482,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                                                      anchor_std=uj.anchor_std_mm(cam_anchor, anchor_std_mm))
                 warnings += w
                 if uncs[cam] is not None:
-                    uj.height_std_figure(rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
+                    figures.submit(uj.height_std_figure, rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
             decoded, reg, rec = results[cam] = kept_for_files(decoded, reg, rec)  # release the rest now
             p = rec.p_sample_mm
-            write_height_map_png(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                                 title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
-                                       f"{', relative' if ar.relative else ''})",
-                                 label="height (µm)", path=tmp / f"height_{cam}.png")
+            figures.submit(write_height_map_png, p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                           title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
+                                 f"{', relative' if ar.relative else ''})", label="height (µm)",
+                           path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
         cam0 = manifest.cameras[0]
         try:
@@ -509,8 +501,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                     {"focal_length_x_mm": None, "focal_length_y_mm": None, "slope_residual_rms_mrad": None})
         write_json(tmp / "surface_fit.json", fit_json)
         if fit is not None:
-            write_slope_error_png({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
-                                   for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
+            per_cam = {c: (results[c][2].p_sample_mm, ex["residual_slopes"]) for c, ex in zip(manifest.cameras, extras)}
+            figures.submit(write_slope_error_png, per_cam, fit, path=tmp / "slope_error.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
                              "instrument": json.dumps(json_ready(manifest.instrument.describe())),
