@@ -12,26 +12,12 @@
 May import: :mod:`pmdsim.errors`, :mod:`pmdsim.geometry`, :mod:`pmdsim.setup`.
 """
 
-import importlib
+from .metrics import surface_error_metrics
+from .phase import PhaseDecodingError, PhaseFlag, ScreenCoordinates, decode_screen_coordinates
+from .pipeline import decode_images, evaluate_decoded
+from .reconstruction import Reconstruction, ReconstructionError, reconstruct
+from .registration import Registration, RegistrationStatus, register
 
-#: Public name → the submodule defining it, imported on first use (PEP 562), so that importing one
-#: submodule (``pmdsim evaluate`` needs the decoder, registration and reconstruction) does not
-#: import the others (the pipeline, the metrics and what they import: docs/benchmarks.md, "start-up").
-_LAZY = {"surface_error_metrics": "metrics", "PhaseDecodingError": "phase", "PhaseFlag": "phase",
-         "ScreenCoordinates": "phase", "decode_screen_coordinates": "phase", "decode_images": "pipeline",
-         "evaluate_decoded": "pipeline", "Reconstruction": "reconstruction", "ReconstructionError": "reconstruction",
-         "reconstruct": "reconstruction", "Registration": "registration", "RegistrationStatus": "registration",
-         "register": "registration"}
-
-__all__ = list(_LAZY)
-
-
-def __getattr__(name: str):
-    if name not in _LAZY:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = globals()[name] = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+__all__ = ["surface_error_metrics", "PhaseDecodingError", "PhaseFlag", "ScreenCoordinates",
+           "decode_screen_coordinates", "decode_images", "evaluate_decoded", "Reconstruction",
+           "ReconstructionError", "reconstruct", "Registration", "RegistrationStatus", "register"]
