@@ -41,7 +41,7 @@ from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
 from .checks import check_memory
 from ..setup import Setup
-from .map_png import write_height_map_png
+from .map_png import warm_up, write_height_map_png
 from .uncertainty_job import uncertainty_line
 from .report import json_ready
 
@@ -448,6 +448,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     notes = []
     with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp, \
             background_files() as figures:  # 4 kB pages (huge ones cost ≈ 2.8 ms/MB here); PNGs drawn in a thread
+        figures.submit(warm_up)  # the figures' imports, fonts and kernels while the images are read
         for cam in manifest.cameras:
             decoded, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, run_checks)
             if cons is not None:

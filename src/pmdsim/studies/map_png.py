@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapPanel", "PanelLayout", "write_map_png"]
+__all__ = ["MapPanel", "PanelLayout", "write_map_png", "write_height_map_png", "warm_up"]
 
 #: zlib level of the PNG files (see :data:`pmdsim.studies.figures.PNG_COMPRESS_LEVEL`).
 PNG_COMPRESS_LEVEL = 1
@@ -227,3 +227,13 @@ def write_height_map_png(x_mm, y_mm, z_um, *, title: str, path: str | Path, labe
     (the same map, title, axes and colour bar; a few milliseconds instead of a matplotlib draw,
     and no matplotlib figure imported). Returns the panel's :class:`PanelLayout` in a list."""
     return write_map_png(path, [MapPanel(np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label, signed)])
+
+
+def warm_up() -> None:
+    """Draw a tiny map into memory: imports matplotlib's colours, ticks and fonts and Pillow's
+    drawing and loads the binning kernels, so that ``pmdsim evaluate``'s figure thread does it
+    while the images are read (start-up) instead of at the first figure."""
+    import io
+
+    v, u = np.mgrid[0:8, 0:8].astype(np.float64)
+    write_map_png(io.BytesIO(), [MapPanel(u, v, u * v, "warm-up", "z (1)", True)])
