@@ -152,6 +152,8 @@ def main() -> None:
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--no-uncertainty", action="store_true", help="evaluate without σ (the CLI's --no-uncertainty)")
+    ap.add_argument("--figures-in-main-thread", action="store_true",
+                    help="draw evaluate's PNG figures in the main thread, each when submitted (A/B of the figure thread)")
     ap.add_argument("--trace-memory", action="store_true",
                     help="tracemalloc per stage in the last run (numpy buffers: what is alive at the stage's entry "
                          "and its peak; slows the run)")
@@ -166,6 +168,11 @@ def main() -> None:
 
     _instrument()
     from pmdsim.studies.jobs import evaluate_image_set
+
+    if args.figures_in_main_thread:
+        from pmdsim.studies import evaluate_files
+
+        evaluate_files.BackgroundFiles.submit = lambda self, write, *a, **k: write(*a, **k)
 
     res = {"pmdsim_version": __version__, "uncertainty": not args.no_uncertainty, "threads": numba.get_num_threads(), "image_dir": args.image_dir,
            "load_avg_1min_before": os.getloadavg()[0]}
