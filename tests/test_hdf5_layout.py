@@ -97,7 +97,7 @@ def test_evaluation_h5_opens_with_named_dims_and_open_evaluation(sim_eval):
         np.testing.assert_array_equal(ds["height_mm"].sel(camera="right").values, f["right/height_mm"][()])
         assert ds.attrs["pmdsim_version"] == f.attrs["pmdsim_version"]
     with h5py.File(ev / "evaluation.h5") as f:  # the storage docs/benchmarks.md chose: standard filters only
-        assert f["left/height_mm"].compression is None and f["left/height_mm"].chunks is None  # contiguous
+        assert f["left/height_mm"].compression is None and f["left/height_mm"].chunks[1:] == (96,)
         assert f["left/decoded"].compression == "gzip" and f["left/decoded"].shuffle
     one = pmdsim.open_evaluation(ev / "evaluation.h5", camera="right")
     assert one["screen_xy_mm"].dims == ("v", "u", "component_xy") and one.attrs["camera"] == "right"
@@ -190,10 +190,9 @@ def test_height_map_writer_opens_with_named_dims(tmp_path):
 
 
 def test_all_zero_maps_read_back_identical_without_written_chunks(tmp_path):
-    """Maps of all-zero bits (0.0, False, 0) are stored without written storage (HDF5's fill value
-    0) and read back equal, with the same layout and filters as written maps (floats contiguous
-    and unfiltered, booleans and integers in 64-row gzip chunks) and +0.0 signs; −0.0, NaN and
-    True are written as usual. xarray (h5netcdf) reads the same numbers."""
+    """Maps of all-zero bits (0.0, False, 0) are stored without written chunks (HDF5's fill value
+    0) and read back equal, with the same chunking and filters as written maps and +0.0 signs;
+    −0.0, NaN and True are written as usual. xarray (h5netcdf) reads the same numbers."""
     rng = np.random.default_rng(3)
     maps = {"zero_um": np.zeros((70, 9)), "zero_xy_mm": np.zeros((70, 9, 2)), "off": np.zeros((70, 9), bool),
             "code": np.zeros((70, 9), np.uint8), "negzero_um": np.full((70, 9), -0.0),
@@ -213,7 +212,7 @@ def test_all_zero_maps_read_back_identical_without_written_chunks(tmp_path):
             assert got.dtype == a.dtype and got.shape == a.shape
             assert np.array_equal(got, a, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(a)), name
             assert (d.id.get_storage_size() == 0) == (name in unwritten), name
-            assert d.chunks == (None if a.dtype.kind == "f" else (64,) + a.shape[1:]), name
+            assert d.chunks == (64,) + a.shape[1:], name
             assert d.compression == ("gzip" if a.dtype.kind in "biu" else None), name
     ds = check_file(path)["/cam"]
     np.testing.assert_array_equal(ds["zero_xy_mm"].values, maps["zero_xy_mm"])

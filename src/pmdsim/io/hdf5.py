@@ -7,9 +7,8 @@ to HDF5 dimension scales ``v`` and ``u`` (pixel row and column indices) and, for
 ``component`` (x, y, z) or ``component_xy`` (x, y), so that
 ``xarray.open_datatree(path, engine="h5netcdf")`` opens every file with named dimensions.
 Parameters (Δh, scenario, screen model, …) are group attributes, never part of a group name.
-Layout and filters chosen by measurement (docs/benchmarks.md, "HDF5 writing" and "`evaluate` end
-to end: the files"): float maps of mapping and evaluation files contiguous and uncompressed, of
-``heights.h5`` in row chunks with gzip + shuffle, booleans and integers in row chunks with gzip +
+Filters chosen by measurement (docs/benchmarks.md, "HDF5 writing"): float maps of mapping and
+evaluation files uncompressed, of ``heights.h5`` gzip + shuffle, booleans and integers gzip +
 shuffle — standard filters any HDF5 reader decodes without plugins.
 """
 
@@ -33,10 +32,8 @@ UNITS = ("mm", "um", "urad", "1")
 
 #: HDF5 filters for the float maps of ``mapping.h5`` and ``evaluation.h5``, chosen by measurement
 #: (docs/benchmarks.md, "HDF5 writing"): none. Decoded float maps carry noise in their low
-#: mantissa bits, so gzip + shuffle saves only 30–47 % of their size at 8–60× the write time
-#: (11–17 s of a full-resolution evaluate, against 0.27–1.3 s uncompressed). Without a filter
-#: they are stored contiguous (no chunks): 0.27 s instead of 0.45 s for a two-camera
-#: 1920×1200 evaluation.h5 (docs/benchmarks.md, "`evaluate` end to end: the files").
+#: mantissa bits, so gzip + shuffle saves only 47 % of their size at 8–27× the write time
+#: (11 s of a full-resolution evaluate at load 4, against 0.8–1.3 s uncompressed).
 FLOAT_FILTERS: dict = {}
 
 #: HDF5 filters for the float maps of ``heights.h5`` (experiment archives of many cases, where
@@ -47,7 +44,7 @@ ARCHIVE_FILTERS: dict = dict(compression="gzip", compression_opts=1, shuffle=Tru
 #: few per cent of their size after gzip level 1 + shuffle, at little cost).
 INT_FILTERS: dict = dict(compression="gzip", compression_opts=1, shuffle=True)
 
-#: Rows per chunk of a filtered per-pixel map (a chunk spans whole rows and all components).
+#: Rows per chunk of a per-pixel map (a chunk spans whole rows and all components).
 CHUNK_ROWS = 64
 
 _STR = h5py.string_dtype()
@@ -100,24 +97,23 @@ def _all_zero_bits(data: np.ndarray) -> bool:
 def _put(g: h5py.Group, name: str, data, *, units: str, long_name: str, frame: str | None = None,
          dims: list | None = None, compress: bool = True, archive: bool = False, **attrs) -> h5py.Dataset:
     """Write ``g[name]`` with its units, long name, frame and dimension scales (per-pixel
-    (H, W[, k]) maps by default; ``dims``: other scales, one per axis). Filters:
-    :data:`INT_FILTERS` for booleans and integers, else :data:`ARCHIVE_FILTERS` if ``archive``
-    else :data:`FLOAT_FILTERS`; a filtered map is stored in chunks of :data:`CHUNK_ROWS` whole
-    rows, an unfiltered one contiguous. A map whose elements are all zero bits (e.g. the
-    calibration σ maps when the setup carries no calibration covariance) is created without
-    writing it: HDF5 reads unwritten storage as the default fill value 0, so the dataset reads
-    back identical (issue 25: 110 MB less to write for a two-camera 1920×1200 evaluation)."""
+    (H, W[, k]) maps by default, in chunks of :data:`CHUNK_ROWS` whole rows; ``dims``: other
+    scales, one per axis). Filters: :data:`INT_FILTERS` for booleans and integers, else
+    :data:`ARCHIVE_FILTERS` if ``archive`` else :data:`FLOAT_FILTERS`. A chunked map whose
+    elements are all zero bits (e.g. the calibration σ maps when the setup carries no calibration
+    covariance) is created without writing its chunks: HDF5 reads unwritten chunks as the
+    default fill value 0, so the dataset reads back identical (issue 25: 110 MB less to write
+    for a two-camera 1920×1200 evaluation)."""
     if units not in UNITS:
         raise ValueError(f"units {units!r} of {name!r} not in {UNITS}")
     data = np.asarray(data)
     kw: dict = {}
-    pixel_map = dims is None and compress  # a per-pixel map with the filters of its kind
     if dims is None:
         dims = _pixel_scales(g, data.shape)
-        if pixel_map and data.size:
+        if compress and data.size:
             filters = INT_FILTERS if data.dtype.kind != "f" else ARCHIVE_FILTERS if archive else FLOAT_FILTERS
-            kw = dict(filters, chunks=(min(CHUNK_ROWS, data.shape[0]), *data.shape[1:])) if filters else {}
-    if pixel_map and _all_zero_bits(data):  # all the fill value: nothing written (read back as 0)
+            kw = dict(filters, chunks=(min(CHUNK_ROWS, data.shape[0]), *data.shape[1:]))
+    if kw and _all_zero_bits(data):  # every chunk equals the fill value: none written (read back as 0)
         d = g.create_dataset(name, shape=data.shape, dtype=data.dtype, **kw)
     else:
         d = g.create_dataset(name, data=data, **kw)
