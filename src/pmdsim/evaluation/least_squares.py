@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 from .integration import (
     Reconstruction,
@@ -390,6 +389,8 @@ def _coarse_mask(S, seed):
         Sc[sc[0], sc[1] + 1] = False
     if sc[0] + 1 < Hc and not down[sc]:
         Sc[sc[0] + 1, sc[1]] = False
+    from scipy import ndimage  # here, not at import: not on evaluate's start-up path
+
     labels, _ = ndimage.label(Sc)  # 4-connectivity
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
 
@@ -544,6 +545,8 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     if valid.all():  # one component: no labelling needed
         S = np.ones((H, W), dtype=bool)
     else:
+        from scipy import ndimage
+
         labels, _ = ndimage.label(valid)  # 4-connectivity
         S = np.ascontiguousarray(labels == labels[seed])
 

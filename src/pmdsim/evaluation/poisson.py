@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-import scipy.fft
 
 __all__ = ["DCTLaplacian", "dct_pcg", "prefers_dct"]
 
@@ -96,6 +95,8 @@ class DCTLaplacian:
             x[..., sv, su] = 0.0
             totals = x.sum(axis=(-2, -1), dtype=np.float64)
         x[..., sv, su] = -np.asarray(totals)  # a consistent right-hand side: Σ = 0
+        import scipy.fft  # here, not at import: not on evaluate's start-up path
+
         f = np.ascontiguousarray(scipy.fft.dct(x, type=2, norm="ortho", axis=-1, workers=self.workers,
                                                overwrite_x=True))
         _column_substitution(f.reshape((-1,) + self.shape), self.inv_pivots, numba.get_num_threads())

@@ -31,7 +31,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 
 from ..errors import PmdsimError
 
@@ -118,6 +117,8 @@ class IntensityResponse:
     # ------------------------------------------------------------------ readers
     def forward(self, display_level) -> np.ndarray:
         """Camera level c(d) for display levels d (any shape; clipped to the measured range)."""
+        from scipy.interpolate import PchipInterpolator  # here: scipy.interpolate is not on evaluate's start-up path
+
         d = np.clip(np.asarray(display_level, dtype=float), self.display_levels[0], self.display_levels[-1])
         return PchipInterpolator(self.display_levels, self.camera_levels, extrapolate=False)(d)
 
@@ -147,6 +148,8 @@ class IntensityResponse:
 
     def _inverse(self, c: np.ndarray) -> np.ndarray:
         """d(c) for camera levels c (1-D, inside the measured range)."""
+        from scipy.interpolate import PchipInterpolator
+
         pp = PchipInterpolator(self.display_levels, self.camera_levels, extrapolate=False)
         knots_d = np.asarray(self.display_levels)
         knots_c = np.asarray(self.camera_levels)

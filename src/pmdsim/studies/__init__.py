@@ -14,32 +14,32 @@ May import every layer below it (geometry, setup, simulation, evaluation, calibr
 The CLI calls these and prints; it formats no table and draws no figure itself.
 """
 
-from .calibration_data import observe_calibration_poses, simulate_calibration_observations, trace_calibration_poses
-from .experiment1 import PAPER_TABLE2, CaseResult, experiment1, run_experiment1_case
-from .experiment2 import (
-    INITIAL_ERRORS,
-    PAPER_TABLE3,
-    Experiment2Bulge,
-    calibrate_and_reconstruct,
-    run_experiment2_bulge,
-)
-from .experiment3 import (
-    SCREEN_DEFORMATIONS,
-    Experiment3Scenario,
-    experiment3_records,
-    experiment3_scenarios,
-    run_experiment3,
-    screen_deformation,
-    screen_shape_error_um,
-)
-from .study import StudyRun, run_case, run_study, write_results
-from .study_file import Study, StudyError, load_study, parse_study
+import importlib
 
-__all__ = [
-    "observe_calibration_poses", "simulate_calibration_observations", "trace_calibration_poses",
-    "PAPER_TABLE2", "CaseResult", "experiment1", "run_experiment1_case",
-    "INITIAL_ERRORS", "PAPER_TABLE3", "Experiment2Bulge", "calibrate_and_reconstruct", "run_experiment2_bulge",
-    "SCREEN_DEFORMATIONS", "Experiment3Scenario", "experiment3_records", "experiment3_scenarios",
-    "run_experiment3", "screen_deformation", "screen_shape_error_um",
-    "StudyRun", "run_case", "run_study", "write_results", "Study", "StudyError", "load_study", "parse_study",
-]
+#: Public name → the submodule defining it, imported on first use (PEP 562): ``pmdsim evaluate``
+#: imports :mod:`.jobs` only, not the experiments, the study engine and what they import
+#: (docs/benchmarks.md, "start-up").
+_LAZY = {
+    **dict.fromkeys(("observe_calibration_poses", "simulate_calibration_observations", "trace_calibration_poses"),
+                    "calibration_data"),
+    **dict.fromkeys(("PAPER_TABLE2", "CaseResult", "experiment1", "run_experiment1_case"), "experiment1"),
+    **dict.fromkeys(("INITIAL_ERRORS", "PAPER_TABLE3", "Experiment2Bulge", "calibrate_and_reconstruct",
+                     "run_experiment2_bulge"), "experiment2"),
+    **dict.fromkeys(("SCREEN_DEFORMATIONS", "Experiment3Scenario", "experiment3_records", "experiment3_scenarios",
+                     "run_experiment3", "screen_deformation", "screen_shape_error_um"), "experiment3"),
+    **dict.fromkeys(("StudyRun", "run_case", "run_study", "write_results"), "study"),
+    **dict.fromkeys(("Study", "StudyError", "load_study", "parse_study"), "study_file"),
+}
+
+__all__ = list(_LAZY)
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = globals()[name] = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

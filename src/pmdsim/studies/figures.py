@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from .map_png import write_height_map_png  # noqa: F401 - public here too (lives in map_png: no matplotlib figure)
+
 __all__ = ["height_map_figure", "write_height_map_png", "height_grid_figure", "error_vs_free_parameters_figure"]
 
 
@@ -76,16 +78,6 @@ def height_map_figure(x_mm, y_mm, z_um, *, title: str, label: str = "height (µm
     ax = fig.subplots()
     _panel(fig, ax, np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label, signed=signed)
     return _save(fig, path)
-
-
-def write_height_map_png(x_mm, y_mm, z_um, *, title: str, path: str | Path, label: str = "height (µm)",
-                         signed: bool = True) -> list:
-    """:func:`height_map_figure` written to the PNG ``path`` with Pillow (the same map, title,
-    axes and colour bar, :mod:`.map_png`; a few milliseconds instead of a matplotlib draw).
-    Returns the panel's :class:`~pmdsim.studies.map_png.PanelLayout` in a list."""
-    from .map_png import MapPanel, write_map_png
-
-    return write_map_png(path, [MapPanel(np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label, signed)])
 
 
 def height_grid_figure(panels, *, suptitle: str, label: str = "height error (µm)",

@@ -16,18 +16,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from ..calibration import (
-    CalibrationResult,
-    calibrate,
-    calibrated_setup,
-    calibration_summary,
-    nominal_state,
-    observations_from_mapping,
-)
 from .. import interrupts
 from ..errors import ComputationError, PmdsimError
 from ..evaluation.phase import PhaseFlag
@@ -46,29 +38,19 @@ from ..io import (
 from ..io.hdf5 import write_consistency_h5
 from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
 from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
-from ..calibration.diagnostics import residual_report
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
 from .checks import check_memory
 from ..setup import Setup
-from ..simulation.imaging import needs_points
-from ..setup.sensor import SensorModel
-from ..simulation.render import image_specs, render_images, trace_setup_camera
-from .figures import write_height_map_png
+from .map_png import warm_up, write_height_map_png
 from .uncertainty_job import uncertainty_line
 from .report import json_ready
 
-__all__ = [
-    "JobInputError",
-    "simulation_steps",
-    "simulate_to_dir",
-    "evaluate_image_set",
-    "evaluate_image_set_stereo",
-    "calibrate_image_sets",
-    "CalibrationNotConverged",
-    "ConsistencyFailure",
-    "check_image_sizes",
-    "DEFAULT_MIN_VALID_FRACTION",
-]
+if TYPE_CHECKING:  # the calibration and the simulation are imported where used: not on evaluate's path (start-up)
+    from ..calibration import CalibrationResult
+
+__all__ = ["JobInputError", "simulation_steps", "simulate_to_dir", "evaluate_image_set", "evaluate_image_set_stereo",
+           "calibrate_image_sets", "CalibrationNotConverged", "ConsistencyFailure", "check_image_sizes",
+           "DEFAULT_MIN_VALID_FRACTION"]
 
 Progress = Callable[[str], None]
 
@@ -90,6 +72,8 @@ def _tick(progress: Progress | None, msg: str) -> None:
 # ============================================================================ simulate
 def simulation_steps(setup: Setup) -> int:
     """Number of progress calls of :func:`simulate_to_dir`: one per traced camera and image."""
+    from ..simulation.render import image_specs
+
     return sum(1 + len(image_specs(setup, c)) for c in setup.cameras)
 
 
@@ -119,6 +103,10 @@ def simulate_to_dir(setup: Setup, out_dir: str | Path, *, force: bool = False, c
     of the sample. ``inputs`` (e.g. the setup file) must not be replaced by ``out_dir``
     (:func:`pmdsim.io.outputs.atomic_output_dir`).
     """
+    from ..setup.sensor import SensorModel
+    from ..simulation.imaging import needs_points
+    from ..simulation.render import render_images, trace_setup_camera
+
     if calibration_pose is not None:
         setup = setup.with_mirror_pose(calibration_pose)
     check_memory(setup, "simulate")
@@ -319,6 +307,8 @@ def _expected_screen_xy(setup: Setup, cam: str) -> np.ndarray:
     if not s.curved:
         cs = setup.cameras[cam]
         return nominal_screen_xy(cs.camera, cs.T_world_cam, s.T_world_sample, setup.screen.T_world_screen)
+    from ..simulation.render import trace_setup_camera
+
     return trace_setup_camera(setup, cam).screen_xy_mm
 
 
@@ -426,6 +416,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import write_slope_error_png
     from . import uncertainty_job as uj
+    from .evaluate_files import background_files
     from .evaluate_memory import kept_for_files, small_pages
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
@@ -455,8 +446,9 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     inst = manifest.instrument
     run_checks = consistency
     notes = []
-    # 4 kB pages for the arrays (evaluate_memory.small_pages: huge pages cost ≈ 2.8 ms/MB to first touch here)
-    with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
+    with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp, \
+            background_files() as figures:  # 4 kB pages (huge ones cost ≈ 2.8 ms/MB here); PNGs drawn in a thread
+        figures.submit(warm_up)  # the figures' imports, fonts and kernels while the images are read
         for cam in manifest.cameras:
             decoded, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, run_checks)
             if cons is not None:
@@ -491,13 +483,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                                                      anchor_std=uj.anchor_std_mm(cam_anchor, anchor_std_mm))
                 warnings += w
                 if uncs[cam] is not None:
-                    uj.height_std_figure(rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
+                    figures.submit(uj.height_std_figure, rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
             decoded, reg, rec = results[cam] = kept_for_files(decoded, reg, rec)  # release the rest now
             p = rec.p_sample_mm
-            write_height_map_png(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                                 title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
-                                       f"{', relative' if ar.relative else ''})",
-                                 label="height (µm)", path=tmp / f"height_{cam}.png")
+            figures.submit(write_height_map_png, p[..., 0], p[..., 1], rec.height_mm * 1e3,
+                           title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
+                                 f"{', relative' if ar.relative else ''})", label="height (µm)",
+                           path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
         cam0 = manifest.cameras[0]
         try:
@@ -510,8 +502,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
                     {"focal_length_x_mm": None, "focal_length_y_mm": None, "slope_residual_rms_mrad": None})
         write_json(tmp / "surface_fit.json", fit_json)
         if fit is not None:
-            write_slope_error_png({c: (results[c][2].p_sample_mm, ex["residual_slopes"])
-                                   for c, ex in zip(manifest.cameras, extras)}, fit, path=tmp / "slope_error.png")
+            per_cam = {c: (results[c][2].p_sample_mm, ex["residual_slopes"]) for c, ex in zip(manifest.cameras, extras)}
+            figures.submit(write_slope_error_png, per_cam, fit, path=tmp / "slope_error.png")
         write_evaluation_h5(tmp / "evaluation.h5", results,
                             {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
                              "instrument": json.dumps(json_ready(manifest.instrument.describe())),
@@ -717,6 +709,8 @@ def _calibrate_image_sets(image_dirs: Sequence[str | Path], nominal: Setup, out_
         If the calibration does not converge (nothing is written).
     """
     from .. import __version__
+    from ..calibration import calibrate, calibrated_setup, calibration_summary, nominal_state, observations_from_mapping
+    from ..calibration.diagnostics import residual_report
 
     nominal = nominal.with_bulge(0.0)
     poses = nominal.calibration.mirror_poses(nominal.sample)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapPanel", "PanelLayout", "write_map_png"]
+__all__ = ["MapPanel", "PanelLayout", "write_map_png", "write_height_map_png", "warm_up"]
 
 #: zlib level of the PNG files (see :data:`pmdsim.studies.figures.PNG_COMPRESS_LEVEL`).
 PNG_COMPRESS_LEVEL = 1
@@ -219,3 +219,21 @@ def write_map_png(path: str | Path, panels, *, ncols: int = 1, figsize=(6.4, 4.8
     out = [_draw_panel(img, draw, ((i % ncols) * cw, (i // ncols) * ch, cw, ch), p, dpi) for i, p in enumerate(panels)]
     img.save(path, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
     return out
+
+
+def write_height_map_png(x_mm, y_mm, z_um, *, title: str, path: str | Path, label: str = "height (µm)",
+                         signed: bool = True) -> list:
+    """:func:`~pmdsim.studies.figures.height_map_figure` written to the PNG ``path`` with Pillow
+    (the same map, title, axes and colour bar; a few milliseconds instead of a matplotlib draw,
+    and no matplotlib figure imported). Returns the panel's :class:`PanelLayout` in a list."""
+    return write_map_png(path, [MapPanel(np.asarray(x_mm), np.asarray(y_mm), np.asarray(z_um), title, label, signed)])
+
+
+def warm_up() -> None:
+    """Draw a tiny map into memory: imports matplotlib's colours, ticks and fonts and Pillow's
+    drawing and loads the binning kernels, so that ``pmdsim evaluate``'s figure thread does it
+    while the images are read (start-up) instead of at the first figure."""
+    import io
+
+    v, u = np.mgrid[0:8, 0:8].astype(np.float64)
+    write_map_png(io.BytesIO(), [MapPanel(u, v, u * v, "warm-up", "z (1)", True)])

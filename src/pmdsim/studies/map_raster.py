@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from matplotlib.image import AxesImage
 from numba import njit, types
 
 __all__ = ["MapPoints", "map_points", "MapImage"]
@@ -209,23 +208,39 @@ def map_points(x_mm, y_mm, z) -> MapPoints:
     return MapPoints(x, y, zz, (x0, x1, y0, y1), (z0, z1), int(n), float(spacing))
 
 
-class MapImage(AxesImage):
-    """An image of :class:`MapPoints` binned, when drawn, at one cell per device pixel of its
-    axes (see the module docstring); its norm and colour map are an ``imshow``'s."""
+def _map_image_class() -> type:
+    """:class:`MapImage`, defined on first use: it subclasses matplotlib's ``AxesImage``, and
+    ``pmdsim evaluate`` (which bins maps here for its Pillow-drawn PNGs) does not import
+    matplotlib's image and figure modules (start-up, docs/benchmarks.md)."""
+    from matplotlib.image import AxesImage
 
-    def __init__(self, ax, points: MapPoints, **kwargs):
-        super().__init__(ax, origin="lower", interpolation="nearest", extent=points.extent_mm, **kwargs)
-        self._points = points
-        self._shape = None
-        self.set_data(np.ma.masked_all((1, 1)))
+    class MapImage(AxesImage):
+        """An image of :class:`MapPoints` binned, when drawn, at one cell per device pixel of its
+        axes (see the module docstring); its norm and colour map are an ``imshow``'s."""
 
-    def _update_raster(self) -> None:
-        bb = self.axes.bbox
-        shape = (max(1, int(round(bb.height))), max(1, int(round(bb.width))))
-        if shape != self._shape:
-            self._shape = shape
-            self.set_data(self._points.raster(shape[1], shape[0]))
+        def __init__(self, ax, points: MapPoints, **kwargs):
+            super().__init__(ax, origin="lower", interpolation="nearest", extent=points.extent_mm, **kwargs)
+            self._points = points
+            self._shape = None
+            self.set_data(np.ma.masked_all((1, 1)))
 
-    def draw(self, renderer):
-        self._update_raster()
-        super().draw(renderer)
+        def _update_raster(self) -> None:
+            bb = self.axes.bbox
+            shape = (max(1, int(round(bb.height))), max(1, int(round(bb.width))))
+            if shape != self._shape:
+                self._shape = shape
+                self.set_data(self._points.raster(shape[1], shape[0]))
+
+        def draw(self, renderer):
+            self._update_raster()
+            super().draw(renderer)
+
+    MapImage.__qualname__ = "MapImage"
+    return MapImage
+
+
+def __getattr__(name: str):
+    if name == "MapImage":
+        cls = globals()["MapImage"] = _map_image_class()
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

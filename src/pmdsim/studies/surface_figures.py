@@ -4,11 +4,12 @@ best-fit paraboloid, x and y component, in mrad over the sample frame's x, y (mm
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.figure import Figure
 
-from .figures import _panel, _save
+if TYPE_CHECKING:  # matplotlib's figure only where one is drawn (pmdsim evaluate writes PNGs with Pillow)
+    from matplotlib.figure import Figure
 
 __all__ = ["slope_error_figure", "write_slope_error_png"]
 
@@ -16,6 +17,10 @@ __all__ = ["slope_error_figure", "write_slope_error_png"]
 def slope_error_figure(per_camera: dict, fit, *, path: str | Path | None = None) -> Figure:
     """``per_camera[name] = (p_sample_mm (H, W, 3), residual_slopes (H, W, 2) rad)``; ``fit`` a
     :class:`~pmdsim.evaluation.surface_fit.ParaboloidFit`. One row per camera, x and y residuals."""
+    from matplotlib.figure import Figure
+
+    from .figures import _panel, _save
+
     n = max(1, len(per_camera))
     fig = Figure(figsize=(10.0, 4.2 * n), dpi=110)
     axes = np.atleast_2d(fig.subplots(n, 2))
