@@ -4,6 +4,7 @@ shortcut ``_in_patch``) against the grid intervals written here with numpy."""
 import numpy as np
 import pytest
 
+from pmdsim.geometry.kernel_args import readonly
 from pmdsim.simulation.glass_rows import _in_patch, _patches_at
 from pmdsim.simulation.trace_rows import _BLK, _NF, _NI, _PID, _UX, _UY
 
@@ -26,8 +27,8 @@ def _block(ux, uy):
 @pytest.mark.parametrize("nx, ny", [(3, 3), (2, 4), (9, 7), (14, 9)])  # counted (small grids) and bisected
 def test_patches_at_and_the_one_patch_shortcut_agree_with_numpy_intervals(nx, ny):
     rng = np.random.default_rng(nx * 100 + ny)
-    gx = np.linspace(0.0, 708.0, nx)
-    gy = np.linspace(-5.0, 398.0, ny)
+    gx = readonly(np.linspace(0.0, 708.0, nx))  # read-only, as a spline hands its grid over: one signature
+    gy = readonly(np.linspace(-5.0, 398.0, ny))
     nx1 = nx - 1
     n_one = 0
     for trial in range(400):
