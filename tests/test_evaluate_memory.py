@@ -19,6 +19,7 @@ from pmdsim.evaluation import uncertainty as U
 from pmdsim.evaluation.consistency import check_consistency
 from pmdsim.evaluation.phase import decode_screen_coordinates
 from pmdsim.evaluation.surface_fit import _residuals
+from pmdsim.geometry.kernel_args import readonly
 
 from test_uncertainty_stepwise import _problem, _reference
 
@@ -126,7 +127,8 @@ def test_residuals_in_place_equal_numpy():
     rx_ref = gx - (2.0 * a * x + b * y + d)
     ry_ref = gy - (b * x + 2.0 * c * y + e)
     xw, yw = x.copy(), y.copy()
-    rx, ry = _residuals(xw, yw, gx, gy, 0.0, 0.0, a, b, c, d, e, xw, yw)
+    # inputs read-only views (of the outputs' memory here), as fit_paraboloid_slopes passes them: one signature
+    rx, ry = _residuals(readonly(xw), readonly(yw), readonly(gx), readonly(gy), 0.0, 0.0, a, b, c, d, e, xw, yw)
     assert rx is xw and ry is yw
     assert np.array_equal(rx, rx_ref) and np.array_equal(ry, ry_ref)
     xc, yc = 12.5, -7.25
@@ -135,7 +137,7 @@ def test_residuals_in_place_equal_numpy():
     rx_ref = gx - (2.0 * a * cx + b * cy + d)
     ry_ref = gy - (b * cx + 2.0 * c * cy + e)
     gxw, gyw = gx.copy(), gy.copy()
-    rx, ry = _residuals(xu, yu, gxw, gyw, xc, yc, a, b, c, d, e, gxw, gyw)
+    rx, ry = _residuals(readonly(xu), readonly(yu), readonly(gxw), readonly(gyw), xc, yc, a, b, c, d, e, gxw, gyw)
     assert rx is gxw and ry is gyw
     assert np.array_equal(rx, rx_ref) and np.array_equal(ry, ry_ref)
 

@@ -3,8 +3,9 @@
 References: the setup parser's own validation and closed-form parameter changes (offset/scale),
 Experiment 1 run directly (not through the engine), a serial in-process run (the Dask runs must
 equal it bit for bit: every case is deterministic), Python's ``statistics.quantiles`` for the
-summary, and real processes and signals (a Dask scheduler and workers started with the ``dask``
-command, a worker killed with SIGKILL, the CLI interrupted with SIGINT).
+summary, and real processes and signals (the CLI interrupted with SIGINT; the runs on a Dask
+scheduler and workers started with the ``dask`` command, a worker killed with SIGKILL, are in
+tests/test_study_dask.py).
 """
 
 from __future__ import annotations
@@ -174,88 +175,6 @@ def test_engine_case_equals_experiment1(tmp_path):
             assert row[f"{cam}.{k}"] == ref[k]
 
 
-@pytest.fixture(scope="module")
-def example_serial(tmp_path_factory):
-    out = tmp_path_factory.mktemp("serial") / "out"
-    run = run_study(load_study(EXAMPLE), out, serial=True)
-    assert (run.n_cases, run.n_computed, run.n_failed) == (32, 32, 0)
-    return _rows(out)
-
-
-def test_example_serial_physics(example_serial):
-    rows = example_serial
-    # The left camera's focal-length error cannot change the right camera's reconstruction.
-    for bulge in (0.0, 1.0, 2.0, 3.0):
-        right = {tuple(r[k] for k in r if k.startswith("right.")) for r in rows if r["screen.bulge_mm"] == bulge}
-        assert len(right) == 1
-    # No bulge, no focal error: the reconstruction of the true plane is exact to < 0.1 µm.
-    (r0,) = [r for r in rows if r["screen.bulge_mm"] == 0.0 and r["offset(model.cameras.left.focal_length_px)"] == 0.0]
-    assert r0["left.max_height_diff_um"] < 0.1 and r0["right.max_height_diff_um"] < 0.1
-
-
-@pytest.mark.slow
-def test_example_on_local_cluster_equals_serial(tmp_path, example_serial):
-    res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(EXAMPLE), "--out", str(tmp_path / "out")],
-                         env=_env(), capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    assert "32 cases computed, 0 reused, 0 failed, 0 missing" in res.stderr
-    # Not a terminal: one progress line per max(1, min(1000, 32 // 20)) = 1 case.
-    assert sum(" done, " in line for line in res.stderr.splitlines()) == 32
-    assert _rows(tmp_path / "out") == example_serial
-    workers = {r["worker"] for r in _records(tmp_path / "out").values()}
-    assert len(workers) == min(2, os.cpu_count())  # the cases ran in the LocalCluster's worker processes
-    for name in ("results.csv", "summary.txt", "metrics_vs_screen.bulge_mm.png"):
-        assert (tmp_path / "out" / name).stat().st_size > 0
-
-
-def _start(args, log: Path) -> subprocess.Popen:
-    return subprocess.Popen(args, env=_env(NUMBA_NUM_THREADS="1"), stdout=log.open("w"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
-
-
-@pytest.fixture
-def dask_cluster(tmp_path):
-    """``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1; yields (address, workers)."""
-    dask_cli = Path(sys.executable).with_name("dask")  # the `dask` command of this interpreter's install
-    if not dask_cli.exists():
-        import shutil
-
-        dask_cli = Path(shutil.which("dask"))
-    sched_file = tmp_path / "scheduler.json"
-    procs = [_start([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
-    try:
-        t0 = time.monotonic()
-        while not sched_file.exists() and time.monotonic() - t0 < 60:
-            time.sleep(0.1)
-        address = json.loads(sched_file.read_text())["address"]
-        assert address.startswith("tcp://127.0.0.1:")
-        workers = [_start([str(dask_cli), "worker", address, "--host", "127.0.0.1", "--nthreads", "1", "--no-nanny",
-                           "--no-dashboard"], tmp_path / f"worker{i}.log") for i in range(2)]
-        procs += workers
-        from distributed import Client
-
-        with Client(address, timeout=60) as c:
-            c.wait_for_workers(2, timeout=120)
-        yield address, workers
-    finally:
-        for p in procs[::-1]:  # the processes this fixture started, by their pid (a graceful stop takes ~20 s)
-            if p.poll() is None:
-                p.kill()
-            p.wait(timeout=30)
-
-
-@pytest.mark.slow
-def test_example_on_scheduler_and_two_workers_equals_serial(tmp_path, dask_cluster, example_serial):
-    address, workers = dask_cluster
-    res = subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(EXAMPLE), "--out", str(tmp_path / "out"),
-                          "--scheduler", address], env=_env(), capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    assert _rows(tmp_path / "out") == example_serial
-    pids = {int(r["worker"].rsplit(":", 1)[1]) for r in _records(tmp_path / "out").values()}
-    assert pids == {w.pid for w in workers}  # both external workers computed cases
-
-
 # A slower study (cameras binned 2 × 2: about a second per case) so that a signal lands mid-study.
 SLOW = """
 format = "pmdsim-study"
@@ -274,22 +193,6 @@ def _wait_for_records(out: Path, n: int, proc: subprocess.Popen, timeout=240) ->
         assert proc.poll() is None, "the study ended before the signal"
         assert time.monotonic() - t0 < timeout
         time.sleep(0.02)
-
-
-@pytest.mark.slow
-def test_killed_worker_study_completes(tmp_path, dask_cluster):
-    address, workers = dask_cluster  # SLOW binned 4 × 4: the 4–5 cases after the kill still outlast it
-    study, out = _write(tmp_path, SLOW.replace("downsample = 2", "downsample = 4")), tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out", str(out),
-                             "--scheduler", address, "--quiet"], env=_env(), stderr=subprocess.PIPE, text=True)
-    _wait_for_records(out, 1, proc)
-    workers[0].send_signal(signal.SIGKILL)
-    assert workers[0].wait(timeout=30) == -signal.SIGKILL
-    _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 0, err
-    rows = _rows(out)
-    assert len(rows) == 6 and all(r["status"] == "ok" for r in rows)
-    assert "0 missing" in err
 
 
 #: 16 cases of ≈ 0.7 s: a Ctrl-C after the first record finds most of them still to do, also when
@@ -582,92 +485,6 @@ def test_bad_scheduler_is_one_line_and_leaves_nothing(tmp_path, address, expecte
     assert lines[-1].startswith("pmdsim: error: ") and expected in lines[-1], res.stderr
     assert "Traceback" not in res.stderr and len(lines) == 2  # the study's header line, the error
     assert not (tmp_path / "out").exists()
-
-
-def _fake_pmdsim(root: Path, init: str) -> Path:
-    (root / "pmdsim").mkdir(parents=True)
-    (root / "pmdsim" / "__init__.py").write_text(init, encoding="utf-8")
-    return root
-
-
-@pytest.mark.slow
-def test_workers_with_another_or_no_pmdsim_are_named(tmp_path):
-    """A real ``dask scheduler`` and ``dask worker`` processes: a worker whose ``import pmdsim``
-    finds another version (a package earlier on its PYTHONPATH), then one where it fails, then
-    none at all; each is refused before OUT is created, naming the worker."""
-    from pmdsim import __version__
-    from pmdsim.studies.study_cluster import check_workers
-
-    dask_cli = Path(sys.executable).with_name("dask")
-    sched_file = tmp_path / "scheduler.json"
-    procs = [_start([str(dask_cli), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                     "--scheduler-file", str(sched_file)], tmp_path / "scheduler.log")]
-    other = _fake_pmdsim(tmp_path / "other", '__version__ = "0.0.1.fake"\n')
-    broken = _fake_pmdsim(tmp_path / "broken", 'raise ModuleNotFoundError("No module named \'pmdsim\'")\n')
-    study = _write(tmp_path, GOOD)
-
-    def worker(pythonpath: Path, name: str) -> subprocess.Popen:
-        return subprocess.Popen([str(dask_cli), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
-                                 "--no-nanny", "--no-dashboard"], env=_env(PYTHONPATH=str(pythonpath)),
-                                stdout=(tmp_path / f"{name}.log").open("w"), stderr=subprocess.STDOUT,
-                                start_new_session=True)
-
-    def cli(timeout="30") -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "pmdsim.cli", "study", str(study), "--out",
-                               str(tmp_path / "out"), "--scheduler", address, "--connect-timeout", timeout],
-                              env=_env(), capture_output=True, text=True, timeout=120)
-
-    from distributed import Client
-
-    try:
-        t0 = time.monotonic()
-        while not sched_file.exists() and time.monotonic() - t0 < 60:
-            time.sleep(0.1)
-        address = json.loads(sched_file.read_text())["address"]
-        for pythonpath, name, words in ((other, "other", ["runs pmdsim 0.0.1.fake", f"pmdsim {__version__}"]),
-                                        (broken, "broken", ["cannot import pmdsim", "ModuleNotFoundError"])):
-            w = worker(pythonpath, name)
-            procs.append(w)
-            with Client(address, timeout=60) as c:
-                c.wait_for_workers(1, timeout=120)
-                (addr,) = c.scheduler_info(n_workers=-1)["workers"]
-            res = cli()
-            assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-            err = res.stderr.strip().splitlines()[-1]
-            assert err.startswith("pmdsim: error: worker " + addr) and f"pid {w.pid}" in err, err
-            assert all(word in err for word in words), err
-            assert not (tmp_path / "out").exists()
-            w.kill()
-            w.wait(timeout=30)
-            with Client(address, timeout=60) as c:  # the scheduler notices the lost worker
-                t0 = time.monotonic()
-                while c.scheduler_info(n_workers=-1)["workers"] and time.monotonic() - t0 < 60:
-                    time.sleep(0.2)
-        with Client(address, timeout=60) as c:  # no worker at all
-            with pytest.raises(StudyError, match=r"has no workers \(waited 1 s\)"):
-                check_workers(c, timeout_s=1)
-    finally:
-        for p in procs[::-1]:
-            if p.poll() is None:
-                p.kill()
-            p.wait(timeout=30)
-
-
-@pytest.mark.slow
-def test_all_workers_gone_stops_the_study(tmp_path, dask_cluster):
-    address, workers = dask_cluster
-    study, out = load_study(_write(tmp_path, SLOW16)), tmp_path / "out"
-
-    def kill_all(d):  # the first finished case: both workers die (no nanny restarts them)
-        if d["done"] == 1:
-            for w in workers:
-                w.kill()
-                w.wait(timeout=30)
-
-    with pytest.raises(StudyError, match=r"all workers of the Dask scheduler .* are gone \(none for 3 s\)"):
-        run_study(study, out, scheduler=address, progress=kill_all, worker_timeout_s=3)
-    rows = _rows(out)  # the finished cases are recorded, the rest marked missing
-    assert len(rows) == 16 and 1 <= sum(r["status"] == "ok" for r in rows) < 16
 
 
 def test_run_study_on_the_callers_client(tmp_path):

@@ -9,6 +9,7 @@ import pytest
 
 from pmdsim.evaluation import surface_fit as sf
 from pmdsim.evaluation.surface_fit import fit_paraboloid_slopes
+from pmdsim.geometry.kernel_args import readonly
 
 
 def _lstsq_irls(x, y, gx, gy, robust=True, max_iter=100):
@@ -47,7 +48,8 @@ def _slopes(m, seed, outliers=0.05):
     bad = rng.random(m) < outliers
     gx[bad] += rng.normal(0, 1e-3, bad.sum())  # edge defects / outliers the weights must remove
     gy[bad] -= 5e-4
-    return x, y, gx, gy
+    # read-only, as fit_paraboloid_slopes hands them to the kernels: one compiled signature each
+    return readonly(x), readonly(y), readonly(gx), readonly(gy)
 
 
 @pytest.mark.parametrize("m, robust", [(5000, True), (5000, False), (120_000, True)])
@@ -86,7 +88,7 @@ def test_exact_median_selection(mode):
     """The streamed median is numpy's median exactly: with a tight, a wrong and no bracket, with
     ties (quantised slopes) and with the sampled-bracket (histogram) path."""
     x, y, gx, gy = _slopes(50_000, seed=11)
-    gx = np.round(gx, 5)  # many equal residuals
+    gx = readonly(np.round(gx, 5))  # many equal residuals
     coef = np.array([2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3])
     r = np.concatenate([gx - (2 * coef[0] * x + coef[1] * y + coef[3]), gy - (coef[1] * x + 2 * coef[2] * y + coef[4])])
     centre = float(np.median(r))
@@ -134,7 +136,7 @@ def test_one_pass_median_and_mad(quantise):
 
     x, y, gx, gy = _slopes(60_001, seed=21)
     if quantise:
-        gx = np.round(gx, 6)  # many equal residuals
+        gx = readonly(np.round(gx, 6))  # many equal residuals
     coef = np.array([2e-6, -3e-7, 1.5e-6, 1e-3, -2e-3])
     r = np.concatenate([gx - (2 * coef[0] * x + coef[1] * y + coef[3]), gy - (coef[1] * x + 2 * coef[2] * y + coef[4])])
     n = r.size
@@ -164,8 +166,9 @@ def test_sandwich_sums_match_entry_loop_and_matmul():
     scale), a point at x = 0 exactly and non-finite points skipped."""
     rng = np.random.default_rng(31)
     m = 400
-    xy = np.stack([rng.uniform(-50, 50, m), rng.uniform(-40, 40, m)], -1)
-    res = rng.normal(0, 1e-4, (m, 2))
+    # (M, 2) in the layout evaluate passes ((2, M) rows transposed, F order): one compiled signature
+    xy = np.asfortranarray(np.stack([rng.uniform(-50, 50, m), rng.uniform(-40, 40, m)], -1))
+    res = np.asfortranarray(rng.normal(0, 1e-4, (m, 2)))
     res[::17] = 5e-3  # beyond the scale: weight 0
     sig = rng.uniform(1e-6, 3e-6, (m, 2))
     xc, yc = 3.0, -2.0

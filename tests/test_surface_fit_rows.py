@@ -36,7 +36,7 @@ def test_rows_equal_numpy_masks_bit_for_bit():
     np.testing.assert_array_equal(xy[:, m:], p[::-1][..., :2][ok[::-1]].T)
     np.testing.assert_array_equal(gxy[:, :m], g[ok].T)
     np.testing.assert_array_equal(sg, np.concatenate([sig[ok], sig[::-1][ok[::-1]]]))
-    res = rng.normal(0, 1e-3, (2 * m, 2))
+    res = np.asfortranarray(rng.normal(0, 1e-3, (2 * m, 2)))  # F order, as the fit's residual rows: one signature
     out, k = scatter_residuals(res, ok, m)
     ref = np.full((H, W, 2), np.nan)
     ref[ok] = res[m:]

@@ -44,7 +44,8 @@ def test_summary_equals_the_fit_of_the_concatenated_points():
     xy = np.concatenate([r.p_sample_mm[..., :2][ok] for r, ok in zip(recs, oks)])
     gxy = np.concatenate([g[ok] for g, ok in zip(gs, oks)])
     ref = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=-900.0)
-    ref = with_uncertainty(ref, xy, np.concatenate([s[ok] for s, ok in zip(sig, oks)]), -900.0)
+    # xy (M, 2) in F order, as the summary passes its (2, M) rows transposed: one compiled signature
+    ref = with_uncertainty(ref, np.asfortranarray(xy), np.concatenate([s[ok] for s, ok in zip(sig, oks)]), -900.0)
     assert fit.coefficients == ref.coefficients and fit.coefficients_std == ref.coefficients_std
     assert (fit.focal_length_x_mm, fit.focal_length_y_mm, fit.slope_residual_rms_mrad, fit.scale) == (
         ref.focal_length_x_mm, ref.focal_length_y_mm, ref.slope_residual_rms_mrad, ref.scale)

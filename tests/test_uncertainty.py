@@ -130,7 +130,7 @@ def test_surface_fit_coefficient_std_monte_carlo():
             for _ in range(300)]
     obs = np.std([f.coefficients for f in fits], axis=0, ddof=1)
     obs_f = np.std([[f.focal_length_x_mm, f.focal_length_y_mm] for f in fits], axis=0, ddof=1)
-    pred = with_uncertainty(fits[0], xy, sig, -500.0)
+    pred = with_uncertainty(fits[0], np.asfortranarray(xy), sig, -500.0)  # F order, as evaluate's (2, M) rows.T
     np.testing.assert_allclose(obs, pred.coefficients_std, rtol=0.15)
     np.testing.assert_allclose(obs_f, [pred.focal_length_x_std_mm, pred.focal_length_y_std_mm], rtol=0.15)
     js = pred.as_json()

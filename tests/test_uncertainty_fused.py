@@ -11,6 +11,7 @@ import pytest
 from test_stepwise_wavefront import _scene
 
 from pmdsim.evaluation import uncertainty as U
+from pmdsim.geometry.kernel_args import readonly
 from pmdsim.evaluation.stepwise import reconstruct_stepwise
 from pmdsim.evaluation.uncertainty_stepwise_fused import stepwise_noise_sigma
 
@@ -83,10 +84,10 @@ def test_combined_noise_part_is_returned_exactly_when_the_root_sum_square_equals
         assert out is not a and np.array_equal(out, ref, equal_nan=True)
         assert not np.array_equal(ref, a, equal_nan=True)
     g = np.stack([noise, noise], axis=-1)
-    assert U._count_not_finite_on(S, g) == 0
+    assert U._count_not_finite_on(S, readonly(g)) == 0  # read-only, as the callers pass it: one signature
     g[~S] = np.nan
     g[S.nonzero()[0][5], S.nonzero()[1][5], 1] = np.inf
-    assert U._count_not_finite_on(S, g) == 1
+    assert U._count_not_finite_on(S, readonly(g)) == 1
 
 
 def _widest_wavefront(S, seed):
