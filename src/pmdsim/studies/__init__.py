@@ -15,6 +15,8 @@ The CLI calls these and prints; it formats no table and draws no figure itself.
 """
 
 import importlib
+import sys
+import types
 
 #: Public name → the submodule defining it, imported on first use (PEP 562): ``pmdsim evaluate``
 #: imports :mod:`.jobs` only, not the experiments, the study engine and what they import
@@ -43,3 +45,20 @@ def __getattr__(name: str):
 
 def __dir__() -> list[str]:
     return sorted({*globals(), *__all__})
+
+
+class _Package(types.ModuleType):
+    """This package, whose public names stay bound to themselves when a submodule of the same
+    name is imported. The import system binds a submodule to its package's attribute once it
+    has run (``from .experiment1 import Progress`` in another submodule binds
+    ``pmdsim.studies.experiment1`` to the *module*), which would shadow the lazily imported
+    function :func:`experiment1` for every later ``from pmdsim.studies import experiment1``
+    (the eager imports this package had before always rebound the function afterwards)."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if isinstance(value, types.ModuleType) and _LAZY.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
