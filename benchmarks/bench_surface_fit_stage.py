@@ -79,6 +79,13 @@ def _load(cap: Path, repeat: int) -> None:
     wrap(sel, "_collect_both")
     for name in ("_slopes_kernel", "_gather_kernel", "_scatter_kernel"):
         wrap(rows, name)
+    for modname, names in (("surface_fit_sums", ("_block_sums",)), ("surface_fit_final", ("_final_kernel",))):
+        try:  # (not in older trees)
+            mod = __import__(f"pmdsim.evaluation.{modname}", fromlist=["_"])
+        except ImportError:
+            continue
+        for name in names:
+            wrap(mod, name)
     try:  # (not in older trees)
         from pmdsim.evaluation import surface_fit_window as sw
         wrap(sw, "_take")

@@ -1,6 +1,7 @@
 """The joint surface fit of ``pmdsim evaluate`` (issue 25: built from (2, M) rows without
 per-camera copies) equals the fit composed from its parts on the concatenated (M, 2) points —
-coefficients, σ, residual maps and detrended heights bit for bit."""
+coefficients, residual maps and detrended heights bit for bit, the σ (its sandwich's sums in
+another order, tests/test_surface_fit_final.py) to 1e-12 relative."""
 
 import types
 
@@ -46,7 +47,10 @@ def test_summary_equals_the_fit_of_the_concatenated_points():
     ref = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=-900.0)
     # xy (M, 2) in F order, as the summary passes its (2, M) rows transposed: one compiled signature
     ref = with_uncertainty(ref, np.asfortranarray(xy), np.concatenate([s[ok] for s, ok in zip(sig, oks)]), -900.0)
-    assert fit.coefficients == ref.coefficients and fit.coefficients_std == ref.coefficients_std
+    assert fit.coefficients == ref.coefficients
+    np.testing.assert_allclose(fit.coefficients_std, ref.coefficients_std, rtol=1e-12, atol=0)
+    np.testing.assert_allclose((fit.focal_length_x_std_mm, fit.focal_length_y_std_mm),
+                               (ref.focal_length_x_std_mm, ref.focal_length_y_std_mm), rtol=1e-12, atol=0)
     assert (fit.focal_length_x_mm, fit.focal_length_y_mm, fit.slope_residual_rms_mrad, fit.scale) == (
         ref.focal_length_x_mm, ref.focal_length_y_mm, ref.slope_residual_rms_mrad, ref.scale)
     np.testing.assert_array_equal(fit.residual_slopes, ref.residual_slopes)

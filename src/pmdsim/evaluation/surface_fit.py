@@ -127,6 +127,7 @@ class ParaboloidFit:
     focal_length_x_std_mm: float | None = None
     focal_length_y_std_mm: float | None = None
     scale: float = 0.0  # the robust fit's last bisquare scale 4.685·MAD/0.6745 of the slope residuals (0: plain)
+    centre: tuple = (0.0, 0.0)  # (xc, yc) mm: the origin of the fit's centred coordinates
 
     def as_json(self) -> dict:
         """Exactly the keys of ``surface_fit.json`` (issue 12); a focal length that is infinite
@@ -292,7 +293,13 @@ def with_uncertainty(fit: ParaboloidFit, xy, slope_std, camera_z_mm: float, *, m
     sums, i = np.zeros((4, 9)), 0
     for s, m in zip(sigs, masks):
         i = _sandwich_kernel(xy, res, s, m, i, xc, yc, float(fit.scale), sums)
-    N, B = _sandwich_matrices(sums)
+    return with_sandwich(fit, *_sandwich_matrices(sums), (xc, yc))
+
+
+def with_sandwich(fit: ParaboloidFit, N, B, centre) -> ParaboloidFit:
+    """``fit`` with the standard uncertainties of :func:`with_uncertainty` from N = Σ w AᵢᵀAᵢ and
+    B = Σ w² σ² AᵢᵀAᵢ ((5, 5) each) of the design rows at coordinates centred on ``centre``."""
+    xc, yc = centre
     Ni = np.linalg.inv(N)
     cov = Ni @ B @ Ni
     # back to the uncentred linear terms: d0 = d − 2a xc − b yc, e0 = e − b xc − 2c yc
@@ -498,79 +505,36 @@ def _median(x, y, gx, gy, coef, mode, centre, buf, hist, bracket=None, *, ranks=
     return (med, float(v1), float(v2)) if ranks else med
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
 def _weighted_sums(x, y, gx, gy, xc, yc, coef, scale, robust):
     """Σ w·(x², xy, y², x, y, 1, g·x, g·y, g) over the g_x rows (first 9) and the g_y rows (last
     9), w the bisquare weights (1 − (r/scale)²)² (0 beyond) of the residuals at ``coef``, or 1
-    if not ``robust``; at (x − xc, y − yc).
+    if not ``robust``; at (x − xc, y − yc): blocks of 4096 points on both threads, their partial
+    sums added in block order (:mod:`.surface_fit_sums`: the same bits with any thread count)."""
+    from .surface_fit_sums import weighted_sums
 
-    r/scale is formed as r·(1/scale): with a division in the loop LLVM kept every operation
-    scalar; with the product the loop runs on vector lanes (a partial sum per lane and block,
-    reassociated: the sums agree with the in-order ones to ~1e-11 relative, the fit's
-    coefficients with lstsq IRLS to 1e-9, tests/test_surface_fit_kernels.py), 2.3× faster."""
-    a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
-    inv = 1.0 / scale
-    out = np.zeros(18)
-    bs = 4096
-    m = x.size
-    for start in range(0, m, bs):  # blocked partial sums: accurate and vectorisable
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = 0.0
-        t0 = t1 = t2 = t3 = t4 = t5 = t6 = t7 = t8 = 0.0
-        for i in range(start, min(start + bs, m)):
-            xi = x[i] - xc
-            yi = y[i] - yc
-            gxi = gx[i]
-            gyi = gy[i]
-            wx = 1.0
-            wy = 1.0
-            if robust:
-                ux = (gxi - (a2 * xi + b * yi + d)) * inv
-                uy = (gyi - (b * xi + c2 * yi + e)) * inv
-                qx = 1.0 - ux * ux
-                qy = 1.0 - uy * uy
-                wx = qx * qx if abs(ux) < 1.0 else 0.0
-                wy = qy * qy if abs(uy) < 1.0 else 0.0
-            xx = xi * xi
-            xy = xi * yi
-            yy = yi * yi
-            s0 += wx * xx
-            s1 += wx * xy
-            s2 += wx * yy
-            s3 += wx * xi
-            s4 += wx * yi
-            s5 += wx
-            s6 += wx * gxi * xi
-            s7 += wx * gxi * yi
-            s8 += wx * gxi
-            t0 += wy * xx
-            t1 += wy * xy
-            t2 += wy * yy
-            t3 += wy * xi
-            t4 += wy * yi
-            t5 += wy
-            t6 += wy * gyi * xi
-            t7 += wy * gyi * yi
-            t8 += wy * gyi
-        out[0] += s0; out[1] += s1; out[2] += s2; out[3] += s3; out[4] += s4  # noqa: E702
-        out[5] += s5; out[6] += s6; out[7] += s7; out[8] += s8  # noqa: E702
-        out[9] += t0; out[10] += t1; out[11] += t2; out[12] += t3; out[13] += t4  # noqa: E702
-        out[14] += t5; out[15] += t6; out[16] += t7; out[17] += t8  # noqa: E702
-    return out
+    return weighted_sums(x, y, gx, gy, xc, yc, coef, scale, robust)
 
 
-def _solve_normal(s) -> np.ndarray:
-    """(a, b, c, d, e) from the sums of :func:`_weighted_sums`: rows g_x = [2x, y, 0, 1, 0],
-    g_y = [0, x, 2y, 0, 1] (module docstring)."""
-    X, Y = s[:9], s[9:]
-    xx, xy, yy, x1, y1, w1, gxx, gxy, g1 = X
-    xx2, xy2, yy2, x2, y2, w2, gyx, gyy, g2 = Y
-    M = np.array([
+def normal_matrix(X, Y) -> np.ndarray:
+    """Σ w AᵢᵀAᵢ (5, 5) of the g_x rows [2x, y, 0, 1, 0] and the g_y rows [0, x, 2y, 0, 1] from
+    their weighted sums ``X``, ``Y`` = Σ w·(x², xy, y², x, y, 1) of each kind of row."""
+    xx, xy, yy, x1, y1, w1 = X
+    xx2, xy2, yy2, x2, y2, w2 = Y
+    return np.array([
         [4 * xx, 2 * xy, 0.0, 2 * x1, 0.0],
         [2 * xy, yy + xx2, 2 * xy2, y1, x2],
         [0.0, 2 * xy2, 4 * yy2, 0.0, 2 * y2],
         [2 * x1, y1, 0.0, w1, 0.0],
         [0.0, x2, 2 * y2, 0.0, w2],
     ])
+
+
+def _solve_normal(s) -> np.ndarray:
+    """(a, b, c, d, e) from the sums of :func:`_weighted_sums`: rows g_x = [2x, y, 0, 1, 0],
+    g_y = [0, x, 2y, 0, 1] (module docstring)."""
+    M = normal_matrix(s[:6], s[9:15])
+    gxx, gxy, g1 = s[6:9]
+    gyx, gyy, g2 = s[15:18]
     v = np.array([2 * gxx, gxy + gyx, 2 * gyy, g1, g2])
     dg = np.sqrt(np.diag(M))
     if not np.all(dg > 0):
@@ -662,6 +626,28 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     # residuals are written through the writable arrays at the end)
     xw, yw, gxw, gyw = x, y, gx, gy
     x, y, gx, gy = readonly(x), readonly(y), readonly(gx), readonly(gy)
+    coef, scale = _irls(x, y, gx, gy, (ox, oy), robust, max_iter)
+    a, b, c, d, e = coef
+    if n == ok.size:
+        rows = g.T if (overwrite_slopes and g.ndim == 2 and g.shape[1] == 2 and g.T.flags.c_contiguous
+                       and g.flags.writeable and np.may_share_memory(gxw, g)) else np.empty((2, n))
+        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, rows[0], rows[1])  # g − A·c
+        res = rows.T.reshape(g.shape)  # a view of the (2, M) rows rx, ry (or ``slopes`` itself)
+    else:
+        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, xw, yw)  # over the centred copies
+        res = np.full(g.shape, np.nan)
+        res[ok, 0] = rx
+        res[ok, 1] = ry
+    return fit_result(coef, (xc, yc), rx, ry, res, camera_z_mm, scale if robust else 0.0)
+
+
+def _irls(x, y, gx, gy, origin, robust, max_iter):
+    """The centred coefficients (a, b, c, d, e) ((5,) array) and the last bisquare scale (0 if
+    not ``robust``) of the fit of the M points x, y, g (read-only (M,) arrays) at
+    (x − xc, y − yc), ``origin`` = (xc, yc) (:func:`fit_paraboloid_slopes`)."""
+    ox, oy = origin
+    n = x.size
+    scale = 0.0
     coef = _solve_normal(_weighted_sums(x, y, gx, gy, ox, oy, np.zeros(5), 1.0, False))
     if robust:
         from .surface_fit_select import median_and_mad, sample_bracket
@@ -673,7 +659,6 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
         m1 = m2 = d1 = d2 = 0.0  # the two middle values of the residuals and of their deviations
-        scale = 0.0
         buf_z = np.empty(buf.size)
         stride = max(1, n // _SAMPLE_POINTS)
         windowed = WindowedMedians(x, y, gx, gy, reach, g_max, (ox, oy))
@@ -714,27 +699,26 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
             coef = new
             if done:
                 break
+    return coef, scale
+
+
+def fit_result(coef, centre, rx, ry, residual_slopes, camera_z_mm, scale) -> ParaboloidFit:
+    """The :class:`ParaboloidFit` of the centred coefficients ``coef`` (a, b, c, d, e) at
+    ``centre`` = (xc, yc) and the M residuals ``rx``, ``ry`` ((M,) each): uncentred linear
+    terms, focal lengths towards the camera, residual RMS (numpy's dot products)."""
     a, b, c, d, e = coef
+    xc, yc = centre
     # Back to uncentred linear terms: g_x = 2a(x − xc) + b(y − yc) + d.
     d0 = d - 2 * a * xc - b * yc
     e0 = e - b * xc - 2 * c * yc
-    if n == ok.size:
-        rows = g.T if (overwrite_slopes and g.ndim == 2 and g.shape[1] == 2 and g.T.flags.c_contiguous
-                       and g.flags.writeable and np.may_share_memory(gxw, g)) else np.empty((2, n))
-        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, rows[0], rows[1])  # g − A·c
-        res = rows.T.reshape(g.shape)  # a view of the (2, M) rows rx, ry (or ``slopes`` itself)
-    else:
-        rx, ry = _residuals(x, y, gx, gy, ox, oy, a, b, c, d, e, xw, yw)  # over the centred copies
-        res = np.full(g.shape, np.nan)
-        res[ok, 0] = rx
-        res[ok, 1] = ry
+    n = rx.size
     rms = float(np.sqrt((np.dot(rx, rx) + np.dot(ry, ry)) / (2 * n)))
     towards = -1.0 if camera_z_mm < 0 else 1.0
     with np.errstate(divide="ignore"):
         fx = float(1.0 / (4.0 * towards * a)) if a != 0 else float("inf")
         fy = float(1.0 / (4.0 * towards * c)) if c != 0 else float("inf")
-    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, res, n,
-                         scale=float(scale) if robust else 0.0)
+    return ParaboloidFit((float(a), float(b), float(c), float(d0), float(e0)), fx, fy, rms * 1e3, residual_slopes, n,
+                         scale=float(scale), centre=(float(xc), float(yc)))
 
 
 def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFit, dict]:
@@ -745,8 +729,13 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     slopes' standard uncertainty (H, W, 2) in rad, or None for all — the fit then carries the σ
     of its coefficients (:func:`with_uncertainty`). Returns the fit and per-camera extras
     ``{"slopes": (H, W, 2), "height_detrended_mm": (H, W), "residual_slopes": (H, W, 2)}``.
+
+    The fit's residuals (its ``residual_slopes``: (M, 2), cameras in order, pixels in C order),
+    the residual maps and the σ sandwich's sums come from one pass per camera over its maps
+    (:mod:`.surface_fit_final`).
     """
-    from .surface_fit_rows import gather_rows, scatter_residuals, slopes_and_mask
+    from .surface_fit_final import final_pass
+    from .surface_fit_rows import gather_rows, slopes_and_mask
 
     oks, extras, counts = [], [], []
     use_sig = slope_std is not None and all(s is not None for s in slope_std)
@@ -756,18 +745,39 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
         counts.append(k)
         extras.append({"slopes": g})
     # x, y and the slopes of the fitted points as (2, M) rows (what the fit reads: no per-camera
-    # copies, no column copies in the fit), cameras in order, pixels in C order; their σ as (M, 2)
-    # only after the fit (not alive at its peak)
+    # copies, no column copies in the fit), cameras in order, pixels in C order
     m = sum(counts)
     xy, gxy = np.empty((2, m)), np.empty((2, m))
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
         start = gather_rows(rec.p_sample_mm, ex["slopes"], ok, start, xy, gxy)
-    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(m, bool), camera_z_mm=camera_z_mm, overwrite_slopes=True)
-    del gxy
-    if use_sig:  # σ read in the maps at the fitted pixels (no (M, 2) gather)
-        fit = with_uncertainty(fit, xy.T, slope_std, camera_z_mm, masks=oks)
+    centre = (float(xy[0].mean()), float(xy[1].mean())) if m >= 6 else (np.nan, np.nan)
+    if not (np.isfinite(centre[0]) and np.isfinite(centre[1])):  # too few points, or a non-finite x, y
+        return _summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
+    coef, scale = _irls(readonly(xy[0]), readonly(xy[1]), readonly(gxy[0]), readonly(gxy[1]), centre, True, 100)
     del xy
+    sums, start = np.zeros(24), 0
+    for i, (rec, ok, ex) in enumerate(zip(recs, oks, extras)):  # the residuals written over the slope rows
+        ex["residual_slopes"], start = final_pass(rec.p_sample_mm, ex["slopes"], slope_std[i] if use_sig else None,
+                                                  ok, start, centre, coef, scale, gxy, sums)
+    fit = fit_result(coef, centre, gxy[0], gxy[1], gxy.T, camera_z_mm, scale)
+    if use_sig:
+        fit = with_sandwich(fit, normal_matrix(sums[0:6], sums[6:12]), normal_matrix(sums[12:18], sums[18:24]),
+                            centre)
+    for rec, ex in zip(recs, extras):
+        ex["height_detrended_mm"] = remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0]
+    return fit, extras
+
+
+def _summary_in_parts(recs, camera_z_mm, slope_std, oks, extras, xy, gxy):
+    """:func:`surface_fit_summary` by :func:`fit_paraboloid_slopes` (which leaves out points
+    with a non-finite x or y, or raises for fewer than 6) and :func:`with_uncertainty`."""
+    from .surface_fit_rows import scatter_residuals
+
+    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(xy.shape[1], bool), camera_z_mm=camera_z_mm,
+                                overwrite_slopes=True)
+    if slope_std is not None:  # σ read in the maps at the fitted pixels (no (M, 2) gather)
+        fit = with_uncertainty(fit, xy.T, slope_std, camera_z_mm, masks=oks)
     start = 0
     for rec, ok, ex in zip(recs, oks, extras):
         ex["residual_slopes"], start = scatter_residuals(fit.residual_slopes, ok, start)
