@@ -77,7 +77,7 @@ def _load(cap: Path, repeat: int) -> None:
                  "_centre_kernel", "_plane_kernel", "_residual_kernel"):
         wrap(sf, name)
     wrap(sel, "_collect_both")
-    for name in ("_slopes_kernel", "_gather_kernel", "_scatter_kernel"):
+    for name in ("_slopes_kernel", "_gather_kernel", "_scatter_kernel", "_slopes_rows_kernel"):
         wrap(rows, name)
     for modname, names in (("surface_fit_sums", ("_block_sums",)), ("surface_fit_final", ("_final_kernel",))):
         try:  # (not in older trees)

@@ -42,3 +42,32 @@ def test_rows_equal_numpy_masks_bit_for_bit():
     ref[ok] = res[m:]
     assert k == 2 * m
     np.testing.assert_array_equal(out, ref)
+
+
+def test_slopes_and_rows_equal_numpy_masks_bit_for_bit():
+    """The fused pass: the slopes and mask of :func:`slopes_and_mask` and the rows of numpy's
+    boolean-mask indexing, two cameras into one set of rows; rows too short are refused."""
+    import pytest
+
+    from pmdsim.evaluation.surface_fit_rows import slopes_and_rows
+
+    rng = np.random.default_rng(4)
+    H, W = 17, 29
+    n = rng.normal(0, 0.05, (H, W, 3))
+    n[..., 2] = -1.0
+    n[2, 3] = np.nan
+    n[4, 5, 2] = 0.0
+    rec = rng.random((H, W)) > 0.2
+    p = rng.normal(0, 50, (H, W, 3))
+    rows = np.empty((4, 2 * H * W))
+    g, ok, j = slopes_and_rows(n, rec, p, 0, tuple(rows))
+    g2, ok2, k = slopes_and_rows(n[::-1], rec[::-1], p[::-1], j, tuple(rows))
+    g_ref, ok_ref, m = slopes_and_mask(n, rec)
+    np.testing.assert_array_equal(g, g_ref)
+    np.testing.assert_array_equal(ok, ok_ref)
+    assert j == m and k == 2 * m and not ok[2, 3] and not ok[4, 5]
+    ref = np.concatenate([np.concatenate([p[..., :2], g_ref], -1)[ok_ref],
+                          np.concatenate([p[::-1][..., :2], g_ref[::-1]], -1)[ok_ref[::-1]]]).T
+    np.testing.assert_array_equal(rows[:, :k], ref)
+    with pytest.raises(ValueError, match="too short"):
+        slopes_and_rows(n, rec, p, H * W + 1, tuple(rows))

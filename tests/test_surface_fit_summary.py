@@ -83,3 +83,19 @@ def test_sigma_maps_must_match_the_fitted_pixels():
         with_uncertainty(fit, xy, sig, -900.0, masks=[oks[0], oks[1] & (np.arange(64) > 3)])
     with pytest.raises(ValueError, match="not the fit's points"):
         with_uncertainty(fit, xy, [sig[0], sig[1][:, :10]], -900.0, masks=oks)
+
+
+def test_summary_leaves_out_points_without_finite_coordinates():
+    """A reconstructed pixel with a finite slope but a non-finite x: the summary fits the other
+    points (the composed path), as the fit of the concatenated finite points."""
+    recs, sig = _recs(seed=9)
+    recs[1].p_sample_mm[7, 8, 0] = np.nan
+    fit, extras = surface_fit_summary(recs, -900.0, sig)
+    gs = [sample_slopes(r.n_sample) for r in recs]
+    oks = [r.reconstructed & np.isfinite(g).all(-1) & np.isfinite(r.p_sample_mm[..., :2]).all(-1)
+           for r, g in zip(recs, gs)]
+    xy = np.concatenate([r.p_sample_mm[..., :2][ok] for r, ok in zip(recs, oks)])
+    gxy = np.concatenate([g[ok] for g, ok in zip(gs, oks)])
+    ref = fit_paraboloid_slopes(xy, gxy, np.ones(len(xy), bool), camera_z_mm=-900.0)
+    assert fit.coefficients == ref.coefficients and fit.n_points == len(xy)
+    assert np.isnan(extras[1]["residual_slopes"][7, 8]).all() and fit.coefficients_std is not None

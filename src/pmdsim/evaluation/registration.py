@@ -26,13 +26,14 @@ reconstructs, registers again at the reconstructed points and reconstructs again
 from __future__ import annotations
 
 import enum
+import threading
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from ..geometry.camera import Camera
-from ..geometry.kernel_args import readonly
+from ..geometry.kernel_args import SERIAL_BELOW_PX, readonly
 from ..geometry.surface import height_kernel
 from ..geometry.cover_glass import CoverGlass
 from ..geometry.transform import RigidTransform
@@ -179,9 +180,11 @@ def register(
 #: that many rows runs on one OpenBLAS thread (from 65 536 rows on it starts threads, which on
 #: a loaded 2-vCPU machine took 0.9–1.1 s instead of 20 ms for 2.3 M rows: docs/benchmarks.md).
 _BLOCK_PX = 16_384
+#: Threads of the fused registration (blocks dealt out in turn; at most numba's thread count).
+_THREADS = 2
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", nogil=True)
 def _screen_block(xy, ok, conv, bounds, kind, gx, gy, coef, start, stop, status, q):  # pragma: no cover - compiled
     """Status (``status`` (P,), uint8) and screen points (x, y, h(x, y)) — NaN where the status is
     not VALID — of the flat pixels start … stop − 1 (``xy`` (P, 2), ``ok``, ``conv`` (P,)) into
@@ -219,7 +222,9 @@ def _register_blocks(xy, ok, converged, d_cam, screen_model, T_ref_screen, T_ref
     tests/test_registration_fused.py) while they are in cache, and rotates the block's view rays
     (:meth:`RigidTransform.apply_vector`). No (H, W, 3) screen points, masks or heights of the
     whole image are allocated; numpy's matmul runs on blocks of rows as on the whole array,
-    except a block of one row (another path, other bits), which the blocks avoid."""
+    except a block of one row (another path, other bits), which the blocks avoid. From
+    ``SERIAL_BELOW_PX`` pixels on, every other block runs on a second Python thread (the kernel
+    and the matmuls release the GIL; a block's arithmetic does not depend on its thread)."""
     shape = ok.shape
     P = ok.size
     k = screen_model.kernel
@@ -233,18 +238,43 @@ def _register_blocks(xy, ok, converged, d_cam, screen_model, T_ref_screen, T_ref
     status = np.empty(P, np.uint8)
     q_ref = np.empty((P, 3))
     d_ref = np.empty((P, 3))
-    block = np.empty((min(P, _BLOCK_PX + 1), 3))
     rot_q, t_q, rot_d = T_ref_screen.rotation.T, T_ref_screen.translation, T_ref_cam.rotation.T
-    start = 0
+    blocks, start = [], 0
     while start < P:
         stop = min(P, start + _BLOCK_PX)
         if P - stop == 1:  # no block of one row
             stop = P
-        q = block[: stop - start]
-        _screen_block(flat_xy, flat_ok, flat_cv, bounds, kind, gx, gy, coef, np.int64(start), np.int64(stop), status, q)
-        out = q_ref[start:stop]
-        np.matmul(q, rot_q, out=out)
-        out += t_q
-        np.matmul(flat_d[start:stop], rot_d, out=d_ref[start:stop])
+        blocks.append((start, stop))
         start = stop
+
+    failed = []
+
+    def run(mine):
+        try:
+            _blocks(mine)
+        except BaseException as exc:  # (re-raised in the calling thread)
+            failed.append(exc)
+
+    def _blocks(mine):
+        block = np.empty((min(P, _BLOCK_PX + 1), 3))
+        for start, stop in mine:
+            q = block[: stop - start]
+            _screen_block(flat_xy, flat_ok, flat_cv, bounds, kind, gx, gy, coef, np.int64(start), np.int64(stop),
+                          status, q)
+            out = q_ref[start:stop]
+            np.matmul(q, rot_q, out=out)
+            out += t_q
+            np.matmul(flat_d[start:stop], rot_d, out=d_ref[start:stop])
+
+    # every other block on a second thread (the kernel and numpy's matmul release the GIL; each
+    # block's arithmetic is the same on either thread)
+    n_threads = min(_THREADS, numba.get_num_threads()) if P >= SERIAL_BELOW_PX else 1
+    helpers = [threading.Thread(target=run, args=(blocks[i::n_threads],)) for i in range(1, n_threads)]
+    for t in helpers:
+        t.start()
+    run(blocks[::n_threads])
+    for t in helpers:
+        t.join()
+    if failed:
+        raise failed[0]
     return status.reshape(shape), d_ref.reshape(shape + (3,)), q_ref.reshape(shape + (3,))

@@ -735,22 +735,21 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     (:mod:`.surface_fit_final`).
     """
     from .surface_fit_final import final_pass
-    from .surface_fit_rows import gather_rows, slopes_and_mask
+    from .surface_fit_rows import slopes_and_rows
 
-    oks, extras, counts = [], [], []
+    oks, extras = [], []
     use_sig = slope_std is not None and all(s is not None for s in slope_std)
-    for rec in recs:
-        g, ok, k = slopes_and_mask(rec.n_sample, rec.reconstructed)
-        oks.append(ok)
-        counts.append(k)
-        extras.append({"slopes": g})
     # x, y and the slopes of the fitted points as (2, M) rows (what the fit reads: no per-camera
-    # copies, no column copies in the fit), cameras in order, pixels in C order
-    m = sum(counts)
-    xy, gxy = np.empty((2, m)), np.empty((2, m))
-    start = 0
-    for rec, ok, ex in zip(recs, oks, extras):
-        start = gather_rows(rec.p_sample_mm, ex["slopes"], ok, start, xy, gxy)
+    # copies, no column copies in the fit), cameras in order, pixels in C order, written with the
+    # slopes (room for every pixel: the pages past the fitted points are never touched)
+    room = sum(int(np.asarray(rec.reconstructed).size) for rec in recs)
+    xy, gxy = np.empty((2, room)), np.empty((2, room))
+    m = 0
+    for rec in recs:
+        g, ok, m = slopes_and_rows(rec.n_sample, rec.reconstructed, rec.p_sample_mm, m, (xy[0], xy[1], gxy[0], gxy[1]))
+        oks.append(ok)
+        extras.append({"slopes": g})
+    xy, gxy = xy[:, :m], gxy[:, :m]
     centre = (float(xy[0].mean()), float(xy[1].mean())) if m >= 6 else (np.nan, np.nan)
     if not (np.isfinite(centre[0]) and np.isfinite(centre[1])):  # too few points, or a non-finite x, y
         return _summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
@@ -759,7 +758,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     sums, start = np.zeros(24), 0
     for i, (rec, ok, ex) in enumerate(zip(recs, oks, extras)):  # the residuals written over the slope rows
         ex["residual_slopes"], start = final_pass(rec.p_sample_mm, ex["slopes"], slope_std[i] if use_sig else None,
-                                                  ok, start, centre, coef, scale, gxy, sums)
+                                                  ok, start, centre, coef, scale, (gxy[0], gxy[1]), sums)
     fit = fit_result(coef, centre, gxy[0], gxy[1], gxy.T, camera_z_mm, scale)
     if use_sig:
         fit = with_sandwich(fit, normal_matrix(sums[0:6], sums[6:12]), normal_matrix(sums[12:18], sums[18:24]),

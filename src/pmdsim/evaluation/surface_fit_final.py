@@ -5,7 +5,7 @@ pass per camera, over image rows on both numba threads, reads x, y (of the point
 slopes (H, W, 2) and their σ (H, W, 2) at the fitted pixels and
 
 * writes the residuals g − A·c into the (H, W, 2) residual map (NaN elsewhere) and into the fit's
-  (2, M) rows (cameras in order, pixels in C order; the row's first index from the counts of the
+  two (M,) rows (cameras in order, pixels in C order; the row's first index from the counts of the
   rows above) — the arithmetic of :func:`~pmdsim.evaluation.surface_fit._residuals`, no
   contraction: the same bits;
 * adds, per image row, the 24 sums Σ w·(x², xy, y², x, y, 1) and Σ (wσ)²·(x², xy, y², x, y, 1) of
@@ -34,8 +34,8 @@ _NSUM = 24
 
 
 @numba.njit(cache=True, fastmath=False, parallel=True, error_model="numpy")
-def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rows, res, part):  # pragma: no cover - compiled
-    """Residual map ``res`` (H, W, 2), residual rows ``rows`` (2, M) from index ``offs[v]`` for
+def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rx, ry, res, part):  # pragma: no cover - compiled
+    """Residual map ``res`` (H, W, 2), residual rows ``rx``, ``ry`` ((M,) each) from index ``offs[v]`` for
     image row v, and ``part[v]`` the row's 24 sums (module docstring; zeros without ``use_sig``)."""
     h, w = ok.shape
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
@@ -56,8 +56,8 @@ def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rows, res, 
             r1 = g[v, u, 1] - (b * xi + c2 * yi + e)
             res[v, u, 0] = r0
             res[v, u, 1] = r1
-            rows[0, j] = r0
-            rows[1, j] = r1
+            rx[j] = r0
+            ry[j] = r1
             j += 1
             if not use_sig:
                 continue
@@ -90,7 +90,8 @@ def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rows, res, 
 
 def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, scale: float, rows, sums):
     """One camera's residual map (H, W, 2) and next row index; its residuals written to
-    ``rows[:, start:]`` and, with ``slope_std``, its sandwich sums added to ``sums`` (24,).
+    ``rows[0][start:]``, ``rows[1][start:]`` and, with ``slope_std``, its sandwich sums added to
+    ``sums`` (24,).
 
     Parameters
     ----------
@@ -110,8 +111,8 @@ def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, sca
         The fit's centred (a, b, c, d, e).
     scale : float
         The fit's last bisquare scale (0: weights 1).
-    rows : ndarray (2, M)
-        The fit's residual rows (written).
+    rows : (ndarray (M,), ndarray (M,))
+        The fit's residual rows of g_x and g_y (written; C order).
     sums : ndarray (24,)
         Σ w·(x², xy, y², x, y, 1) of the g_x rows, of the g_y rows, then Σ (wσ)²·(…) of each
         (module docstring), continued.
@@ -134,7 +135,7 @@ def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, sca
         _final_kernel(readonly(np.ascontiguousarray(p_sample_mm, dtype=np.float64)),
                       readonly(np.ascontiguousarray(slopes, dtype=np.float64)), sig, okr, offs,
                       float(centre[0]), float(centre[1]), readonly(np.asarray(coef, dtype=np.float64)),
-                      float(scale), use_sig, rows, res, part)
+                      float(scale), use_sig, rows[0], rows[1], res, part)
     if use_sig:
         add_rows(part, sums)
     return res, int(start + np.count_nonzero(okr))

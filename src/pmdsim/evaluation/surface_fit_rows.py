@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry.kernel_args import readonly
 
-__all__ = ["slopes_and_mask", "gather_rows", "gather_sigma", "scatter_residuals"]
+__all__ = ["slopes_and_mask", "slopes_and_rows", "gather_rows", "gather_sigma", "scatter_residuals"]
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
@@ -46,6 +46,45 @@ def slopes_and_mask(n_sample, reconstructed) -> tuple[np.ndarray, np.ndarray, in
     ok = np.empty(rec.shape, dtype=np.bool_)
     m = _slopes_kernel(n, rec, g, ok)
     return g, ok, int(m)
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy")
+def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy):  # pragma: no cover - compiled
+    h, w = rec.shape
+    j = start
+    for v in range(0, h):
+        for u in range(0, w):
+            nz = n[v, u, 2]
+            sx = -n[v, u, 0] / nz
+            sy = -n[v, u, 1] / nz
+            g[v, u, 0] = sx
+            g[v, u, 1] = sy
+            good = rec[v, u] and np.isfinite(sx) and np.isfinite(sy)
+            ok[v, u] = good
+            # written at the next free index, which only a fitted pixel advances (no branch)
+            x[j] = p[v, u, 0]
+            y[j] = p[v, u, 1]
+            gx[j] = sx
+            gy[j] = sy
+            j += good
+    return j
+
+
+def slopes_and_rows(n_sample, reconstructed, p_sample_mm, start: int, rows) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`slopes_and_mask` and :func:`gather_rows` in one pass: the slopes (H, W, 2), the
+    fitted pixels (H, W) and the next free index; x, y (of ``p_sample_mm`` (H, W, 3)) and the
+    slopes of the fitted pixels written to ``rows`` = (x, y, g_x, g_y) ((N,) each, C order) from
+    ``start`` on. Each row needs room for ``start`` + H·W values (every pixel is written at the
+    next free index, which only a fitted one advances)."""
+    n = readonly(np.ascontiguousarray(n_sample, dtype=np.float64))
+    rec = readonly(np.ascontiguousarray(reconstructed, dtype=np.bool_))
+    if any(r.size < start + rec.size for r in rows):
+        raise ValueError("slopes_and_rows: rows too short for the camera's pixels")
+    g = np.empty(rec.shape + (2,))
+    ok = np.empty(rec.shape, dtype=np.bool_)
+    j = _slopes_rows_kernel(n, rec, readonly(np.ascontiguousarray(p_sample_mm, dtype=np.float64)), np.int64(start), g,
+                            ok, *rows)
+    return g, ok, int(j)
 
 
 @numba.njit(cache=True, fastmath=False)
