@@ -744,6 +744,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     # slopes (room for every pixel: the pages past the fitted points are never touched)
     room = sum(int(np.asarray(rec.reconstructed).size) for rec in recs)
     xy, gxy = np.empty((2, room)), np.empty((2, room))
+    spare = xy.reshape(-1)  # after the IRLS: the cameras' residual maps (2·H·W values each), pages already touched
     m = 0
     for rec in recs:
         g, ok, m = slopes_and_rows(rec.n_sample, rec.reconstructed, rec.p_sample_mm, m, (xy[0], xy[1], gxy[0], gxy[1]))
@@ -755,10 +756,13 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
         return _summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
     coef, scale = _irls(readonly(xy[0]), readonly(xy[1]), readonly(gxy[0]), readonly(gxy[1]), centre, True, 100)
     del xy
-    sums, start = np.zeros(24), 0
+    sums, start, used = np.zeros(24), 0, 0
     for i, (rec, ok, ex) in enumerate(zip(recs, oks, extras)):  # the residuals written over the slope rows
+        out = spare[used:used + 2 * ok.size].reshape(ok.shape + (2,))
+        used += 2 * ok.size
         ex["residual_slopes"], start = final_pass(rec.p_sample_mm, ex["slopes"], slope_std[i] if use_sig else None,
-                                                  ok, start, centre, coef, scale, (gxy[0], gxy[1]), sums)
+                                                  ok, start, centre, coef, scale, (gxy[0], gxy[1]), sums, out=out)
+    del spare
     fit = fit_result(coef, centre, gxy[0], gxy[1], gxy.T, camera_z_mm, scale)
     if use_sig:
         fit = with_sandwich(fit, normal_matrix(sums[0:6], sums[6:12]), normal_matrix(sums[12:18], sums[18:24]),

@@ -88,7 +88,8 @@ def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rx, ry, res
             part[v, 18 + k] = by[k]
 
 
-def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, scale: float, rows, sums):
+def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, scale: float, rows, sums, *,
+               out=None):
     """One camera's residual map (H, W, 2) and next row index; its residuals written to
     ``rows[0][start:]``, ``rows[1][start:]`` and, with ``slope_std``, its sandwich sums added to
     ``sums`` (24,).
@@ -116,6 +117,8 @@ def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, sca
     sums : ndarray (24,)
         Σ w·(x², xy, y², x, y, 1) of the g_x rows, of the g_y rows, then Σ (wσ)²·(…) of each
         (module docstring), continued.
+    out : ndarray (H, W, 2), optional
+        The residual map to write (every value is written; C order), else a new one.
 
     Returns
     -------
@@ -129,7 +132,9 @@ def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, sca
     offs[1:] += start
     use_sig = slope_std is not None
     sig = readonly(np.ascontiguousarray(slope_std, dtype=np.float64) if use_sig else np.zeros((1, 1, 2)))
-    res = np.empty((h, w, 2))
+    res = np.empty((h, w, 2)) if out is None else out
+    if res.shape != (h, w, 2) or res.dtype != np.float64 or not (res.flags.c_contiguous and res.flags.writeable):
+        raise ValueError(f"final_pass: out must be a writable C-ordered float64 ({h}, {w}, 2) array")
     part = np.zeros((h, _NSUM))
     with numba_threads(1 if okr.size < SERIAL_BELOW_PX else numba.get_num_threads()):
         _final_kernel(readonly(np.ascontiguousarray(p_sample_mm, dtype=np.float64)),
