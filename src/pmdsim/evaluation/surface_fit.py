@@ -737,6 +737,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     from .surface_fit_final import final_pass
     from .surface_fit_rows import slopes_and_rows
 
+    heights = [remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0] for rec in recs]
     oks, extras = [], []
     use_sig = slope_std is not None and all(s is not None for s in slope_std)
     # x, y and the slopes of the fitted points as (2, M) rows (what the fit reads: no per-camera
@@ -768,7 +769,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
         fit = with_sandwich(fit, normal_matrix(sums[0:6], sums[6:12]), normal_matrix(sums[12:18], sums[18:24]),
                             centre)
     for rec, ex in zip(recs, extras):
-        ex["height_detrended_mm"] = remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0]
+        ex["height_detrended_mm"] = heights.pop(0)
     return fit, extras
 
 
