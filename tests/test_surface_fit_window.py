@@ -66,7 +66,14 @@ def test_window_medians_are_numpys(quantise):
                     assert got is not None  # within its reach the window answers
                 if got is not None:
                     answered += 1
-                    assert got == _numpy_medians(x, y, gx, gy, coef + dc)
+                    ref = _numpy_medians(x, y, gx, gy, coef + dc)
+                    assert got == ref
+                    # narrower brackets (the IRLS's Lipschitz ones): the same answer; brackets
+                    # that miss a rank or are empty: the window's own brackets answer
+                    (_, r1, r2), (_, e1, e2) = ref
+                    for narrow in ((r1, r2, e1, e2), (r1 - 1e-9, r2 + 1e-9, e1 - 1e-9, e2 + 1e-9),
+                                   (r2 + 1e-9, r2 + 2e-9, e1, e2), (r1, r2, e2 + 1e-9, e2 + 2e-9), (r2, r1, e2, e1)):
+                        assert win.median_and_mad(coef + dc, narrow) == ref
     assert answered >= 20
     # far away: declines
     assert win.median_and_mad(coef + np.array([0, 0, 0, 1e-5, 0])) is None

@@ -145,13 +145,29 @@ class Window:
         # (+ the rounding of lo + drift and hi − drift)
         return d * (1.0 + 1e-6) + self._rounding(coef) + self._rounding(self.coef) + 4.0 * _EPS * (abs(lo) + abs(hi))
 
-    def median_and_mad(self, coef):
+    def median_and_mad(self, coef, narrow=None):
         """((median, lower, upper middle value), (MAD, lower, upper)) of the 2M residuals at
         ``coef`` and of their deviations from that median — those of a full pass — or None
-        (the coefficients moved too far from the window's, or a rank outside its brackets)."""
+        (the coefficients moved too far from the window's, or a rank outside its brackets).
+
+        ``narrow`` = (lo, hi, dlo, dhi): brackets expected to hold the middle values (the
+        Lipschitz bounds from the last iteration's), used where they are inside the window's:
+        any sub-bracket counts the points outside the window alike, and fewer values are
+        selected among. A rank outside them: the window's own brackets are used."""
+        got = None
+        if narrow is not None:
+            got = self._select(coef, narrow)
+        return self._select(coef, None) if got is None else got
+
+    def _select(self, coef, narrow):
         lo, hi, dlo, dhi = self.bounds
         drift = self.drift(coef)
         lo2, hi2 = lo + drift, hi - drift
+        if narrow is not None:
+            lo2, hi2 = max(lo2, narrow[0]), min(hi2, narrow[1])
+            dlo, dhi = max(dlo, narrow[2]), min(dhi, narrow[3])
+            if not dlo <= dhi:
+                return None
         if not lo2 <= hi2:
             return None
         n = 2 * self.n_total
@@ -231,14 +247,15 @@ class WindowedMedians:
         """((median, m1, m2), (MAD, d1, d2)) at ``coef`` — the last iteration's middle values
         ``ranks`` = (m1, m2), ``dev_ranks`` = (d1, d2) and the bound δ of the residuals' change
         since — or None (no window fits: the caller makes a full pass)."""
+        (m1, m2), (d1, d2) = ranks, dev_ranks
         if self.window is not None:
-            got = self.window.median_and_mad(coef)
+            got = self.window.median_and_mad(coef, (m1 - delta, m2 + delta, max(d1 - 2.0 * delta, 0.0),
+                                                    d2 + 2.0 * delta))
             if got is not None:
                 return got
             self.window = None
         from .surface_fit import _sample_values
 
-        (m1, m2), (d1, d2) = ranks, dev_ranks
         w = _WIDTH_STEPS * delta
         lo, hi = m1 - delta - 2.0 * w, m2 + delta + 2.0 * w
         dlo, dhi = max(d1 - 2.0 * delta - 2.0 * w, 0.0), d2 + 2.0 * delta + 2.0 * w
