@@ -60,8 +60,13 @@ def test_slopes_and_rows_equal_numpy_masks_bit_for_bit():
     rec = rng.random((H, W)) > 0.2
     p = rng.normal(0, 50, (H, W, 3))
     rows = np.empty((4, 2 * H * W))
-    g, ok, j = slopes_and_rows(n, rec, p, 0, tuple(rows))
-    g2, ok2, k = slopes_and_rows(n[::-1], rec[::-1], p[::-1], j, tuple(rows))
+    ext = np.array([np.inf, -np.inf, np.inf, -np.inf, 0.0])
+    g, ok, j = slopes_and_rows(n, rec, p, 0, tuple(rows), ext)
+    g2, ok2, k = slopes_and_rows(n[::-1], rec[::-1], p[::-1], j, tuple(rows), ext)
+    # the extents of the fitted points (both cameras): numpy's min and max
+    pts = np.concatenate([p[ok][:, :2], p[::-1][ok2][:, :2]])
+    gs = np.concatenate([g[ok], g2[ok2]])
+    assert tuple(ext) == (pts[:, 0].min(), pts[:, 0].max(), pts[:, 1].min(), pts[:, 1].max(), np.abs(gs).max())
     g_ref, ok_ref, m = slopes_and_mask(n, rec)
     np.testing.assert_array_equal(g, g_ref)
     np.testing.assert_array_equal(ok, ok_ref)

@@ -641,10 +641,11 @@ def fit_paraboloid_slopes(p_sample_mm, slopes, valid, *, camera_z_mm: float, rob
     return fit_result(coef, (xc, yc), rx, ry, res, camera_z_mm, scale if robust else 0.0)
 
 
-def _irls(x, y, gx, gy, origin, robust, max_iter):
+def _irls(x, y, gx, gy, origin, robust, max_iter, extents=None):
     """The centred coefficients (a, b, c, d, e) ((5,) array) and the last bisquare scale (0 if
     not ``robust``) of the fit of the M points x, y, g (read-only (M,) arrays) at
-    (x − xc, y − yc), ``origin`` = (xc, yc) (:func:`fit_paraboloid_slopes`)."""
+    (x − xc, y − yc), ``origin`` = (xc, yc) (:func:`fit_paraboloid_slopes`). ``extents``: the
+    points' (min x, max x, min y, max y, max |g|), if known (else one pass finds them)."""
     ox, oy = origin
     n = x.size
     scale = 0.0
@@ -655,7 +656,11 @@ def _irls(x, y, gx, gy, origin, robust, max_iter):
 
         buf = np.empty(min(2 * n, max(4096, (2 * n) // 12)))  # (a sample's bracket: ~3 % of the values)
         hist = np.empty(_N_BINS_SELECT, np.int64)
-        ax, ay, g_max = _extents(x, y, gx, gy, ox, oy)
+        if extents is None:
+            ax, ay, g_max = _extents(x, y, gx, gy, ox, oy)
+        else:  # max |x − xc| = max(x_max − xc, xc − x_min) exactly (the rounded difference is monotonic)
+            ax, ay, g_max = (max(extents[1] - ox, ox - extents[0]), max(extents[3] - oy, oy - extents[2]),
+                             float(extents[4]))
         reach = (2.0 * ax, ay, ax, 2.0 * ay)  # |∂r_x/∂(a, b)|, |∂r_y/∂(b, c)|
         med = mad = delta = None
         m1 = m2 = d1 = d2 = 0.0  # the two middle values of the residuals and of their deviations
@@ -746,16 +751,17 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     room = sum(int(np.asarray(rec.reconstructed).size) for rec in recs)
     xy, gxy = np.empty((2, room)), np.empty((2, room))
     spare = xy.reshape(-1)  # after the IRLS: the cameras' residual maps (2·H·W values each), pages already touched
-    m = 0
+    m, ext = 0, np.array([np.inf, -np.inf, np.inf, -np.inf, 0.0])
     for rec in recs:
-        g, ok, m = slopes_and_rows(rec.n_sample, rec.reconstructed, rec.p_sample_mm, m, (xy[0], xy[1], gxy[0], gxy[1]))
+        g, ok, m = slopes_and_rows(rec.n_sample, rec.reconstructed, rec.p_sample_mm, m, (xy[0], xy[1], gxy[0], gxy[1]),
+                                   ext)
         oks.append(ok)
         extras.append({"slopes": g})
     xy, gxy = xy[:, :m], gxy[:, :m]
     centre = (float(xy[0].mean()), float(xy[1].mean())) if m >= 6 else (np.nan, np.nan)
     if not (np.isfinite(centre[0]) and np.isfinite(centre[1])):  # too few points, or a non-finite x, y
         return _summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
-    coef, scale = _irls(readonly(xy[0]), readonly(xy[1]), readonly(gxy[0]), readonly(gxy[1]), centre, True, 100)
+    coef, scale = _irls(readonly(xy[0]), readonly(xy[1]), readonly(gxy[0]), readonly(gxy[1]), centre, True, 100, ext)
     del xy
     sums, start, used = np.zeros(24), 0, 0
     for i, (rec, ok, ex) in enumerate(zip(recs, oks, extras)):  # the residuals written over the slope rows

@@ -49,9 +49,10 @@ def slopes_and_mask(n_sample, reconstructed) -> tuple[np.ndarray, np.ndarray, in
 
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
-def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy):  # pragma: no cover - compiled
+def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy, ext):  # pragma: no cover - compiled
     h, w = rec.shape
     j = start
+    xlo, xhi, ylo, yhi, gmax = ext[0], ext[1], ext[2], ext[3], ext[4]
     for v in range(0, h):
         for u in range(0, w):
             nz = n[v, u, 2]
@@ -62,28 +63,41 @@ def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy):  # pragma: no co
             good = rec[v, u] and np.isfinite(sx) and np.isfinite(sy)
             ok[v, u] = good
             # written at the next free index, which only a fitted pixel advances (no branch)
-            x[j] = p[v, u, 0]
-            y[j] = p[v, u, 1]
+            px = p[v, u, 0]
+            py = p[v, u, 1]
+            x[j] = px
+            y[j] = py
             gx[j] = sx
             gy[j] = sy
             j += good
+            if good:
+                xlo = min(xlo, px)
+                xhi = max(xhi, px)
+                ylo = min(ylo, py)
+                yhi = max(yhi, py)
+                gmax = max(gmax, max(abs(sx), abs(sy)))
+    ext[0], ext[1], ext[2], ext[3], ext[4] = xlo, xhi, ylo, yhi, gmax
     return j
 
 
-def slopes_and_rows(n_sample, reconstructed, p_sample_mm, start: int, rows) -> tuple[np.ndarray, np.ndarray, int]:
+def slopes_and_rows(n_sample, reconstructed, p_sample_mm, start: int, rows, extents=None
+                    ) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`slopes_and_mask` and :func:`gather_rows` in one pass: the slopes (H, W, 2), the
     fitted pixels (H, W) and the next free index; x, y (of ``p_sample_mm`` (H, W, 3)) and the
     slopes of the fitted pixels written to ``rows`` = (x, y, g_x, g_y) ((N,) each, C order) from
     ``start`` on. Each row needs room for ``start`` + H·W values (every pixel is written at the
-    next free index, which only a fitted one advances)."""
+    next free index, which only a fitted one advances). ``extents`` ((5,) float64, optional):
+    (min x, max x, min y, max y, max(|g_x|, |g_y|)) of the fitted pixels, continued (start from
+    (inf, −inf, inf, −inf, 0))."""
     n = readonly(np.ascontiguousarray(n_sample, dtype=np.float64))
     rec = readonly(np.ascontiguousarray(reconstructed, dtype=np.bool_))
     if any(r.size < start + rec.size for r in rows):
         raise ValueError("slopes_and_rows: rows too short for the camera's pixels")
     g = np.empty(rec.shape + (2,))
     ok = np.empty(rec.shape, dtype=np.bool_)
+    ext = np.array([np.inf, -np.inf, np.inf, -np.inf, 0.0]) if extents is None else extents
     j = _slopes_rows_kernel(n, rec, readonly(np.ascontiguousarray(p_sample_mm, dtype=np.float64)), np.int64(start), g,
-                            ok, *rows)
+                            ok, *rows, ext)
     return g, ok, int(j)
 
 
