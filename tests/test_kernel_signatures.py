@@ -82,7 +82,7 @@ def test_each_kernel_compiles_once_on_the_main_paths(tmp_path, small_setup_file)
     for name in ("pmdsim.simulation.trace._trace_kernel", "pmdsim.geometry.camera._rays_kernel",
                  "pmdsim.simulation.patterns._render_stack_kernel", "pmdsim.evaluation.decoding_fused._fused_kernel",
                  "pmdsim.evaluation.stepwise._stepwise_kernel", "pmdsim.evaluation.least_squares._apply_update",
-                 "pmdsim.evaluation.surface_fit._weighted_sums", "pmdsim.calibration.kernel._chunks_kernel"):
+                 "pmdsim.evaluation.surface_fit_sums._block_sums", "pmdsim.calibration.kernel._chunks_kernel"):
         assert name in kernels, sorted(kernels)
     assert len(kernels) >= 30, sorted(kernels)
     several = {k: kernels[k] for k in kernels if len(sigs[k + " (unliteral)"]) != 1}

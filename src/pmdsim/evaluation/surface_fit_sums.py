@@ -107,7 +107,7 @@ def weighted_sums(x, y, gx, gy, xc, yc, coef, scale, robust) -> np.ndarray:
     part = np.empty(((x.size + SUM_BLOCK - 1) // SUM_BLOCK, 18))
     # (few points: one thread — the same blocks, the same bits — without the threads' barrier)
     with numba_threads(1 if x.size < SERIAL_BELOW_PX else numba.get_num_threads()):
-        _block_sums(x, y, gx, gy, float(xc), float(yc), np.asarray(coef, dtype=np.float64), float(scale),
+        _block_sums(x, y, gx, gy, float(xc), float(yc), readonly(np.asarray(coef, dtype=np.float64)), float(scale),
                     bool(robust), part)
     out = np.zeros(18)
     add_rows(part, out)
