@@ -26,14 +26,16 @@ reconstructs, registers again at the reconstructed points and reconstructs again
 from __future__ import annotations
 
 import enum
-import threading
 from dataclasses import dataclass
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
 
 from ..geometry.camera import Camera
-from ..geometry.kernel_args import SERIAL_BELOW_PX, readonly
+from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads, readonly
 from ..geometry.surface import height_kernel
 from ..geometry.cover_glass import CoverGlass
 from ..geometry.transform import RigidTransform
@@ -175,106 +177,85 @@ def register(
     )
 
 
-#: Pixels per block of the fused registration: the block's (x, y, h) rows (384 kB) stay in cache
-#: between the kernel that writes them and the rotation that reads them, and numpy's matmul of
-#: that many rows runs on one OpenBLAS thread (from 65 536 rows on it starts threads, which on
-#: a loaded 2-vCPU machine took 0.9–1.1 s instead of 20 ms for 2.3 M rows: docs/benchmarks.md).
+#: Pixels per block of the fused registration's parallel loop (the blocks are dealt to the threads).
 _BLOCK_PX = 16_384
-#: Threads of the fused registration (blocks dealt out in turn; at most numba's thread count).
-_THREADS = 2
 
 
-@numba.njit(cache=True, error_model="numpy", nogil=True)
-def _screen_block(xy, ok, conv, bounds, kind, gx, gy, coef, start, stop, status, q):  # pragma: no cover - compiled
-    """Status (``status`` (P,), uint8) and screen points (x, y, h(x, y)) — NaN where the status is
-    not VALID — of the flat pixels start … stop − 1 (``xy`` (P, 2), ``ok``, ``conv`` (P,)) into
-    ``q[: stop − start]`` ((B, 3)); the status as :func:`register`'s masks set it (NOT_DECODED
-    over UNDISTORT_FAILED over OUTSIDE_SCREEN_MODEL)."""
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a·b + c with one rounding (LLVM's fma: the processor's instruction)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        d = ir.DoubleType()
+        fn = builder.module.declare_intrinsic("llvm.fma", [d], ir.FunctionType(d, [d, d, d]))
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, inline="always")
+def _rotated(a0, a1, a2, rot, j):  # pragma: no cover - compiled
+    """Component j of rot·a: fma(a₂, R_j2, fma(a₁, R_j1, a₀·R_j0)) — the operations of numpy's
+    ``a @ rot.T`` (OpenBLAS's dgemm on this machine), so the same bits
+    (tests/test_registration_fused.py compares with numpy)."""
+    return _fma(a2, rot[j, 2], _fma(a1, rot[j, 1], a0 * rot[j, 0]))
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _register_kernel(xy, ok, conv, bounds, kind, gx, gy, coef, d_cam, rot_q, t_q, rot_d, block, status, q_ref,
+                     d_ref):  # pragma: no cover - compiled
+    """Status (``status`` (P,), uint8), screen points rot_q·(x, y, h(x, y)) + t_q (``q_ref``
+    (P, 3); NaN where the status is not VALID) and view rays rot_d·d (``d_ref`` (P, 3)) of the
+    flat pixels (``xy`` (P, 2), ``ok``, ``conv`` (P,), ``d_cam`` (P, 3)), in blocks of ``block``
+    pixels on the threads; the status as :func:`register`'s masks set it (NOT_DECODED over
+    UNDISTORT_FAILED over OUTSIDE_SCREEN_MODEL)."""
     x0, x1, y0, y1 = bounds[0], bounds[1], bounds[2], bounds[3]
-    for k in range(start, stop):
-        x = xy[k, 0]
-        y = xy[k, 1]
-        j = k - start
-        if not ok[k]:
-            st = 1
-        elif not conv[k]:
-            st = 2
-        elif not (x >= x0 and x <= x1 and y >= y0 and y <= y1):  # False for NaN
-            st = 3
-        else:
-            st = 0
-        status[k] = st
-        if st == 0:
-            q[j, 0] = x
-            q[j, 1] = y
-            q[j, 2] = height_kernel(kind, gx, gy, coef, x, y)
-        else:
-            q[j, 0] = np.nan
-            q[j, 1] = np.nan
-            q[j, 2] = np.nan
+    n = ok.size
+    for b in numba.prange(0, (n + block - 1) // block):
+        for k in range(b * block, min(n, (b + 1) * block)):
+            x = xy[k, 0]
+            y = xy[k, 1]
+            if not ok[k]:
+                st = 1
+            elif not conv[k]:
+                st = 2
+            elif not (x >= x0 and x <= x1 and y >= y0 and y <= y1):  # False for NaN
+                st = 3
+            else:
+                st = 0
+            status[k] = st
+            if st == 0:
+                h = height_kernel(kind, gx, gy, coef, x, y)
+            else:
+                x = y = h = np.nan
+            for j in range(3):
+                q_ref[k, j] = _rotated(x, y, h, rot_q, j) + t_q[j]
+                d_ref[k, j] = _rotated(d_cam[k, 0], d_cam[k, 1], d_cam[k, 2], rot_d, j)
 
 
 def _register_blocks(xy, ok, converged, d_cam, screen_model, T_ref_screen, T_ref_cam):
     """Status (H, W), view rays (H, W, 3) and screen points (H, W, 3) in the reference frame of
-    :func:`register` without a glass, in blocks of pixels: a compiled pass writes a block's
-    (x, y, h) rows, numpy rotates them into the result (``p @ R.T``, then ``+= t``:
-    :meth:`RigidTransform.apply`'s operations row for row — the same bits,
-    tests/test_registration_fused.py) while they are in cache, and rotates the block's view rays
-    (:meth:`RigidTransform.apply_vector`). No (H, W, 3) screen points, masks or heights of the
-    whole image are allocated; numpy's matmul runs on blocks of rows as on the whole array,
-    except a block of one row (another path, other bits), which the blocks avoid. From
-    ``SERIAL_BELOW_PX`` pixels on, every other block runs on a second Python thread (the kernel
-    and the matmuls release the GIL; a block's arithmetic does not depend on its thread)."""
+    :func:`register` without a glass, in one compiled pass on the threads: per pixel the status,
+    the screen point (x, y, h) and both rotations (the operations of
+    :meth:`RigidTransform.apply` — ``p @ R.T`` by OpenBLAS, then ``+= t`` — and of
+    :meth:`RigidTransform.apply_vector`: the same bits, tests/test_registration_fused.py). No
+    (H, W, 3) screen points, masks or heights of the whole image are allocated."""
     shape = ok.shape
     P = ok.size
     k = screen_model.kernel
     flat_xy = readonly(np.ascontiguousarray(xy, dtype=np.float64).reshape(P, 2))
     flat_ok = readonly(np.ascontiguousarray(ok, dtype=np.bool_).reshape(P))
     flat_cv = readonly(np.ascontiguousarray(converged, dtype=np.bool_).reshape(P))
-    flat_d = np.asarray(d_cam, dtype=np.float64).reshape(P, 3)
+    flat_d = readonly(np.ascontiguousarray(d_cam, dtype=np.float64).reshape(P, 3))
     bounds = readonly(np.array(screen_model.bounds_mm, dtype=np.float64))
     gx, gy, coef = (readonly(np.ascontiguousarray(a, dtype=np.float64)) for a in (k.grid_x, k.grid_y, k.coef))
-    kind = np.int64(k.kind)
+    rot_q, t_q, rot_d = (readonly(np.ascontiguousarray(a, dtype=np.float64)) for a in
+                         (T_ref_screen.rotation, T_ref_screen.translation, T_ref_cam.rotation))
     status = np.empty(P, np.uint8)
     q_ref = np.empty((P, 3))
     d_ref = np.empty((P, 3))
-    rot_q, t_q, rot_d = T_ref_screen.rotation.T, T_ref_screen.translation, T_ref_cam.rotation.T
-    blocks, start = [], 0
-    while start < P:
-        stop = min(P, start + _BLOCK_PX)
-        if P - stop == 1:  # no block of one row
-            stop = P
-        blocks.append((start, stop))
-        start = stop
-
-    failed = []
-
-    def run(mine):
-        try:
-            _blocks(mine)
-        except BaseException as exc:  # (re-raised in the calling thread)
-            failed.append(exc)
-
-    def _blocks(mine):
-        block = np.empty((min(P, _BLOCK_PX + 1), 3))
-        for start, stop in mine:
-            q = block[: stop - start]
-            _screen_block(flat_xy, flat_ok, flat_cv, bounds, kind, gx, gy, coef, np.int64(start), np.int64(stop),
-                          status, q)
-            out = q_ref[start:stop]
-            np.matmul(q, rot_q, out=out)
-            out += t_q
-            np.matmul(flat_d[start:stop], rot_d, out=d_ref[start:stop])
-
-    # every other block on a second thread (the kernel and numpy's matmul release the GIL; each
-    # block's arithmetic is the same on either thread)
-    n_threads = min(_THREADS, numba.get_num_threads()) if P >= SERIAL_BELOW_PX else 1
-    helpers = [threading.Thread(target=run, args=(blocks[i::n_threads],)) for i in range(1, n_threads)]
-    for t in helpers:
-        t.start()
-    run(blocks[::n_threads])
-    for t in helpers:
-        t.join()
-    if failed:
-        raise failed[0]
+    with numba_threads(1 if P < SERIAL_BELOW_PX else numba.get_num_threads()):
+        _register_kernel(flat_xy, flat_ok, flat_cv, bounds, np.int64(k.kind), gx, gy, coef, flat_d, rot_q, t_q, rot_d,
+                         np.int64(_BLOCK_PX), status, q_ref, d_ref)
     return status.reshape(shape), d_ref.reshape(shape + (3,)), q_ref.reshape(shape + (3,))
