@@ -26,15 +26,22 @@ def _slopes_kernel(n, rec, g, ok):  # pragma: no cover - compiled
     m = 0
     for v in range(0, h):
         for u in range(0, w):
-            nz = n[v, u, 2]
-            gx = -n[v, u, 0] / nz
-            gy = -n[v, u, 1] / nz
-            g[v, u, 0] = gx
-            g[v, u, 1] = gy
-            good = rec[v, u] and np.isfinite(gx) and np.isfinite(gy)
-            ok[v, u] = good
-            m += good
+            m += _slope_at(n, rec, g, ok, v, u)[2]
     return m
+
+
+@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+def _slope_at(n, rec, g, ok, v, u):  # pragma: no cover - compiled
+    """Pixel (v, u): its slopes (−n_x/n_z, −n_y/n_z) written to ``g``, whether it is fitted
+    (reconstructed, finite slopes) to ``ok``; returns (g_x, g_y, fitted)."""
+    nz = n[v, u, 2]
+    gx = -n[v, u, 0] / nz
+    gy = -n[v, u, 1] / nz
+    g[v, u, 0] = gx
+    g[v, u, 1] = gy
+    good = rec[v, u] and np.isfinite(gx) and np.isfinite(gy)
+    ok[v, u] = good
+    return gx, gy, good
 
 
 def slopes_and_mask(n_sample, reconstructed) -> tuple[np.ndarray, np.ndarray, int]:
@@ -55,13 +62,7 @@ def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy, ext):  # pragma: 
     xlo, xhi, ylo, yhi, gmax = ext[0], ext[1], ext[2], ext[3], ext[4]
     for v in range(0, h):
         for u in range(0, w):
-            nz = n[v, u, 2]
-            sx = -n[v, u, 0] / nz
-            sy = -n[v, u, 1] / nz
-            g[v, u, 0] = sx
-            g[v, u, 1] = sy
-            good = rec[v, u] and np.isfinite(sx) and np.isfinite(sy)
-            ok[v, u] = good
+            sx, sy, good = _slope_at(n, rec, g, ok, v, u)
             # written at the next free index, which only a fitted pixel advances (no branch)
             px = p[v, u, 0]
             py = p[v, u, 1]
