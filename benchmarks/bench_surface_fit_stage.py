@@ -79,7 +79,8 @@ def _load(cap: Path, repeat: int) -> None:
     wrap(sel, "_collect_both")
     for name in ("_slopes_kernel", "_gather_kernel", "_scatter_kernel", "_slopes_rows_kernel"):
         wrap(rows, name)
-    for modname, names in (("surface_fit_sums", ("_block_sums",)), ("surface_fit_final", ("_final_kernel",))):
+    for modname, names in (("surface_fit_sums", ("_block_sums",)), ("surface_fit_final", ("_final_kernel",)),
+                          ("registration", ("_register_kernel", "_screen_block"))):
         try:  # (not in older trees)
             mod = __import__(f"pmdsim.evaluation.{modname}", fromlist=["_"])
         except ImportError:
