@@ -25,7 +25,8 @@ SUM_BLOCK = 4096
 @numba.njit(cache=True, inline="always")
 def moments(acc, w, xi, yi, xx, xy, yy):
     """(acc[0] + w·xx, acc[1] + w·xy, acc[2] + w·yy, acc[3] + w·xi, acc[4] + w·yi, acc[5] + w):
-    the weighted sums of one design row's (x², xy, y², x, y, 1), continued."""
+    the weighted sums of one design row's (x², xy, y², x, y, 1), continued (``acc`` a 6-tuple
+    in every caller: one type)."""
     return (acc[0] + w * xx, acc[1] + w * xy, acc[2] + w * yy, acc[3] + w * xi, acc[4] + w * yi, acc[5] + w)
 
 
@@ -64,8 +65,8 @@ def _block_sums(x, y, gx, gy, xc, yc, coef, scale, robust, part):  # pragma: no 
             xx = xi * xi
             xy = xi * yi
             yy = yi * yi
-            sx = moments(sx, wx, xi, yi, xx, xy, yy) + (sx[6] + wx * gxi * xi, sx[7] + wx * gxi * yi, sx[8] + wx * gxi)
-            sy = moments(sy, wy, xi, yi, xx, xy, yy) + (sy[6] + wy * gyi * xi, sy[7] + wy * gyi * yi, sy[8] + wy * gyi)
+            sx = moments(sx[:6], wx, xi, yi, xx, xy, yy) + (sx[6] + wx * gxi * xi, sx[7] + wx * gxi * yi, sx[8] + wx * gxi)
+            sy = moments(sy[:6], wy, xi, yi, xx, xy, yy) + (sy[6] + wy * gyi * xi, sy[7] + wy * gyi * yi, sy[8] + wy * gyi)
         for j in range(9):
             part[k, j] = sx[j]
             part[k, 9 + j] = sy[j]
