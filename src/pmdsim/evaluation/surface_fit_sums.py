@@ -65,8 +65,10 @@ def _block_sums(x, y, gx, gy, xc, yc, coef, scale, robust, part):  # pragma: no 
             xx = xi * xi
             xy = xi * yi
             yy = yi * yi
-            sx = moments(sx[:6], wx, xi, yi, xx, xy, yy) + (sx[6] + wx * gxi * xi, sx[7] + wx * gxi * yi, sx[8] + wx * gxi)
-            sy = moments(sy[:6], wy, xi, yi, xx, xy, yy) + (sy[6] + wy * gyi * xi, sy[7] + wy * gyi * yi, sy[8] + wy * gyi)
+            sx = (moments(sx[:6], wx, xi, yi, xx, xy, yy)
+                  + (sx[6] + wx * gxi * xi, sx[7] + wx * gxi * yi, sx[8] + wx * gxi))
+            sy = (moments(sy[:6], wy, xi, yi, xx, xy, yy)
+                  + (sy[6] + wy * gyi * xi, sy[7] + wy * gyi * yi, sy[8] + wy * gyi))
         for j in range(9):
             part[k, j] = sx[j]
             part[k, 9 + j] = sy[j]
