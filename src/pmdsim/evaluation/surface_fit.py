@@ -739,7 +739,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     the residual maps and the σ sandwich's sums come from one pass per camera over its maps
     (:mod:`.surface_fit_final`).
     """
-    from .surface_fit_final import final_pass
+    from .surface_fit_final import final_pass, summary_in_parts
     from .surface_fit_rows import slopes_and_rows
 
     heights = [remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0] for rec in recs]
@@ -760,7 +760,7 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
     xy, gxy = xy[:, :m], gxy[:, :m]
     centre = (float(xy[0].mean()), float(xy[1].mean())) if m >= 6 else (np.nan, np.nan)
     if not (np.isfinite(centre[0]) and np.isfinite(centre[1])):  # too few points, or a non-finite x, y
-        return _summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
+        return summary_in_parts(recs, camera_z_mm, slope_std if use_sig else None, oks, extras, xy, gxy)
     coef, scale = _irls(readonly(xy[0]), readonly(xy[1]), readonly(gxy[0]), readonly(gxy[1]), centre, True, 100, ext)
     del xy
     sums, start, used = np.zeros(24), 0, 0
@@ -776,20 +776,4 @@ def surface_fit_summary(recs, camera_z_mm, slope_std=None) -> tuple[ParaboloidFi
                             centre)
     for rec, ex in zip(recs, extras):
         ex["height_detrended_mm"] = heights.pop(0)
-    return fit, extras
-
-
-def _summary_in_parts(recs, camera_z_mm, slope_std, oks, extras, xy, gxy):
-    """:func:`surface_fit_summary` by :func:`fit_paraboloid_slopes` (which leaves out points
-    with a non-finite x or y, or raises for fewer than 6) and :func:`with_uncertainty`."""
-    from .surface_fit_rows import scatter_residuals
-
-    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(xy.shape[1], bool), camera_z_mm=camera_z_mm,
-                                overwrite_slopes=True)
-    if slope_std is not None:  # σ read in the maps at the fitted pixels (no (M, 2) gather)
-        fit = with_uncertainty(fit, xy.T, slope_std, camera_z_mm, masks=oks)
-    start = 0
-    for rec, ok, ex in zip(recs, oks, extras):
-        ex["residual_slopes"], start = scatter_residuals(fit.residual_slopes, ok, start)
-        ex["height_detrended_mm"] = remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0]
     return fit, extras

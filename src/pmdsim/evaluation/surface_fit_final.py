@@ -18,6 +18,9 @@ threads). The sandwich's sums are those of :func:`~.surface_fit.with_uncertainty
 and centred on the fit's centre instead of the σ points' mean (the same covariance of the
 uncentred coefficients): the σ agree to ~1e-13 relative (tests/test_surface_fit_final.py, against
 numpy's matmul on the explicit design).
+
+:func:`summary_in_parts`: the summary composed of the general fit, :func:`~.surface_fit.with_uncertainty`
+and the scatter, for points whose x or y is not finite (the last pass assumes finite points).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads, readonly
 from .surface_fit_sums import add_rows, moments
 
-__all__ = ["final_pass"]
+__all__ = ["final_pass", "summary_in_parts"]
 
 _NSUM = 24
 
@@ -144,3 +147,22 @@ def final_pass(p_sample_mm, slopes, slope_std, ok, start: int, centre, coef, sca
     if use_sig:
         add_rows(part, sums)
     return res, int(start + np.count_nonzero(okr))
+
+
+def summary_in_parts(recs, camera_z_mm, slope_std, oks, extras, xy, gxy):
+    """:func:`~.surface_fit.surface_fit_summary` by :func:`~.surface_fit.fit_paraboloid_slopes`
+    (which leaves out points with a non-finite x or y, or raises for fewer than 6) and
+    :func:`~.surface_fit.with_uncertainty`: the fit of the rows ``xy``, ``gxy`` ((2, M)), the
+    residual maps scattered to the pixels ``oks`` and the detrended heights into ``extras``."""
+    from .surface_fit import fit_paraboloid_slopes, remove_piston_tilt, with_uncertainty
+    from .surface_fit_rows import scatter_residuals
+
+    fit = fit_paraboloid_slopes(xy.T, gxy.T, np.ones(xy.shape[1], bool), camera_z_mm=camera_z_mm,
+                                overwrite_slopes=True)
+    if slope_std is not None:  # σ read in the maps at the fitted pixels (no (M, 2) gather)
+        fit = with_uncertainty(fit, xy.T, slope_std, camera_z_mm, masks=oks)
+    start = 0
+    for rec, ok, ex in zip(recs, oks, extras):
+        ex["residual_slopes"], start = scatter_residuals(fit.residual_slopes, ok, start)
+        ex["height_detrended_mm"] = remove_piston_tilt(rec.p_sample_mm, rec.reconstructed)[0]
+    return fit, extras
