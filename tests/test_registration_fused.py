@@ -1,8 +1,11 @@
 """The fused registration (issue 25, item 1): status, view rays and screen points of
 :func:`pmdsim.evaluation.registration.register` without a cover glass against numpy's masks,
-heights and transforms written out here (the paper's §2.5 steps, as before the fused pass) —
-bit for bit, NaN and signs included — for a spline, plane and quadric screen model, and with
-blocks that end one row before the image does."""
+heights and transforms written out here (the paper's §2.5 steps, as before the fused pass) — the
+status bit for bit; rays and points with the same NaN pattern and within 4 units in the last place of
+each array's largest value, for a spline, plane and quadric screen model, and with blocks that end
+one row before the image does. On this machine the fused pass reproduces numpy's bits (its rotation
+is OpenBLAS's multiply-add order, written as FMAs, docs/benchmarks.md); the test does not demand
+that, because OpenBLAS chooses its kernel, and so its rounding order, by processor."""
 
 from __future__ import annotations
 
@@ -52,6 +55,15 @@ def _same(a, b):
         np.signbit(a), np.signbit(b))
 
 
+def _close(a, b):
+    """Same shape, dtype and NaN pattern; elsewhere within 4 ulp of ``b``'s largest magnitude (a sum of
+    three products rounded in another order differs by at most a few ulp of its largest term)."""
+    if a.shape != b.shape or a.dtype != b.dtype or not np.array_equal(np.isnan(a), np.isnan(b)):
+        return False
+    fin = ~np.isnan(b)
+    return bool(np.all(np.abs(a[fin] - b[fin]) <= 4 * np.spacing(np.max(np.abs(b[fin])))))
+
+
 @pytest.mark.parametrize("model", ["spline_zero", "spline", "plane", "quadric"])
 @pytest.mark.parametrize("block", [None, 7])
 def test_fused_registration_matches_numpy(model, block, monkeypatch):
@@ -74,8 +86,8 @@ def test_fused_registration_matches_numpy(model, block, monkeypatch):
     status, d_ref, q_ref = _reference(cs.camera, cs.T_world_cam, screen, _tilted(scr.T_world_screen), xy, ok,
                                       setup.sample.T_world_sample)
     assert _same(reg.status, status)
-    assert _same(reg.d_ref, d_ref)
-    assert _same(reg.q_ref_mm, q_ref)
+    assert _close(reg.d_ref, d_ref)
+    assert _close(reg.q_ref_mm, q_ref)
     assert {0, 1, 3} <= set(np.unique(reg.status).tolist())
 
 
@@ -93,4 +105,4 @@ def test_block_of_one_row_is_avoided(monkeypatch):
                        rng.uniform(scr.grid_y_mm[0], scr.grid_y_mm[-1], cs.camera.shape)], -1)
         reg = register(cs.camera, cs.T_world_cam, screen, _tilted(scr.T_world_screen), xy, ok, setup.sample.T_world_sample)
         ref = _reference(cs.camera, cs.T_world_cam, screen, _tilted(scr.T_world_screen), xy, ok, setup.sample.T_world_sample)
-        assert _same(reg.q_ref_mm, ref[2])
+        assert _close(reg.q_ref_mm, ref[2])
