@@ -303,22 +303,31 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _seed_state(o, d, q, state, sv, su, z0):
+    """The seed (sv, su) at height z0 into ``state`` (t, slopes, flag 1). Returns False (nothing
+    written) if its normal is unusable."""
+    t = (z0 - o[2]) / d[sv, su, 2]
+    px = o[0] + t * d[sv, su, 0]
+    py = o[1] + t * d[sv, su, 1]
+    gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
+    if not (np.isfinite(gx) and np.isfinite(gy)):
+        return False
+    state[sv, su, 0] = t
+    state[sv, su, 1] = gx
+    state[sv, su, 2] = gy
+    state[sv, su, 3] = 1.0
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     """Stepwise integration from the seed (sv, su) at height z0: :func:`_expand_kernel` from
     the seed alone. Returns its statistics; the corrector count is −1 if the seed's normal is
     unusable."""
     H = state.shape[0]
     W = state.shape[1]
-    t = (z0 - o[2]) / d[sv, su, 2]
-    px = o[0] + t * d[sv, su, 0]
-    py = o[1] + t * d[sv, su, 1]
-    gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
-    if not (np.isfinite(gx) and np.isfinite(gy)):
+    if not _seed_state(o, d, q, state, sv, su, z0):
         return -1, 0.0, 0
-    state[sv, su, 0] = t
-    state[sv, su, 1] = gx
-    state[sv, su, 2] = gy
-    state[sv, su, 3] = 1.0
     cur = np.empty(H * W, dtype=np.int64)
     cur[0] = sv * W + su
     # n_cur as int64, not the literal 1: one compiled signature with _fill_kernel's call
@@ -353,10 +362,20 @@ def _heights(oz, d, state, z, done):
 def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
     H, W = valid.shape
+    from .stepwise_rows import BAND_ROWS, rows_stepwise_kernel  # noqa: PLC0415 (it imports this module)
+
     state = np.empty((H, W, 4))
-    _init_state(np.ascontiguousarray(valid, dtype=bool), state)
-    max_used, max_change, n_unconv = _stepwise_kernel(
-        o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
+    valid = np.ascontiguousarray(valid, dtype=bool)
+    _init_state(valid, state)
+    code = -1
+    if _seed_state(o, d, q, state, seed[0], seed[1], z0):  # first in bands of rows (same bits), else wavefronts
+        max_used, max_change, n_unconv, code = rows_stepwise_kernel(
+            o, d, q, state, seed[0], seed[1], tol, STEP_MAX_ITER, BAND_ROWS)
+        if code == -2:  # a failed step: the wavefront pass on a fresh state
+            _init_state(valid, state)
+    if code != 0:
+        max_used, max_change, n_unconv = _stepwise_kernel(
+            o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
     if max_used < 0:
         raise ReconstructionError(
             f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
