@@ -95,28 +95,47 @@ def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
         idx = nxt[i]
         vb = idx // W
         ub = idx - vb * W
-        for c in range(3):
-            own[c, i] = d[vb, ub, c]
-            own[3 + c, i] = q[vb, ub, c]
+        _gather_own(d, q, vb, ub, own, i)
         j = 0
         for k in range(4):
-            va = vb + nb_dv[k]
-            ua = ub + nb_du[k]
-            if va < 0 or va >= H or ua < 0 or ua >= W:
-                continue
-            if state[va, ua, 3] != 1.0:
-                continue
-            ta = state[va, ua, 0]
-            nb[j, 0, i] = ta * d[va, ua, 0]
-            nb[j, 1, i] = ta * d[va, ua, 1]
-            nb[j, 2, i] = ta * d[va, ua, 2]
-            nb[j, 3, i] = state[va, ua, 1]
-            nb[j, 4, i] = state[va, ua, 2]
-            j += 1
-        m[i] = j
-        for jj in range(j, 4):
-            for c in range(5):
-                nb[jj, c, i] = 0.0
+            j = _gather_neighbour(d, state, vb + nb_dv[k], ub + nb_du[k], nb, j, i)
+        _gather_end(nb, m, j, i)
+
+
+@numba.njit(cache=True)
+def _gather_own(d, q, vb, ub, own, i):
+    """own[:, i] = pixel (vb, ub)'s view ray d and screen point q (:func:`_gather_wavefront`)."""
+    for c in range(3):
+        own[c, i] = d[vb, ub, c]
+        own[3 + c, i] = q[vb, ub, c]
+
+
+@numba.njit(cache=True)
+def _gather_neighbour(d, state, va, ua, nb, j, i):
+    """Slot j of pixel i (:func:`_gather_wavefront`) from pixel (va, ua) if it is in the image and
+    reconstructed (flag 1): t_a·d_a and g_a. Returns the next free slot (j + 1, or j)."""
+    H = state.shape[0]
+    W = state.shape[1]
+    if va < 0 or va >= H or ua < 0 or ua >= W:
+        return j
+    if state[va, ua, 3] != 1.0:
+        return j
+    ta = state[va, ua, 0]
+    nb[j, 0, i] = ta * d[va, ua, 0]
+    nb[j, 1, i] = ta * d[va, ua, 1]
+    nb[j, 2, i] = ta * d[va, ua, 2]
+    nb[j, 3, i] = state[va, ua, 1]
+    nb[j, 4, i] = state[va, ua, 2]
+    return j + 1
+
+
+@numba.njit(cache=True)
+def _gather_end(nb, m, j, i):
+    """m[i] = j neighbours gathered; the slots j … 3 of pixel i hold zeros."""
+    m[i] = j
+    for jj in range(j, 4):
+        for c in range(5):
+            nb[jj, c, i] = 0.0
 
 
 @numba.njit(cache=True, inline="always")

@@ -38,7 +38,7 @@ import numba
 import numpy as np
 
 from .prefetch import prefetch
-from .stepwise import _solve_wavefront
+from .stepwise import _gather_end, _gather_neighbour, _gather_own, _solve_wavefront
 
 __all__ = ["rows_stepwise_kernel", "l1_layered", "BAND_ROWS"]
 
@@ -75,34 +75,15 @@ def _gather_step(d, q, state, nxt, n, dv, du, own, nb, m):
     4-neighbours are at most its upstream ones, the row towards the seed's (v − ``dv``, in slot
     order first: offset (∓1, 0)) and the pixel towards the seed's column (u − ``du``: (0, ±1));
     each counts if its flag is 1 (outside the image it is not there)."""
-    H = state.shape[0]
     W = state.shape[1]
     for i in range(n):
         idx = nxt[i]
         vb = idx // W
         ub = idx - vb * W
-        for c in range(3):
-            own[c, i] = d[vb, ub, c]
-            own[3 + c, i] = q[vb, ub, c]
-        j = 0
-        for k in range(2):
-            va = vb - dv if k == 0 else vb
-            ua = ub if k == 0 else ub - du
-            if va < 0 or va >= H or ua < 0 or ua >= W:
-                continue
-            if state[va, ua, 3] != 1.0:
-                continue
-            ta = state[va, ua, 0]
-            nb[j, 0, i] = ta * d[va, ua, 0]
-            nb[j, 1, i] = ta * d[va, ua, 1]
-            nb[j, 2, i] = ta * d[va, ua, 2]
-            nb[j, 3, i] = state[va, ua, 1]
-            nb[j, 4, i] = state[va, ua, 2]
-            j += 1
-        m[i] = j
-        for jj in range(j, 4):
-            for c in range(5):
-                nb[jj, c, i] = 0.0
+        _gather_own(d, q, vb, ub, own, i)
+        j = _gather_neighbour(d, state, vb - dv, ub, nb, np.int64(0), i)
+        j = _gather_neighbour(d, state, vb, ub - du, nb, j, i)
+        _gather_end(nb, m, j, i)
 
 
 @numba.njit(cache=True, error_model="numpy")
