@@ -18,7 +18,7 @@ from pmdsim.evaluation.stepwise import (
     _NB_DV,
     STEP_MAX_ITER,
     _init_state,
-    _seed_state,
+    _seed_values,
     _stepwise_kernel,
     reconstruct_stepwise,
     step_tolerance_mm,
@@ -58,11 +58,10 @@ def _smooth_scene(H=23, W=31):
 def _rows(o, d, q, valid, seed, z0, band):
     """The row pass alone: (its code, its statistics, the heights where it finished)."""
     tol = step_tolerance_mm(o, q, valid)
-    state = np.empty(valid.shape + (4,))
-    _init_state(valid, state)
-    assert _seed_state(o, d, q, state, seed[0], seed[1], z0)
-    used, change, unconv, code = rows_stepwise_kernel(o, d, q, state, seed[0], seed[1], tol, STEP_MAX_ITER, np.int64(band))
-    z = np.where(state[..., 3] == 1.0, o[2] + state[..., 0] * d[..., 2], np.nan)
+    z = np.full(valid.shape, -7.0)
+    t0, gx0, gy0 = _seed_values(o, d, q, seed[0], seed[1], z0)
+    used, change, unconv, code = rows_stepwise_kernel(o, d, q, valid, z, seed[0], seed[1], t0, gx0, gy0, tol,
+                                                      STEP_MAX_ITER, np.int64(band))
     z[seed] = z0
     return code, (used, change, unconv), z, tol
 
@@ -105,11 +104,9 @@ def test_holes_that_keep_the_diamonds_run_in_rows_and_those_that_bend_them_do_no
     assert stats == _wavefront_stats(o, d, q, valid, seed, 0.0, tol)
     valid[5:8, 12:18] = False  # a hole between the seed and the rows above: they are reached around it
     assert not l1_layered(valid, *seed) and not _l1_layered_py(valid, seed)
-    state = np.zeros(valid.shape + (4,))
-    _init_state(valid, state)
-    before = state.copy()
-    assert rows_stepwise_kernel(o, d, q, state, seed[0], seed[1], tol, STEP_MAX_ITER, np.int64(4))[3] == -1
-    assert np.array_equal(state, before, equal_nan=True)  # untouched: the wavefront pass starts from it
+    code, _, z, _ = _rows(o, d, q, valid, seed, 0.0, 4)
+    z[seed] = -7.0
+    assert code == -1 and np.all(z == -7.0)  # nothing written: the wavefront pass runs instead
     rec = reconstruct_stepwise(o, d, q, valid, seed_pixel=seed, seed_height_mm=0.0)
     with np.errstate(all="ignore"):
         ref = _reference(o, d, q, valid, seed, 0.0, tol)

@@ -120,13 +120,18 @@ def _gather_neighbour(d, state, va, ua, nb, j, i):
         return j
     if state[va, ua, 3] != 1.0:
         return j
-    ta = state[va, ua, 0]
+    _gather_slot(d, va, ua, state[va, ua, 0], state[va, ua, 1], state[va, ua, 2], nb, j, i)
+    return j + 1
+
+
+@numba.njit(cache=True)
+def _gather_slot(d, va, ua, ta, gx, gy, nb, j, i):
+    """Slot j of pixel i: t_a·d_a of the neighbour (va, ua) with ray parameter ta, and its slopes."""
     nb[j, 0, i] = ta * d[va, ua, 0]
     nb[j, 1, i] = ta * d[va, ua, 1]
     nb[j, 2, i] = ta * d[va, ua, 2]
-    nb[j, 3, i] = state[va, ua, 1]
-    nb[j, 4, i] = state[va, ua, 2]
-    return j + 1
+    nb[j, 3, i] = gx
+    nb[j, 4, i] = gy
 
 
 @numba.njit(cache=True)
@@ -322,13 +327,21 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _seed_state(o, d, q, state, sv, su, z0):
-    """The seed (sv, su) at height z0 into ``state`` (t, slopes, flag 1). Returns False (nothing
-    written) if its normal is unusable."""
+def _seed_values(o, d, q, sv, su, z0):
+    """The seed (sv, su) at height z0: its ray parameter t and slopes g_x, g_y (NaN slopes if its
+    normal is unusable)."""
     t = (z0 - o[2]) / d[sv, su, 2]
     px = o[0] + t * d[sv, su, 0]
     py = o[1] + t * d[sv, su, 1]
     gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
+    return t, gx, gy
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _seed_state(o, d, q, state, sv, su, z0):
+    """The seed (sv, su) at height z0 into ``state`` (t, slopes, flag 1). Returns False (nothing
+    written) if its normal is unusable."""
+    t, gx, gy = _seed_values(o, d, q, sv, su, z0)
     if not (np.isfinite(gx) and np.isfinite(gy)):
         return False
     state[sv, su, 0] = t
@@ -383,26 +396,28 @@ def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     H, W = valid.shape
     from .stepwise_rows import BAND_ROWS, rows_stepwise_kernel  # noqa: PLC0415 (it imports this module)
 
-    state = np.empty((H, W, 4))
     valid = np.ascontiguousarray(valid, dtype=bool)
-    _init_state(valid, state)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    z = np.empty((H, W))
+    t0, gx0, gy0 = _seed_values(o, d, q, seed[0], seed[1], z0)
     code = -1
-    if _seed_state(o, d, q, state, seed[0], seed[1], z0):  # first in bands of rows (same bits), else wavefronts
+    if np.isfinite(gx0) and np.isfinite(gy0):  # first in bands of rows (the same bits), else in wavefronts
         max_used, max_change, n_unconv, code = rows_stepwise_kernel(
-            o, d, q, state, seed[0], seed[1], tol, STEP_MAX_ITER, BAND_ROWS)
-        if code == -2:  # a failed step: the wavefront pass on a fresh state
-            _init_state(valid, state)
-    if code != 0:
+            o, d, q, valid, z, seed[0], seed[1], t0, gx0, gy0, tol, STEP_MAX_ITER, BAND_ROWS)
+    if code == 0:
+        done = valid.copy()
+    else:
+        state = np.empty((H, W, 4))
+        _init_state(valid, state)
         max_used, max_change, n_unconv = _stepwise_kernel(
             o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
-    if max_used < 0:
-        raise ReconstructionError(
-            f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
-            f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
-            "choose another seed_pixel or check q")
-    done = np.empty((H, W), dtype=bool)
-    z = np.empty((H, W))
-    _heights(float(o[2]), np.ascontiguousarray(d, dtype=np.float64), state, z, done)
+        if max_used < 0:
+            raise ReconstructionError(
+                f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
+                f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
+                "choose another seed_pixel or check q")
+        done = np.empty((H, W), dtype=bool)
+        _heights(float(o[2]), d, state, z, done)
     z[seed] = z0
     return z, done, max_used, max_change, n_unconv
 

@@ -38,7 +38,7 @@ import numba
 import numpy as np
 
 from .prefetch import prefetch
-from .stepwise import _gather_end, _gather_neighbour, _gather_own, _solve_wavefront
+from .stepwise import _gather_end, _gather_own, _gather_slot, _solve_wavefront
 
 __all__ = ["rows_stepwise_kernel", "l1_layered", "BAND_ROWS"]
 
@@ -69,33 +69,45 @@ def l1_layered(S, sv, su):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _gather_step(d, q, state, nxt, n, dv, du, own, nb, m):
+def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m):
     """:func:`~pmdsim.evaluation.stepwise._gather_wavefront` for a sweep's step (the same rows
     ``own``, ``nb``, ``m``) without its search of the four neighbours: a pixel's reconstructed
-    4-neighbours are at most its upstream ones, the row towards the seed's (v − ``dv``, in slot
-    order first: offset (∓1, 0)) and the pixel towards the seed's column (u − ``du``: (0, ±1));
-    each counts if its flag is 1 (outside the image it is not there)."""
-    W = state.shape[1]
+    4-neighbours are its upstream ones in the mask, the row towards the seed's (v − ``dv``, in slot
+    order first: offset (∓1, 0)) and the pixel towards the seed's column (u − ``du``: (0, ±1)), t
+    from ``tz`` (H, W) and the slopes from the two-row buffer ``gb`` (2, W, 2) (row v in gb[v % 2]),
+    those in the seed's column from ``gcol`` (H, 2) (the left sweep reads them after the right
+    sweep of the band's later rows has reused gb)."""
+    H, W = valid.shape
     for i in range(n):
         idx = nxt[i]
         vb = idx // W
         ub = idx - vb * W
         _gather_own(d, q, vb, ub, own, i)
-        j = _gather_neighbour(d, state, vb - dv, ub, nb, np.int64(0), i)
-        j = _gather_neighbour(d, state, vb, ub - du, nb, j, i)
+        j = 0
+        va = vb - dv
+        if vb != sv and 0 <= va < H and valid[va, ub]:
+            _gather_slot(d, va, ub, tz[va, ub], gb[va % 2, ub, 0], gb[va % 2, ub, 1], nb, j, i)
+            j += 1
+        ua = ub - du
+        if abs(ua - su) < abs(ub - su) and valid[vb, ua]:
+            if ua == su:
+                _gather_slot(d, vb, ua, tz[vb, ua], gcol[vb, 0], gcol[vb, 1], nb, j, i)
+            else:
+                _gather_slot(d, vb, ua, tz[vb, ua], gb[vb % 2, ua, 0], gb[vb % 2, ua, 1], nb, j, i)
+            j += 1
         _gather_end(nb, m, j, i)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _sweep(o, d, q, state, tol, max_iter, v0, dv, n_rows, su, right, nxt, own, nb, m, res, status, stats):
+def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, right, nxt, own, nb, m, res, status,
+           stats):
     """One skewed sweep of the rows v0, v0 + dv, …, (``n_rows`` of them) right of the seed's column
     (``right``: columns su, su + 1, …) or left of it (su − 1, su − 2, …): at step s, row j's pixel
-    at the sweep's column s − j, if it is valid and unreached (flag 0 in ``state``), joins the
-    step's batch, solved as a wavefront (module docstring). ``stats`` (3,) float: the largest
-    corrector count, the largest final |Δz| and the number of pixels that missed ``tol``,
-    updated. Returns False (at once) if a step failed."""
-    H = state.shape[0]
-    W = state.shape[1]
+    at the sweep's column s − j, if it is valid and not the seed, joins the step's batch, solved as
+    a wavefront (module docstring): t into ``tz``, the slopes into ``gb`` (:func:`_gather_step`).
+    ``stats`` (3,) float: the largest corrector count, the largest final |Δz| and the number of
+    pixels that missed ``tol``, updated. Returns False (at once) if a step failed."""
+    H, W = valid.shape
     n_cols = W - su if right else su
     c0 = su if right else su - 1
     du = 1 if right else -1
@@ -109,16 +121,15 @@ def _sweep(o, d, q, state, tol, max_iter, v0, dv, n_rows, su, right, nxt, own, n
                 ka = v * W + ua
                 prefetch(d, 3 * ka)
                 prefetch(q, 3 * ka)
-                prefetch(state, 4 * ka)
                 if 0 <= v - dv < H:
                     prefetch(d, 3 * (ka - dv * W))
-                    prefetch(state, 4 * (ka - dv * W))
-            if state[v, u, 3] == 0.0:
+                    prefetch(tz, ka - dv * W)
+            if valid[v, u] and not (v == sv and u == su):
                 nxt[n] = v * W + u
                 n += 1
         if n == 0:
             continue
-        _gather_step(d, q, state, nxt, n, dv, du, own, nb, m)
+        _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m)
         _solve_wavefront(o, own, nb, m, n, tol, max_iter, res, status)
         for i in range(n):
             if status[i] < 0:
@@ -134,17 +145,20 @@ def _sweep(o, d, q, state, tol, max_iter, v0, dv, n_rows, su, right, nxt, own, n
                 stats[0] = used
             if change > stats[1]:
                 stats[1] = change
-            state[vb, ub, 0] = res[0, i]
-            state[vb, ub, 1] = res[1, i]
-            state[vb, ub, 2] = res[2, i]
-            state[vb, ub, 3] = 1.0
+            tz[vb, ub] = res[0, i]
+            gb[vb % 2, ub, 0] = res[1, i]
+            gb[vb % 2, ub, 1] = res[2, i]
+            if ub == su:
+                gcol[vb, 0] = res[1, i]
+                gcol[vb, 1] = res[2, i]
     return True
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _half(o, d, q, state, tol, max_iter, v0, dv, n_rows, su, band, stats):
+def _half(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, band, stats):
     """The rows v0, v0 + dv, … (``n_rows``) in bands of ``band`` rows (:func:`_sweep` right, then
-    left, per band), with their own batch buffers. Returns 1 at a failed step, else 0."""
+    left, per band), with their own batch buffers and slopes' rows ``gb``. Returns 1 at a failed
+    step, else 0."""
     nxt = np.empty(band, dtype=np.int64)
     own = np.empty((6, band))
     nb = np.empty((4, 5, band))
@@ -155,37 +169,49 @@ def _half(o, d, q, state, tol, max_iter, v0, dv, n_rows, su, band, stats):
         nr = min(band, n_rows - b0)
         vb = v0 + b0 * dv
         for right in (True, False):
-            if not _sweep(o, d, q, state, tol, max_iter, vb, dv, nr, su, right, nxt, own, nb, m, res, status, stats):
+            if not _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, vb, dv, nr, right, nxt, own, nb, m, res,
+                          status, stats):
                 return 1
     return 0
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def rows_stepwise_kernel(o, d, q, state, sv, su, tol, max_iter, band):
-    """The stepwise integration from the seed (sv, su) (flag 1 in ``state``, t and slopes set) in
-    bands of image rows (module docstring); ``state`` (H, W, 4) and the other arguments as
-    :func:`pmdsim.evaluation.stepwise._expand_kernel`'s. Returns (largest corrector count,
-    largest final |Δz|, number of pixels that missed ``tol``, code): code 0 when done (the same
-    state as the wavefront pass), −1 if the valid pixels (flag ≥ 0) are not :func:`l1_layered`
-    from the seed (``state`` untouched), −2 if a step failed (``state`` partly written: the
-    caller starts again with the wavefront pass)."""
-    H, W = state.shape[0], state.shape[1]
-    S = np.empty((H, W), dtype=np.bool_)
-    for v in numba.prange(0, H):
-        for u in range(W):
-            S[v, u] = state[v, u, 3] >= 0.0
-    if not l1_layered(S, sv, su):
+def rows_stepwise_kernel(o, d, q, valid, z, sv, su, t0, gx0, gy0, tol, max_iter, band):
+    """The stepwise integration from the seed (sv, su) (ray parameter t0, slopes gx0, gy0) over
+    ``valid`` (H, W) in bands of image rows (module docstring); the other arguments as
+    :func:`pmdsim.evaluation.stepwise._expand_kernel`'s. Writes the heights o_z + t·d_z into ``z``
+    (H, W) (NaN off ``valid``; the seed's as well: the caller sets it) and returns (largest
+    corrector count, largest final |Δz|, number of pixels that missed ``tol``, code): code 0
+    when done (the wavefront pass's values, every valid pixel reached), −1 if ``valid`` is not
+    :func:`l1_layered` from the seed (nothing written), −2 if a step failed (``z`` partly
+    written: the caller runs the wavefront pass). No (H, W, 4) state: t is kept in ``z`` until
+    the heights replace it, the slopes in two rows per part."""
+    H, W = valid.shape
+    if not l1_layered(valid, sv, su):
         return 0, 0.0, 0, -1
     stats = np.zeros((3, 3))  # per part (seed row, below, above): max corrector count, max |Δz|, unconverged
-    if _half(o, d, q, state, tol, max_iter, sv, 1, 1, su, np.int64(1), stats[0]) != 0:
+    gb = np.empty((3, 2, W, 2))
+    gcol = np.empty((H, 2))  # the seed's column (each row written by one part)
+    z[sv, su] = t0
+    gcol[sv, 0] = gx0
+    gcol[sv, 1] = gy0
+    gb[0, sv % 2, su, 0] = gx0
+    gb[0, sv % 2, su, 1] = gy0
+    if _half(o, d, q, valid, z, gb[0], gcol, sv, su, tol, max_iter, sv, 1, 1, np.int64(1), stats[0]) != 0:
         return 0, 0.0, 0, -2
+    gb[1, sv % 2] = gb[0, sv % 2]  # the seed's row: the upstream row of both halves' first rows
+    gb[2, sv % 2] = gb[0, sv % 2]
     fail = np.zeros(2, dtype=np.int64)
     for h in numba.prange(0, 2):  # the rows below the seed's, the rows above it
         n_rows = H - 1 - sv if h == 0 else sv
-        fail[h] = _half(o, d, q, state, tol, max_iter, sv + 1 - 2 * h, 1 - 2 * h, n_rows, su, band,
-                        stats[1 + h])
+        fail[h] = _half(o, d, q, valid, z, gb[1 + h], gcol, sv, su, tol, max_iter, sv + 1 - 2 * h, 1 - 2 * h, n_rows,
+                        band, stats[1 + h])
     if fail[0] != 0 or fail[1] != 0:
         return 0, 0.0, 0, -2
+    oz = o[2]
+    for v in numba.prange(0, H):  # t → heights (as stepwise._heights)
+        for u in range(W):
+            z[v, u] = oz + z[v, u] * d[v, u, 2] if valid[v, u] else np.nan
     max_used = 0
     max_change = 0.0
     n_unconv = 0
