@@ -92,7 +92,8 @@ def main() -> None:
         print(f"  floor (bytes): {n} px × (d, q read 48 B, the heights written and read 16 B, the mask 1 B) = "
               f"{n * 65 / 1e6:.0f} MB at 15–23 GB/s = {n * 65 / 23e9 * 1e3:.0f}–{n * 65 / 15e9 * 1e3:.0f} ms; "
               f"(divider) {stw[0] + 1} iterations × (4 divisions + 2 square roots) per pixel, 56 cycles per 4 "
-              f"pixels on 256-bit vectors (vdivpd 8, vsqrtpd 12), 2.3 GHz: {n * (stw[0] + 1) * 14 / 2.3e9 * 1e3:.0f} ms")
+              f"pixels on 256-bit vectors (vdivpd 8, vsqrtpd 12), 2.3 GHz: "
+              f"{n * (stw[0] + 1) * 14 / 2.3e9 * 1e3:.0f} ms")
 
 
 if __name__ == "__main__":

@@ -554,7 +554,10 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     and where the measured slope field is not exactly a gradient (a wrong screen model, noise)
     the errors of the different paths are averaged instead of following one arbitrary path.
     A pixel whose step fails (see below) stays unreconstructed in its wavefront and may be
-    reached again from a later one.
+    reached again from a later one. Where every valid pixel has a valid neighbour one step closer
+    to the seed in the L1 distance (wavefront k is then the pixels at L1 distance k) the same
+    steps run in bands of image rows instead (:mod:`pmdsim.evaluation.stepwise_rows`: the same
+    bits, contiguous reads), handing over to the wavefronts if a step fails.
 
     **One step.** The height of b solves the trapezoidal rule for its reconstructed
     neighbours a_i, summed:
