@@ -69,7 +69,7 @@ def l1_layered(S, sv, su):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m):
+def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nv, nu, n, dv, du, own, nb, m):
     """:func:`~pmdsim.evaluation.stepwise._gather_wavefront` for a sweep's step (the same rows
     ``own``, ``nb``, ``m``) without its search of the four neighbours: a pixel's reconstructed
     4-neighbours are its upstream ones in the mask, the row towards the seed's (v − ``dv``, in slot
@@ -77,11 +77,10 @@ def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m):
     from ``tz`` (H, W) and the slopes from the two-row buffer ``gb`` (2, W, 2) (row v in gb[v % 2]),
     those in the seed's column from ``gcol`` (H, 2) (the left sweep reads them after the right
     sweep of the band's later rows has reused gb)."""
-    H, W = valid.shape
+    H = valid.shape[0]
     for i in range(n):
-        idx = nxt[i]
-        vb = idx // W
-        ub = idx - vb * W
+        vb = nv[i]
+        ub = nu[i]
         _gather_own(d, q, vb, ub, own, i)
         j = 0
         va = vb - dv
@@ -99,8 +98,8 @@ def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, right, nxt, own, nb, m, res, status,
-           stats):
+def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, right, nv, nu, own, nb, m, res,
+           status, stats):
     """One skewed sweep of the rows v0, v0 + dv, …, (``n_rows`` of them) right of the seed's column
     (``right``: columns su, su + 1, …) or left of it (su − 1, su − 2, …): at step s, row j's pixel
     at the sweep's column s − j, if it is valid and not the seed, joins the step's batch, solved as
@@ -125,18 +124,18 @@ def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, 
                     prefetch(d, 3 * (ka - dv * W))
                     prefetch(tz, ka - dv * W)
             if valid[v, u] and not (v == sv and u == su):
-                nxt[n] = v * W + u
+                nv[n] = v
+                nu[n] = u
                 n += 1
         if n == 0:
             continue
-        _gather_step(d, q, valid, tz, gb, gcol, sv, su, nxt, n, dv, du, own, nb, m)
+        _gather_step(d, q, valid, tz, gb, gcol, sv, su, nv, nu, n, dv, du, own, nb, m)
         _solve_wavefront(o, own, nb, m, n, tol, max_iter, res, status)
         for i in range(n):
             if status[i] < 0:
                 return False
-            idx = nxt[i]
-            vb = idx // W
-            ub = idx - vb * W
+            vb = nv[i]
+            ub = nu[i]
             change = res[3, i]
             used = status[i] - 1
             if change >= tol:
@@ -159,7 +158,8 @@ def _half(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, b
     """The rows v0, v0 + dv, … (``n_rows``) in bands of ``band`` rows (:func:`_sweep` right, then
     left, per band), with their own batch buffers and slopes' rows ``gb``. Returns 1 at a failed
     step, else 0."""
-    nxt = np.empty(band, dtype=np.int64)
+    nv = np.empty(band, dtype=np.int64)  # the step's pixels: rows, columns
+    nu = np.empty(band, dtype=np.int64)
     own = np.empty((6, band))
     nb = np.empty((4, 5, band))
     m = np.empty(band, dtype=np.int64)
@@ -169,8 +169,8 @@ def _half(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, b
         nr = min(band, n_rows - b0)
         vb = v0 + b0 * dv
         for right in (True, False):
-            if not _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, vb, dv, nr, right, nxt, own, nb, m, res,
-                          status, stats):
+            if not _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, vb, dv, nr, right, nv, nu, own, nb, m,
+                          res, status, stats):
                 return 1
     return 0
 
