@@ -78,10 +78,11 @@ def test_each_kernel_compiles_once_on_the_main_paths(tmp_path, small_setup_file)
     line = next(x for x in r.stdout.splitlines() if x.startswith("SIGNATURES "))
     sigs = json.loads(line[len("SIGNATURES "):])
     kernels = {k: v for k, v in sigs.items() if not k.endswith(" (unliteral)")}
-    # The main paths reach the tracer, the decoder, both integrations and the calibration.
+    # The main paths reach the tracer, the decoder, both integrations (the stepwise one in rows where it
+    # can: stepwise_rows) and the calibration.
     for name in ("pmdsim.simulation.trace._trace_kernel", "pmdsim.geometry.camera._rays_kernel",
                  "pmdsim.simulation.patterns._render_stack_kernel", "pmdsim.evaluation.decoding_fused._fused_kernel",
-                 "pmdsim.evaluation.stepwise._stepwise_kernel", "pmdsim.evaluation.least_squares._apply_update",
+                 "pmdsim.evaluation.stepwise_rows.rows_stepwise_kernel", "pmdsim.evaluation.least_squares._apply_update",
                  "pmdsim.evaluation.surface_fit_sums._block_sums", "pmdsim.calibration.kernel._chunks_kernel"):
         assert name in kernels, sorted(kernels)
     assert len(kernels) >= 30, sorted(kernels)

@@ -108,6 +108,7 @@ def test_monte_carlo_noisy_decodes():
         gs.append(-rec.n_sample[..., :2] / rec.n_sample[..., 2:3])
         if k == 0:
             unc = U.surface_uncertainty(s, "left", dec, reg, rec, method="stepwise", samples=256)
+            S0 = rec.reconstructed
     z_obs = np.std(zs, axis=0, ddof=1) * 1e3
     g_obs = np.std(gs, axis=0, ddof=1) * 1e6
     far = unc.height_std_noise_um > 0
@@ -116,6 +117,8 @@ def test_monte_carlo_noisy_decodes():
     assert abs(r_h - 1) < 0.15 and np.all(np.abs(r_g - 1) < 0.15), (r_h, r_g)
     assert unc.notes == (U.NO_COVARIANCE_NOTE,)
     np.testing.assert_array_equal(unc.height_std_calibration_um[far], 0.0)
+    for cal in (unc.height_std_calibration_um, unc.slope_std_calibration_urad):  # 0 on the reconstruction, NaN off it
+        assert cal.shape[:2] == S0.shape and np.all(cal[S0] == 0.0) and np.isnan(cal[~S0]).all()
 
 
 def test_surface_fit_coefficient_std_monte_carlo():

@@ -95,28 +95,52 @@ def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
         idx = nxt[i]
         vb = idx // W
         ub = idx - vb * W
-        for c in range(3):
-            own[c, i] = d[vb, ub, c]
-            own[3 + c, i] = q[vb, ub, c]
+        _gather_own(d, q, vb, ub, own, i)
         j = 0
         for k in range(4):
-            va = vb + nb_dv[k]
-            ua = ub + nb_du[k]
-            if va < 0 or va >= H or ua < 0 or ua >= W:
-                continue
-            if state[va, ua, 3] != 1.0:
-                continue
-            ta = state[va, ua, 0]
-            nb[j, 0, i] = ta * d[va, ua, 0]
-            nb[j, 1, i] = ta * d[va, ua, 1]
-            nb[j, 2, i] = ta * d[va, ua, 2]
-            nb[j, 3, i] = state[va, ua, 1]
-            nb[j, 4, i] = state[va, ua, 2]
-            j += 1
-        m[i] = j
-        for jj in range(j, 4):
-            for c in range(5):
-                nb[jj, c, i] = 0.0
+            j = _gather_neighbour(d, state, vb + nb_dv[k], ub + nb_du[k], nb, j, i)
+        _gather_end(nb, m, j, i)
+
+
+@numba.njit(cache=True)
+def _gather_own(d, q, vb, ub, own, i):
+    """own[:, i] = pixel (vb, ub)'s view ray d and screen point q (:func:`_gather_wavefront`)."""
+    for c in range(3):
+        own[c, i] = d[vb, ub, c]
+        own[3 + c, i] = q[vb, ub, c]
+
+
+@numba.njit(cache=True)
+def _gather_neighbour(d, state, va, ua, nb, j, i):
+    """Slot j of pixel i (:func:`_gather_wavefront`) from pixel (va, ua) if it is in the image and
+    reconstructed (flag 1): t_a·d_a and g_a. Returns the next free slot (j + 1, or j)."""
+    H = state.shape[0]
+    W = state.shape[1]
+    if va < 0 or va >= H or ua < 0 or ua >= W:
+        return j
+    if state[va, ua, 3] != 1.0:
+        return j
+    _gather_slot(d, va, ua, state[va, ua, 0], state[va, ua, 1], state[va, ua, 2], nb, j, i)
+    return j + 1
+
+
+@numba.njit(cache=True)
+def _gather_slot(d, va, ua, ta, gx, gy, nb, j, i):
+    """Slot j of pixel i: t_a·d_a of the neighbour (va, ua) with ray parameter ta, and its slopes."""
+    nb[j, 0, i] = ta * d[va, ua, 0]
+    nb[j, 1, i] = ta * d[va, ua, 1]
+    nb[j, 2, i] = ta * d[va, ua, 2]
+    nb[j, 3, i] = gx
+    nb[j, 4, i] = gy
+
+
+@numba.njit(cache=True)
+def _gather_end(nb, m, j, i):
+    """m[i] = j neighbours gathered; the slots j … 3 of pixel i hold zeros."""
+    m[i] = j
+    for jj in range(j, 4):
+        for c in range(5):
+            nb[jj, c, i] = 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -303,22 +327,39 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _seed_values(o, d, q, sv, su, z0):
+    """The seed (sv, su) at height z0: its ray parameter t and slopes g_x, g_y (NaN slopes if its
+    normal is unusable)."""
+    t = (z0 - o[2]) / d[sv, su, 2]
+    px = o[0] + t * d[sv, su, 0]
+    py = o[1] + t * d[sv, su, 1]
+    gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
+    return t, gx, gy
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _seed_state(o, d, q, state, sv, su, z0):
+    """The seed (sv, su) at height z0 into ``state`` (t, slopes, flag 1). Returns False (nothing
+    written) if its normal is unusable."""
+    t, gx, gy = _seed_values(o, d, q, sv, su, z0)
+    if not (np.isfinite(gx) and np.isfinite(gy)):
+        return False
+    state[sv, su, 0] = t
+    state[sv, su, 1] = gx
+    state[sv, su, 2] = gy
+    state[sv, su, 3] = 1.0
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     """Stepwise integration from the seed (sv, su) at height z0: :func:`_expand_kernel` from
     the seed alone. Returns its statistics; the corrector count is −1 if the seed's normal is
     unusable."""
     H = state.shape[0]
     W = state.shape[1]
-    t = (z0 - o[2]) / d[sv, su, 2]
-    px = o[0] + t * d[sv, su, 0]
-    py = o[1] + t * d[sv, su, 1]
-    gx, gy = _bisector_slopes(px, py, z0, o[0], o[1], o[2], q[sv, su, 0], q[sv, su, 1], q[sv, su, 2])
-    if not (np.isfinite(gx) and np.isfinite(gy)):
+    if not _seed_state(o, d, q, state, sv, su, z0):
         return -1, 0.0, 0
-    state[sv, su, 0] = t
-    state[sv, su, 1] = gx
-    state[sv, su, 2] = gy
-    state[sv, su, 3] = 1.0
     cur = np.empty(H * W, dtype=np.int64)
     cur[0] = sv * W + su
     # n_cur as int64, not the literal 1: one compiled signature with _fill_kernel's call
@@ -353,18 +394,30 @@ def _heights(oz, d, state, z, done):
 def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     """Heights (H, W) (NaN where not reached) and the kernel's statistics."""
     H, W = valid.shape
-    state = np.empty((H, W, 4))
-    _init_state(np.ascontiguousarray(valid, dtype=bool), state)
-    max_used, max_change, n_unconv = _stepwise_kernel(
-        o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
-    if max_used < 0:
-        raise ReconstructionError(
-            f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
-            f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
-            "choose another seed_pixel or check q")
-    done = np.empty((H, W), dtype=bool)
+    from .stepwise_rows import BAND_ROWS, rows_stepwise_kernel  # noqa: PLC0415 (it imports this module)
+
+    valid = np.ascontiguousarray(valid, dtype=bool)
+    d = np.ascontiguousarray(d, dtype=np.float64)
     z = np.empty((H, W))
-    _heights(float(o[2]), np.ascontiguousarray(d, dtype=np.float64), state, z, done)
+    t0, gx0, gy0 = _seed_values(o, d, q, seed[0], seed[1], z0)
+    code = -1
+    if np.isfinite(gx0) and np.isfinite(gy0):  # first in bands of rows (the same bits), else in wavefronts
+        max_used, max_change, n_unconv, code = rows_stepwise_kernel(
+            o, d, q, valid, z, seed[0], seed[1], t0, gx0, gy0, tol, STEP_MAX_ITER, BAND_ROWS)
+    if code == 0:
+        done = valid.copy()
+    else:
+        state = np.empty((H, W, 4))
+        _init_state(valid, state)
+        max_used, max_change, n_unconv = _stepwise_kernel(
+            o, d, q, state, seed[0], seed[1], z0, tol, STEP_MAX_ITER, _NB_DV, _NB_DU)
+        if max_used < 0:
+            raise ReconstructionError(
+                f"the normal at seed_pixel {seed} is undefined or perpendicular to the height axis "
+                f"(camera centre, seed point and q[{seed[0]}, {seed[1]}] = {q[seed].tolist()} are degenerate); "
+                "choose another seed_pixel or check q")
+        done = np.empty((H, W), dtype=bool)
+        _heights(float(o[2]), d, state, z, done)
     z[seed] = z0
     return z, done, max_used, max_change, n_unconv
 
@@ -501,7 +554,10 @@ def reconstruct_stepwise(o, d, q, valid, seed_pixel=None, seed_height_mm=0.0) ->
     and where the measured slope field is not exactly a gradient (a wrong screen model, noise)
     the errors of the different paths are averaged instead of following one arbitrary path.
     A pixel whose step fails (see below) stays unreconstructed in its wavefront and may be
-    reached again from a later one.
+    reached again from a later one. Where every valid pixel has a valid neighbour one step closer
+    to the seed in the L1 distance (wavefront k is then the pixels at L1 distance k) the same
+    steps run in bands of image rows instead (:mod:`pmdsim.evaluation.stepwise_rows`: the same
+    bits, contiguous reads), handing over to the wavefronts if a step fails.
 
     **One step.** The height of b solves the trapezoidal rule for its reconstructed
     neighbours a_i, summed:

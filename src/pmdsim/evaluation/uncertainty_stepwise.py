@@ -130,6 +130,30 @@ def _sum_squares(z):
     return s
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _fused_samples(z, za0, za1, n, m, w, ux, uy, den, w0, vx0, vy0, J0, w1, vx1, vy1, J1):
+    """The samples k < n of one word of a pixel with m ≤ 2 upstream edges in one pass: z_k = 0, then
+    per edge j < m z_k += ±vx_j ± vy_j − J_j·za_j[k] (its word w_j's bits), then z_k = (z_k ± ux
+    ± uy) / den (the pixel's word w) — the operations of :func:`_edge_samples` and
+    :func:`_own_samples` on z in the same order (the same bits), without storing and reloading
+    z between them."""
+    for k in range(n):
+        b0 = np.uint64(2 * k)
+        b1 = np.uint64(2 * k + 1)
+        acc = 0.0
+        if m > 0:
+            tx = -vx0 if (w0 >> b0) & np.uint64(1) else vx0
+            ty = -vy0 if (w0 >> b1) & np.uint64(1) else vy0
+            acc += tx + ty - J0 * za0[k]
+        if m > 1:
+            tx = -vx1 if (w1 >> b0) & np.uint64(1) else vx1
+            ty = -vy1 if (w1 >> b1) & np.uint64(1) else vy1
+            acc += tx + ty - J1 * za1[k]
+        tx = -ux if (w >> b0) & np.uint64(1) else ux
+        ty = -uy if (w >> b1) & np.uint64(1) else uy
+        z[k] = (acc + tx + ty) / den
+
+
 @numba.njit(cache=True)
 def _wavefront_buffers(width, K):
     """The sampled recursion's per-wavefront buffers for ``width`` pixels: δz of the previous and
@@ -155,6 +179,14 @@ def _pixel_samples(kb, key, K, m, e_pos, e_c, ux, uy, den, prev, cur, i, w_prev,
     for c in range(n_chunks):
         w_cur[i, c] = _draw_word(key, kb, c, n_chunks)
     z = cur[i]
+    if m <= 2 and den != 0.0:  # the same operations in one pass per sample (:func:`_fused_samples`)
+        p0 = e_pos[0] if m > 0 else 0
+        p1 = e_pos[1] if m > 1 else 0
+        for c in range(n_chunks):
+            _fused_samples(z[32 * c:], prev[p0, 32 * c:], prev[p1, 32 * c:], min(32, K - 32 * c), m, w_cur[i, c],
+                           ux, uy, den, w_prev[p0, c], e_c[0, 0], e_c[0, 1], e_c[0, 2], w_prev[p1, c], e_c[1, 0],
+                           e_c[1, 1], e_c[1, 2])
+        return _sum_squares(z)
     for k in range(K):
         z[k] = 0.0
     for j in range(m):

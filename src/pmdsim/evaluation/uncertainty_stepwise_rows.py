@@ -27,6 +27,7 @@ import numpy as np
 
 from .least_squares import _point_geometry
 from .uncertainty import _pixel_jacobian
+from .stepwise_rows import l1_layered
 from .uncertainty_stepwise import _add_edge, _draw_word, _pixel_samples, _seed_key
 
 __all__ = ["rows_kernel", "l1_layered"]
@@ -49,24 +50,6 @@ def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
     for c in range(8):
         ok = ok and np.isfinite(geo[c])
     return ok
-
-
-@numba.njit(cache=True)
-def l1_layered(S, sv, su):
-    """True if every pixel of S (H, W) bool except the seed (sv, su) has a 4-neighbour in S one
-    step closer to the seed in the L1 distance (then each pixel's wavefront is its L1 distance:
-    module docstring)."""
-    H, W = S.shape
-    if not S[sv, su]:
-        return False
-    for v in range(H):
-        for u in range(W):
-            if not S[v, u] or (v == sv and u == su):
-                continue
-            if not ((v > sv and S[v - 1, u]) or (v < sv and S[v + 1, u]) or (u > su and S[v, u - 1])
-                    or (u < su and S[v, u + 1])):
-                return False
-    return True
 
 
 @numba.njit(cache=True, error_model="numpy")
