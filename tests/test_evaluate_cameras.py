@@ -16,8 +16,9 @@ from pmdsim.studies import evaluate_cameras as ec
 
 def _slow_first(delays: dict, seen: list, fail: dict | None = None):
     """A camera pipeline that sleeps ``delays[cam]`` s, records its thread, raises ``fail[cam]``."""
-    def work(cam, stop):
-        seen.append((cam, threading.current_thread().name))
+    def work(cam, stop, stage):
+        with stage("decode"):
+            seen.append((cam, threading.current_thread().name))
         t = time.perf_counter()
         while time.perf_counter() - t < delays.get(cam, 0.0):
             if stop.is_set():
@@ -57,9 +58,11 @@ def test_first_error_in_camera_order_after_the_results_before_it():
 def test_cameras_after_a_failure_are_stopped_and_waited_for():
     stopped = []
 
-    def work(cam, stop):
+    def work(cam, stop, stage):
         if cam == "a":
             raise ValueError("a failed")
+        with stage("decode"):
+            pass
         for _ in range(400):  # ≤ 2 s unless told to stop
             if stop.is_set():
                 stopped.append(cam)
@@ -71,6 +74,31 @@ def test_cameras_after_a_failure_are_stopped_and_waited_for():
     with pytest.raises(ValueError, match="a failed"):
         list(ec.camera_results(["a", "b", "c"], work, concurrent=True))
     assert sorted(stopped) == ["b", "c"] and time.perf_counter() - t < 1.5  # stopped, not run out, and waited for
+
+
+@pytest.mark.parametrize("mode", ["stages", "full"])
+def test_one_camera_at_a_time_per_stage_in_camera_order(monkeypatch, mode):
+    """Overlapped by stage (the default), no two cameras are in the same stage at once and they
+    enter each stage in camera order (a pipeline); ``full`` lets them into the same stage."""
+    monkeypatch.setenv(ec.CAMERA_OVERLAP_ENV, mode)
+    log = []
+
+    def work(cam, stop, stage):
+        for name in ec.STAGES:
+            with stage(name):
+                log.append((name, cam, "in", time.perf_counter()))
+                time.sleep(0.03)
+                log.append((name, cam, "out", time.perf_counter()))
+        return ec.CameraResult(cam)
+
+    assert [r.cam for r in ec.camera_results(["left", "right"], work, concurrent=True)] == ["left", "right"]
+    for name in ec.STAGES:
+        ev = sorted((t, cam, what) for n, cam, what, t in log if n == name)
+        if mode == "stages":
+            assert [(c, w) for _, c, w in ev] == [("left", "in"), ("left", "out"), ("right", "in"), ("right", "out")]
+    overlap = any(a[1] != b[1] and a[0] == b[0] and a[2] == "in" and b[2] == "in" and a[3] < b[3] < next(
+        t for n, c, w, t in log if (n, c, w) == (a[0], a[1], "out")) for a in log for b in log)
+    assert overlap is (mode == "full")
 
 
 @pytest.mark.parametrize("layer, expect", [("omp", True), ("tbb", True), ("workqueue", False)])

@@ -11,6 +11,7 @@ functions say how many calls to expect (for a progress bar).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import time
@@ -348,7 +349,6 @@ def _reversed_order_hint(images, inst, setup: Setup, cons, noise_std, expected, 
     """For each period that disagrees with the coarser one as a whole: does it agree with its
     shifts taken in reverse order (δ_k → −δ_k negates its phase)? Then say so — a reversed shift
     order, not a wrong period. Runs only on the failure path (one more decode and check)."""
-    import dataclasses
     import re
 
     out = []
@@ -467,6 +467,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             anchors[cam] = r.anchor
             decoded, reg, rec = results[cam] = r.kept
             h5_tasks.submit(h5.add_camera, cam, decoded, reg, rec)  # while the next camera and the fit compute
+            # only the file reads the coordinates and their σ (74 MB per camera): freed once written
+            results[cam] = (dataclasses.replace(decoded, screen_xy_mm=None, std_xy_mm=None), reg, rec)
             if uncertainty:
                 uncs[cam] = r.unc
                 if r.unc is not None:
