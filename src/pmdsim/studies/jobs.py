@@ -394,7 +394,10 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
     ``out_dir`` must not be ``image_dir`` nor another of ``inputs`` (e.g. the setup file).
     ``uncertainty``: per-pixel standard uncertainties (:mod:`.uncertainty_job`; ``anchor_std_mm``
-    the anchor's own σ, default the manifest anchor's ``distance_std_mm``).
+    the anchor's own σ, default the manifest anchor's ``distance_std_mm``). The cameras run as a
+    pipeline in two threads where numba's threading layer allows it
+    (:mod:`pmdsim.studies.evaluate_cameras`), joined in camera order: the same outputs, messages
+    and errors as one after the other; ``evaluation.h5`` is written camera by camera in a thread.
 
     The decoded images are checked for consistency (:mod:`pmdsim.evaluation.consistency`:
     per-image fit residuals, agreement of the periods, geometry) unless ``consistency`` is False
