@@ -139,3 +139,47 @@ def test_bad_image_in_the_second_camera_gives_the_serial_error(tmp_path, monkeyp
     assert bad.name in lines["2"][1] and "\n" not in lines["2"][1]
     assert lines["2"][2] == ["evaluated left"]
     shutil.rmtree(tmp_path / "img")
+
+
+def test_evaluation_file_camera_by_camera_keeps_the_documented_order(tmp_path):
+    """``EvaluationFile`` as ``evaluate`` uses it — each camera's maps when it is joined, the
+    extras of every camera after the fit, the file attributes last — lists the cameras in
+    camera order and the file attributes as given, then the two code tables (the file tracks
+    creation order; the attributes written last still list in write_evaluation_h5's order); the
+    camera groups list their maps by name; the values unchanged."""
+    from types import SimpleNamespace
+
+    import h5py
+    import numpy as np
+
+    from pmdsim.io import hdf5
+
+    H, W = 5, 7
+    rng = np.random.default_rng(1)
+    res = {c: (SimpleNamespace(screen_xy_mm=rng.random((H, W, 2)), std_xy_mm=rng.random((H, W, 2)),
+                               valid=np.ones((H, W), bool), flags=np.zeros((H, W), np.uint8),
+                               reversed=np.zeros((H, W, 2), bool)),
+               SimpleNamespace(status=np.zeros((H, W), np.uint8)),
+               SimpleNamespace(n_sample=rng.random((H, W, 3)), p_sample_mm=rng.random((H, W, 3)),
+                               height_mm=rng.random((H, W)), reconstructed=np.ones((H, W), bool), method="stepwise",
+                               seed_pixel=(1, 2), converged=True, iterations=3)) for c in ("left", "right")}
+    extras = {c: {"slopes": rng.random((H, W, 2)), "residual_slopes": rng.random((H, W, 2)),
+                  "height_std_um": rng.random((H, W))} for c in res}
+    attrs = {"pmdsim_version": "x", "method": "stepwise", "warnings": "[]"}
+    path = tmp_path / "evaluation.h5"
+    with hdf5.EvaluationFile(path) as f:
+        for c, (d, r, rec) in res.items():
+            f.add_camera(c, d, r, rec)
+        for c in res:
+            f.add_extras(c, extras[c])
+        f.finish(attrs)
+    maps = ["screen_xy_mm", "std_xy_mm", "decoded", "phase_flags", "reversed_contrast", "registration_status",
+            "normals", "points_mm", "height_mm", "reconstructed", "slopes", "residual_slopes", "height_std_um"]
+    with h5py.File(path) as f:
+        assert list(f) == ["left", "right"]
+        assert list(f.attrs) == [*attrs, "phase_flags", "registration_status"]
+        for c, (d, r, rec) in res.items():
+            assert [k for k in f[c] if k in maps] == sorted(maps)  # camera groups list by name
+            assert list(f[c].attrs) == sorted(["method", "seed_pixel", "converged", "iterations"])
+            np.testing.assert_array_equal(f[c]["screen_xy_mm"][()], d.screen_xy_mm)
+            np.testing.assert_array_equal(f[c]["height_std_um"][()], extras[c]["height_std_um"])

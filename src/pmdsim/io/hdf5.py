@@ -284,9 +284,9 @@ class EvaluationFile:
 
     Call :meth:`add_camera` per camera (in camera order), then :meth:`add_extras` per camera,
     then :meth:`finish` with the file attributes (known only at the end: warnings, anchors);
-    use as a context manager (the file is closed also on an exception). HDF5 tracks links and
-    attributes in separate creation orders, so the file attributes written last list in the same
-    order as :func:`write_evaluation_h5` wrote them first."""
+    use as a context manager (the file is closed also on an exception). The file tracks creation
+    order, links and attributes separately, so the file attributes written last list in the same
+    order as when they were written first (the camera groups list by name)."""
 
     def __init__(self, path: str | Path):
         self._f = h5py.File(path, "w", track_order=True)
