@@ -474,7 +474,8 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             results[cam] = (dataclasses.replace(decoded, screen_xy_mm=None, std_xy_mm=None), reg, rec)
             if uncertainty:
                 uncs[cam] = r.unc
-                if r.unc is not None:
+                if r.unc is not None:  # the σ maps too (groups list by name: the write order is free)
+                    h5_tasks.submit(h5.add_extras, cam, uj.uncertainty_datasets(r.unc))
                     figures.submit(uj.height_std_figure, rec, r.unc, cam, tmp / f"height_std_{cam}.png")
             p = rec.p_sample_mm
             figures.submit(write_height_map_png, p[..., 0], p[..., 1], rec.height_mm * 1e3,
@@ -496,7 +497,7 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
             per_cam = {c: (results[c][2].p_sample_mm, ex["residual_slopes"]) for c, ex in zip(manifest.cameras, extras)}
             figures.submit(write_slope_error_png, per_cam, fit, path=tmp / "slope_error.png")
         for c, ex in zip(manifest.cameras, extras):
-            h5_tasks.submit(h5.add_extras, c, {**ex, **uj.uncertainty_datasets(uncs.get(c))})
+            h5_tasks.submit(h5.add_extras, c, ex)
         h5_tasks.submit(h5.finish, {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
                                     "instrument": json.dumps(json_ready(manifest.instrument.describe())),
                                     "anchors": json.dumps(json_ready(anchors)),
