@@ -17,7 +17,11 @@ waits for and what it needs, imports and kernel loading included). The load aver
 before and after. Where ``evaluate`` draws its PNG figures in a background thread
 (``studies/evaluate_files``), their time is printed apart ("PNG figures in a background thread",
 not part of the sum: it overlaps the stages) and "files" holds the main thread's wait for them;
-the stages' CPU times (process-wide) then include the figure thread's CPU while they overlap. The setup is Table 1 (the default, planar screen model), as the CLI's default.
+the stages' CPU times (process-wide) then include the figure thread's CPU while they overlap. Where
+``evaluate`` runs the cameras two at a time (``studies/evaluate_cameras``), the wall span of the
+cameras' pipelines is one row ("cameras, overlapped"), part of the sum; decode, checks,
+registration + reconstruction and uncertainty are then summed over the two camera threads (wall,
+and CPU of the thread) and not part of the sum. The setup is Table 1 (the default, planar screen model), as the CLI's default.
 
 Timings on the shared 2-vCPU machine: the two vCPUs share one core's vector units, so two numba
 threads are no faster than one.
@@ -43,6 +47,8 @@ from _common import dump_json, peak_rss_mb
 _T = defaultdict(float)
 _CPU = defaultdict(float)
 _DEPTH = {"n": 0}
+_CAMERA_DEPTH = threading.local()  # per camera thread (studies/evaluate_cameras: two cameras at once)
+_CAMERAS = "cameras, overlapped (decode → σ, wall span)"
 _MEM = {}  # stage → (traced MB alive at entry, traced peak MB inside), with --trace-memory
 _TRACE = {"on": False}
 _ORDER = ("decode", "checks", "registration+reconstruction", "  of which registration.register",
@@ -52,6 +58,7 @@ _ORDER = ("decode", "checks", "registration+reconstruction", "  of which registr
           "  of which write_evaluation_h5", "  of which PNG figures", "  PNG figures in a background thread",
           "rest")
 _BACKGROUND = "  PNG figures in a background thread"  # overlapped with the stages: not part of the sum
+_OVERLAPPED = ("decode", "checks", "registration+reconstruction", "uncertainty")  # the camera threads' stages
 
 
 def _timed(stage, fn, *, nested=False):
@@ -59,6 +66,17 @@ def _timed(stage, fn, *, nested=False):
     counted also when called inside it)."""
     @functools.wraps(fn)
     def wrapper(*a, **k):
+        if threading.current_thread().name.startswith("pmdsim-camera"):  # a camera's pipeline in its thread
+            if nested or getattr(_CAMERA_DEPTH, "n", 0):
+                return fn(*a, **k)
+            _CAMERA_DEPTH.n = 1
+            t, c = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                _CAMERA_DEPTH.n = 0
+                _T[stage] += time.perf_counter() - t  # summed over the camera threads: they overlap
+                _CPU[stage] += time.thread_time() - c
         if threading.current_thread() is not threading.main_thread():  # evaluate's figure thread
             if nested:
                 return fn(*a, **k)
@@ -138,6 +156,25 @@ def _instrument():
         setattr(jobs, name, _timed("files", getattr(jobs, name)))
     jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
     setattr(surface_figures, slope_name, _timed("files", getattr(surface_figures, slope_name)))
+    try:  # the cameras two at a time (issue 25, studies/evaluate_cameras): the wall span of their pipelines
+        from pmdsim.studies import evaluate_cameras
+
+        inner = evaluate_cameras.camera_results
+
+        def camera_results(cameras, work, **kw):
+            if not evaluate_cameras.concurrent_cameras(len(cameras)) or kw.get("concurrent") is False:
+                yield from inner(cameras, work, **kw)
+                return
+            t, c = time.perf_counter(), time.process_time()
+            try:
+                yield from inner(cameras, work, **kw)
+            finally:
+                _T[_CAMERAS] += time.perf_counter() - t
+                _CPU[_CAMERAS] += time.process_time() - c
+
+        evaluate_cameras.camera_results = camera_results
+    except ImportError:
+        pass
     try:  # the figures written in a background thread (issue 25): the main thread's wait for them
         from pmdsim.studies import evaluate_files
         evaluate_files.BackgroundFiles.wait = _timed("files", evaluate_files.BackgroundFiles.wait)
@@ -195,9 +232,9 @@ def main() -> None:
             cpu = time.process_time() - c
             ru2 = resource.getrusage(resource.RUSAGE_SELF)
             sys_s = ru2.ru_stime - ru.ru_stime  # page faults mostly (docs/benchmarks.md, "4 kB pages")
-            stages = {k: (_T[k], _CPU[k]) for k in _ORDER if k in _T}
-            stages["rest"] = (total - sum(v[0] for k, v in stages.items() if not k.startswith(" ")),
-                              cpu - sum(v[1] for k, v in stages.items() if not k.startswith(" ")))
+            stages = {k: (_T[k], _CPU[k]) for k in (_CAMERAS, *_ORDER) if k in _T}
+            summed = [k for k in stages if not k.startswith(" ") and not (_CAMERAS in stages and k in _OVERLAPPED)]
+            stages["rest"] = (total - sum(stages[k][0] for k in summed), cpu - sum(stages[k][1] for k in summed))
             if _TRACE["on"]:
                 _MEM["(all)"] = (0.0, max(_MEM.get("(all)", (0.0, 0.0))[1], tracemalloc.get_traced_memory()[1] / 2**20))
                 tracemalloc.stop()
@@ -233,6 +270,9 @@ def main() -> None:
           f" ({res['in_process_cpu_s']:.2f} s CPU, of which {res['in_process_system_s']:.2f} s system), "
           f"peak RSS {res['in_process_peak_rss_mb']:.0f} MB")
     print(f"  {'stage':40s} {'wall s':>7s} {'CPU s':>7s}")
+    if _CAMERAS in stages:
+        print(f"  (cameras overlapped: the span is in the sum; decode … uncertainty are summed over the two camera "
+              f"threads, CPU per thread)")
     for k, (v, c) in stages.items():
         print(f"  {k:40s} {v:7.2f} {c:7.2f}")
     if "traced_mb_at_entry_and_peak" in res:

@@ -23,8 +23,8 @@ import h5py
 import numpy as np
 
 __all__ = ["write_mapping_h5", "reconstructions_h5", "write_reconstructions_h5", "write_evaluation_h5",
-           "append_stereo_h5", "write_consistency_h5", "UNITS", "FLOAT_FILTERS", "ARCHIVE_FILTERS", "INT_FILTERS",
-           "case_groups"]
+           "EvaluationFile", "append_stereo_h5", "write_consistency_h5", "UNITS", "FLOAT_FILTERS", "ARCHIVE_FILTERS",
+           "INT_FILTERS", "case_groups"]
 
 #: The units strings pmdsim writes (UDUNITS-2 spellings; ``1``: dimensionless, counts, codes,
 #: booleans, indices). Documented in docs/conventions.md; the tests check every dataset against it.
@@ -267,31 +267,73 @@ def write_evaluation_h5(path: str | Path, results: dict, attrs: dict[str, Any], 
     NaN where not reconstructed) and ``reconstructed`` (bool); ``extras[camera]`` adds further
     (H, W[, k]) float datasets of that camera by name (e.g. ``slopes``, ``height_detrended_mm``;
     units from the name's suffix). Units, long names, frames and dimension scales: see the
-    module docstring.
+    module docstring. The same file, written camera by camera: :class:`EvaluationFile`.
     """
-    from ..evaluation.phase import PhaseFlag
-    from ..evaluation.registration import RegistrationStatus
-
-    with h5py.File(path, "w", track_order=True) as f:
-        _file_attrs(f, attrs)
-        f.attrs["phase_flags"] = json.dumps({fl.name: int(fl) for fl in PhaseFlag})
-        f.attrs["registration_status"] = json.dumps({s.name: int(s) for s in RegistrationStatus})
+    with EvaluationFile(path) as f:
         for cam, (decoded, reg, rec) in results.items():
-            g = f.create_group(cam)
-            data = {"screen_xy_mm": decoded.screen_xy_mm, "std_xy_mm": decoded.std_xy_mm, "decoded": decoded.valid,
-                    "phase_flags": decoded.flags, "reversed_contrast": getattr(decoded, "reversed", None),
-                    "registration_status": reg.status, "normals": rec.n_sample,
-                    "points_mm": rec.p_sample_mm, "height_mm": rec.height_mm, "reconstructed": rec.reconstructed}
-            data.update((extras or {}).get(cam) or {})
-            if data["reversed_contrast"] is None:  # a decoded-like object without it
-                del data["reversed_contrast"]
-            for name, arr in data.items():
-                units, long_name, frame = _EVALUATION.get(name, (_units_of(name), name.replace("_", " "), "sample"))
-                _put(g, name, arr, units=units, long_name=long_name, frame=frame)
-            g.attrs["method"] = rec.method
-            g.attrs["seed_pixel"] = list(rec.seed_pixel)
-            g.attrs["converged"] = bool(rec.converged)
-            g.attrs["iterations"] = int(rec.iterations)
+            f.add_camera(cam, decoded, reg, rec)
+        for cam in results:
+            f.add_extras(cam, (extras or {}).get(cam) or {})
+        f.finish(attrs)
+
+
+class EvaluationFile:
+    """``evaluation.h5`` written in steps (:func:`write_evaluation_h5`'s layout and order), so
+    that each camera's maps can be written as soon as the camera is evaluated while the others
+    and the joint surface fit are still computing (issue 25, item 1).
+
+    Call :meth:`add_camera` per camera (in camera order), then :meth:`add_extras` per camera,
+    then :meth:`finish` with the file attributes (known only at the end: warnings, anchors);
+    use as a context manager (the file is closed also on an exception). The file tracks creation
+    order, links and attributes separately, so the file attributes written last list in the same
+    order as when they were written first (the camera groups list by name)."""
+
+    def __init__(self, path: str | Path):
+        self._f = h5py.File(path, "w", track_order=True)
+
+    def __enter__(self) -> "EvaluationFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._f.id.valid:
+            self._f.close()
+
+    def add_camera(self, cam: str, decoded, reg, rec) -> None:
+        """The camera's group: the decoding's, registration's and reconstruction's maps and the
+        reconstruction's attributes (:func:`write_evaluation_h5`)."""
+        g = self._f.create_group(cam)
+        data = {"screen_xy_mm": decoded.screen_xy_mm, "std_xy_mm": decoded.std_xy_mm, "decoded": decoded.valid,
+                "phase_flags": decoded.flags, "reversed_contrast": getattr(decoded, "reversed", None),
+                "registration_status": reg.status, "normals": rec.n_sample,
+                "points_mm": rec.p_sample_mm, "height_mm": rec.height_mm, "reconstructed": rec.reconstructed}
+        if data["reversed_contrast"] is None:  # a decoded-like object without it
+            del data["reversed_contrast"]
+        self.add_extras(cam, data)
+        g.attrs["method"] = rec.method
+        g.attrs["seed_pixel"] = list(rec.seed_pixel)
+        g.attrs["converged"] = bool(rec.converged)
+        g.attrs["iterations"] = int(rec.iterations)
+
+    def add_extras(self, cam: str, extras: dict) -> None:
+        """Further (H, W[, k]) maps of camera ``cam`` by name (units from the name's suffix)."""
+        g = self._f[cam]
+        for name, arr in extras.items():
+            units, long_name, frame = _EVALUATION.get(name, (_units_of(name), name.replace("_", " "), "sample"))
+            _put(g, name, arr, units=units, long_name=long_name, frame=frame)
+
+    def finish(self, attrs: dict[str, Any]) -> None:
+        """The file attributes (``attrs``, then the flag and status codes); closes the file."""
+        from ..evaluation.phase import PhaseFlag
+        from ..evaluation.registration import RegistrationStatus
+
+        _file_attrs(self._f, attrs)
+        self._f.attrs["phase_flags"] = json.dumps({fl.name: int(fl) for fl in PhaseFlag})
+        self._f.attrs["registration_status"] = json.dumps({s.name: int(s) for s in RegistrationStatus})
+        self.close()
 
 
 def append_stereo_h5(path: str | Path, stereo, attrs: dict[str, Any]) -> None:

@@ -11,6 +11,8 @@ functions say how many calls to expect (for a progress bar).
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import json
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -35,7 +37,7 @@ from ..io import (
     write_mapping_h5,
     write_png,
 )
-from ..io.hdf5 import write_consistency_h5
+from ..io.hdf5 import EvaluationFile, write_consistency_h5
 from ..io.imageset import decode_camera_images, load_camera_stacks, load_manifest
 from ..io.imageset_instrument import apply_mask_and_map, consistency_stacks
 from ..evaluation.consistency import check_consistency, nominal_screen_xy, with_consistency
@@ -347,7 +349,6 @@ def _reversed_order_hint(images, inst, setup: Setup, cons, noise_std, expected, 
     """For each period that disagrees with the coarser one as a whole: does it agree with its
     shifts taken in reverse order (δ_k → −δ_k negates its phase)? Then say so — a reversed shift
     order, not a wrong period. Runs only on the failure path (one more decode and check)."""
-    import dataclasses
     import re
 
     out = []
@@ -393,7 +394,10 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ``slope_residual_rms_mrad``) and ``slope_error.png``.
     ``out_dir`` must not be ``image_dir`` nor another of ``inputs`` (e.g. the setup file).
     ``uncertainty``: per-pixel standard uncertainties (:mod:`.uncertainty_job`; ``anchor_std_mm``
-    the anchor's own σ, default the manifest anchor's ``distance_std_mm``).
+    the anchor's own σ, default the manifest anchor's ``distance_std_mm``). The cameras run as a
+    pipeline in two threads where numba's threading layer allows it
+    (:mod:`pmdsim.studies.evaluate_cameras`), joined in camera order: the same outputs, messages
+    and errors as one after the other; ``evaluation.h5`` is written camera by camera in a thread.
 
     The decoded images are checked for consistency (:mod:`pmdsim.evaluation.consistency`:
     per-image fit residuals, agreement of the periods, geometry) unless ``consistency`` is False
@@ -411,13 +415,13 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     ConsistencyFailure
         If no pixel of a camera passes decoding and the consistency checks (nothing written).
     """
-    from ..evaluation.anchor import HeightAnchor, default_seed_pixel, reconstruct_anchored, register_model
-    from ..evaluation.plausibility import check_orientation, check_scale, check_screen_coverage
+    from ..evaluation.plausibility import check_scale
     from ..evaluation.surface_fit import surface_fit_summary
     from .surface_figures import write_slope_error_png
     from . import uncertainty_job as uj
+    from .evaluate_cameras import camera_results, evaluate_camera
     from .evaluate_files import background_files
-    from .evaluate_memory import kept_for_files, small_pages
+    from .evaluate_memory import small_pages
 
     manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
     if screen_model is None:
@@ -447,48 +451,36 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
     run_checks = consistency
     notes = []
     with small_pages(), atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp, \
-            background_files() as figures:  # 4 kB pages (huge ones cost ≈ 2.8 ms/MB here); PNGs drawn in a thread
+            EvaluationFile(tmp / "evaluation.h5") as h5, background_files() as figures, background_files() as h5_tasks:
+        # 4 kB pages (huge ones cost ≈ 2.8 ms/MB here); PNGs drawn in a thread, evaluation.h5 written in another
         figures.submit(warm_up)  # the figures' imports, fonts and kernels while the images are read
-        for cam in manifest.cameras:
-            decoded, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, run_checks)
-            if cons is not None:
-                checks[cam] = cons
-            warnings += check_orientation(setup, cam, decoded.screen_xy_mm, decoded.valid)
-            reg = register_model(setup, cam, decoded, screen_model=model_surface)
-            bounds = (model_surface.bounds_mm if model_surface is not None else
-                      (setup.screen.grid_x_mm[0], setup.screen.grid_x_mm[-1], setup.screen.grid_y_mm[0],
-                       setup.screen.grid_y_mm[-1]))
-            coverage = check_screen_coverage(decoded.valid, reg.status, decoded.screen_xy_mm, bounds, cam)
-            warnings += coverage
-            cam_anchor = anchor
-            if isinstance(anchor, tuple):  # a seed height without a pixel: the default seed pixel
-                px = default_seed_pixel(reg.valid) if reg.valid.any() else (0, 0)
-                cam_anchor = HeightAnchor((float(px[0]), float(px[1])), anchor[1])
-            try:
-                if not reg.valid.any():
-                    raise JobInputError(f"camera {cam!r}: no pixel was decoded and registered; nothing to "
-                                        f"reconstruct")
-                ar = reconstruct_anchored(reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, anchor=cam_anchor,
-                                          T_world_ref=setup.sample.T_world_sample, method=method)
-            except PmdsimError as exc:
-                if not (coverage or warnings):
-                    raise
-                raise type(exc)(f"{exc}; likely cause: {' / '.join(coverage or warnings)}") from None
-            rec = ar.reconstruction
-            decoded = kept_for_files(decoded, reg, rec)[0]  # σ reads the coordinates and their σ: release the rest
-            anchors[cam] = ar.anchor
+        work = functools.partial(evaluate_camera, setup, manifest=manifest, noise_std=noise_std, image_dir=image_dir,
+                                 run_checks=run_checks, model_surface=model_surface, anchor=anchor, method=method,
+                                 uncertainty=uncertainty, anchor_std_mm=anchor_std_mm)
+        for r in camera_results(manifest.cameras, work):  # two at a time, joined in camera order
+            cam = r.cam
+            if r.cons is not None:
+                checks[cam] = r.cons
+            if r.failure is not None:
+                exc, before, coverage = r.failure
+                if not (coverage or warnings or before):
+                    raise exc
+                raise type(exc)(f"{exc}; likely cause: {' / '.join(coverage or warnings + before)}") from None
+            warnings += r.warnings
+            anchors[cam] = r.anchor
+            decoded, reg, rec = results[cam] = r.kept
+            h5_tasks.submit(h5.add_camera, cam, decoded, reg, rec)  # while the next camera and the fit compute
+            # only the file reads the coordinates and their σ (74 MB per camera): freed once written
+            results[cam] = (dataclasses.replace(decoded, screen_xy_mm=None, std_xy_mm=None), reg, rec)
             if uncertainty:
-                uncs[cam], w = uj.camera_uncertainty(setup, cam, decoded, reg, rec, method=method,
-                                                     screen_model=model_surface, anchor=cam_anchor,
-                                                     anchor_std=uj.anchor_std_mm(cam_anchor, anchor_std_mm))
-                warnings += w
-                if uncs[cam] is not None:
-                    figures.submit(uj.height_std_figure, rec, uncs[cam], cam, tmp / f"height_std_{cam}.png")
-            decoded, reg, rec = results[cam] = kept_for_files(decoded, reg, rec)  # release the rest now
+                uncs[cam] = r.unc
+                if r.unc is not None:  # the σ maps too (groups list by name: the write order is free)
+                    h5_tasks.submit(h5.add_extras, cam, uj.uncertainty_datasets(r.unc))
+                    figures.submit(uj.height_std_figure, rec, r.unc, cam, tmp / f"height_std_{cam}.png")
             p = rec.p_sample_mm
             figures.submit(write_height_map_png, p[..., 0], p[..., 1], rec.height_mm * 1e3,
                            title=f"{cam}: height in the sample frame ({method}, {screen_model} screen model"
-                                 f"{', relative' if ar.relative else ''})", label="height (µm)",
+                                 f"{', relative' if r.relative else ''})", label="height (µm)",
                            path=tmp / f"height_{cam}.png")
             _tick(progress, f"evaluated {cam}")
         cam0 = manifest.cameras[0]
@@ -504,18 +496,17 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
         if fit is not None:
             per_cam = {c: (results[c][2].p_sample_mm, ex["residual_slopes"]) for c, ex in zip(manifest.cameras, extras)}
             figures.submit(write_slope_error_png, per_cam, fit, path=tmp / "slope_error.png")
-        write_evaluation_h5(tmp / "evaluation.h5", results,
-                            {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
-                             "instrument": json.dumps(json_ready(manifest.instrument.describe())),
-                             "anchors": json.dumps(json_ready(anchors)),
-                             "heights_relative": any(a["kind"] == "none" for a in anchors.values()),
-                             "warnings": json.dumps(warnings),
-                             "uncertainty": uj.uncertainty_attribute(uncs, None if uncertainty else "not requested")},
-                            extras={c: {**ex, **uj.uncertainty_datasets(uncs.get(c))}
-                                    for c, ex in zip(manifest.cameras, extras)})
+        for c, ex in zip(manifest.cameras, extras):
+            h5_tasks.submit(h5.add_extras, c, ex)
+        h5_tasks.submit(h5.finish, {**prov, "method": method, "screen_model": screen_model, "image_dir": str(image_dir),
+                                    "instrument": json.dumps(json_ready(manifest.instrument.describe())),
+                                    "anchors": json.dumps(json_ready(anchors)),
+                                    "heights_relative": any(a["kind"] == "none" for a in anchors.values()),
+                                    "warnings": json.dumps(warnings),
+                                    "uncertainty": uj.uncertainty_attribute(uncs, None if uncertainty else "not requested")})
         if checks:
-            write_consistency_h5(tmp / "evaluation.h5", checks,
-                                 {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
+            h5_tasks.submit(write_consistency_h5, tmp / "evaluation.h5", checks,
+                            {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
     cams = {}
     photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
     for cam, (decoded, reg, rec) in results.items():
