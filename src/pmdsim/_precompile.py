@@ -1,0 +1,249 @@
+"""Compile pmdsim's numba kernels from a list of signatures, ahead of their first use.
+
+numba compiles a signature-less ``@njit(cache=True)`` kernel at its first call, in the calling
+process, one kernel after another. On a cold cache the test suite spends ≈ 230 s of its
+10 minutes compiling this way on one vCPU of the two (issue 25 item 4). A second process that
+compiles the same signatures into the same on-disk cache (``NUMBA_CACHE_DIR``) lets the first
+process load them instead. The list ("manifest") is a text file, one signature a line::
+
+    pmdsim.evaluation.decoding._decode_kernel<TAB>(Array(uint8, 3, 'C', True, aligned=True), float64)
+
+(the module, the kernel's name in it, the argument types as numba's ``repr`` writes them — as
+in its cache index). :func:`write_manifest` makes one from a cache directory; :func:`run`
+compiles a manifest's entries in order. An entry whose kernel no longer exists or whose types
+do not parse or compile is skipped: the kernel then compiles at its first call, as without this
+module. Outputs do not change: a kernel loaded from the cache is the code the first process
+would have compiled.
+
+Two processes saving *different* signatures of one kernel at the same moment could both number
+their data file ``1`` in numba's index (read, add, write back: not locked), and the index could
+then point a signature at the other one's machine code. :func:`lock_cache_saves` serialises
+numba's saves across the processes that call it (an ``flock`` per cache directory); the
+compiling process and the process it serves both call it.
+
+``python -m pmdsim._precompile MANIFEST [--parent PID]``: compile quietly (no output), at a
+lower priority, and stop when the process ``PID`` is gone (between kernels; on Linux at once, by
+the kernel's parent-death signal). SIGTERM ends it at once.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import os
+import re
+import sys
+
+#: numba's type names in a signature's ``repr`` that are not attributes of ``numba.types`` by that name.
+_SCALAR_ALIASES = {"bool": "boolean", "none": "none"}
+_CONSTRUCTORS = ("Array", "ListType", "UniTuple", "Tuple", "literal")
+
+
+def parse_signature(text: str) -> tuple:
+    """The argument types of one signature, from numba's ``repr`` of them.
+
+    Parameters
+    ----------
+    text : str
+        ``"(Array(float64, 2, 'C', True, aligned=True), int64, Literal[bool](True), UniTuple(float64 x 3))"``;
+        a return type (``" -> none"``) is ignored.
+
+    Returns
+    -------
+    tuple of numba types
+
+    Raises
+    ------
+    ValueError
+        A name or form that is not one of numba's scalar types, ``Array``, ``ListType``,
+        ``UniTuple``, ``Tuple`` or an integer/boolean literal. Nothing is evaluated: the text
+        is parsed and only these constructors are applied.
+    """
+    from numba.core import types
+
+    text = text.split(" -> ")[0].strip()
+    text = re.sub(r"Literal\[(?:int|bool)\]\(", "literal(", text)
+    text = re.sub(r" x (\d+)\)", r", \1)", text)
+    try:
+        tree = ast.parse(text, mode="eval").body
+    except SyntaxError as e:
+        raise ValueError(f"not a signature: {text!r}") from e
+
+    def build(node):
+        if isinstance(node, ast.Constant):
+            return node.value
+        if isinstance(node, ast.Name):
+            t = getattr(types, _SCALAR_ALIASES.get(node.id, node.id), None)
+            if not isinstance(t, types.Type):
+                raise ValueError(f"not a numba type: {node.id!r}")
+            return t
+        if isinstance(node, ast.Tuple):
+            return tuple(build(e) for e in node.elts)
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in _CONSTRUCTORS:
+            args = [build(a) for a in node.args]
+            kwargs = {k.arg: build(k.value) for k in node.keywords}
+            if node.func.id == "literal":
+                return types.literal(*args)
+            return getattr(types, node.func.id)(*args, **kwargs)
+        raise ValueError(f"unsupported form in a signature: {ast.dump(node)[:80]}")
+
+    sig = build(tree)
+    return sig if isinstance(sig, tuple) else (sig,)
+
+
+def read_manifest(path) -> list[tuple[str, str, str]]:
+    """``(module, kernel name, signature text)`` per non-empty, non-comment line of ``path``."""
+    out = []
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.strip() and not line.startswith("#"):
+                name, sig = line.rstrip("\n").split("\t", 1)
+                module, _, kernel = name.rpartition(".")
+                out.append((module, kernel, sig))
+    return out
+
+
+def lock_cache_saves() -> None:
+    """Serialise numba's cache saves (index read, update, write, then the data file) across the
+    processes that call this, with an exclusive ``flock`` on ``.pmdsim-save.lock`` in the cache
+    directory. Idempotent; a no-op where ``fcntl`` does not exist."""
+    try:
+        import fcntl
+    except ImportError:
+        return
+    from numba.core import caching
+
+    cls = caching.IndexDataCacheFile
+    if getattr(cls.save, "_pmdsim_locked", False):
+        return
+    save = cls.save
+
+    def locked_save(self, key, data):
+        with open(os.path.join(self._cache_path, ".pmdsim-save.lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            return save(self, key, data)
+
+    locked_save._pmdsim_locked = True
+    cls.save = locked_save
+
+
+def compile_manifest(entries, keep_going=lambda: True) -> dict[str, int]:
+    """Compile (or load from the cache) each entry's signature in order.
+
+    Parameters
+    ----------
+    entries : list of (module, kernel name, signature text)
+    keep_going : callable
+        Asked before each entry; False stops.
+
+    Returns
+    -------
+    dict
+        Counts: ``"done"`` (compiled or loaded), ``"skipped"`` (kernel missing, not a numba
+        dispatcher, signature not parsed or not compiled).
+    """
+    counts = {"done": 0, "skipped": 0}
+    for module, kernel, sig_text in entries:
+        if not keep_going():
+            break
+        try:
+            dispatcher = getattr(importlib.import_module(module), kernel)
+            dispatcher.compile(parse_signature(sig_text))
+            counts["done"] += 1
+        except Exception:  # noqa: BLE001 - a stale entry compiles at first use instead
+            counts["skipped"] += 1
+    return counts
+
+
+def write_manifest(cache_root, src_root, path, head_s=0.0) -> int:
+    """Write the manifest of every signature in the numba cache under ``cache_root`` (its
+    ``<package>_<sha1 of the package path>`` directories, ``NUMBA_CACHE_DIR`` layout) compiled
+    from the sources under ``src_root`` (the directory holding ``pmdsim``).
+
+    The lines follow the data files' mtimes (the order the kernels were first compiled in),
+    except that those compiled in the first ``head_s`` seconds (from the first one) come last,
+    latest first: a background process that starts with the kernels a session needs at once
+    would compile them beside the session, not ahead of it (the test suite's manifest uses
+    ``head_s=110``; docs/benchmarks.md). Kernels whose name is not a module attribute (nested
+    functions) are left out. Returns the number of lines.
+    """
+    import glob
+    import hashlib
+    import pickle
+
+    package_of = {}
+    for dirpath, dirnames, _ in os.walk(os.path.join(src_root, "pmdsim")):
+        dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+        d = os.path.abspath(dirpath)
+        sub = f"{os.path.basename(d)}_{hashlib.sha1(d.encode()).hexdigest()}"
+        package_of[sub] = os.path.relpath(d, src_root).replace(os.sep, ".")
+    rows = []
+    for index in glob.glob(os.path.join(cache_root, "*", "*.nbi")):
+        package = package_of.get(os.path.basename(os.path.dirname(index)))
+        stem, _, rest = os.path.basename(index).partition(".")
+        kernel = rest.rpartition("-")[0]
+        if package is None or not kernel.isidentifier():
+            continue
+        with open(index, "rb") as f:
+            pickle.load(f)  # numba's version
+            _, overloads = pickle.loads(f.read())
+        for key, data in overloads.items():
+            data_path = os.path.join(os.path.dirname(index), data)
+            mtime = os.path.getmtime(data_path) if os.path.exists(data_path) else float("inf")
+            rows.append((f"{package}.{stem}", kernel, repr(key[0]), mtime))
+    rows.sort(key=lambda r: r[3])
+    first = rows[0][3] if rows else 0.0
+    rows = [r for r in rows if r[3] - first >= head_s] + [r for r in rows if r[3] - first < head_s][::-1]
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("# pmdsim kernel signatures to compile ahead (pmdsim._precompile): module.kernel<TAB>argument types\n")
+        f.writelines(f"{m}.{k}\t{s}\n" for m, k, s, _ in rows)
+    return len(rows)
+
+
+def _die_with_parent(parent: int) -> None:
+    """On Linux, have the kernel send SIGTERM when the parent thread exits (``prctl``)."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # gone before the call
+        raise SystemExit(0)
+
+
+def main(argv=None) -> int:
+    import argparse
+    import signal
+
+    p = argparse.ArgumentParser(prog="python -m pmdsim._precompile", description=__doc__.splitlines()[0])
+    p.add_argument("manifest")
+    p.add_argument("--parent", type=int, default=None, help="stop when this process is gone")
+    args = p.parse_args(argv)
+
+    # SIGTERM keeps its default action, ending the process at once, also inside a compile (seconds
+    # in LLVM): numba writes each cache file to a temporary name and renames it, so no file is
+    # left half-written, and an index entry whose data file is missing is recompiled at first use.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if args.parent is not None:
+        _die_with_parent(args.parent)
+    try:
+        os.nice(10)
+    except (OSError, AttributeError):
+        pass
+    entries = read_manifest(args.manifest)
+    lock_cache_saves()
+    alive = (lambda: os.getppid() == args.parent) if args.parent is not None else (lambda: True)
+    try:
+        compile_manifest(entries, keep_going=alive)
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

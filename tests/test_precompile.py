@@ -1,0 +1,154 @@
+"""The background kernel compiler of a cold test session (:mod:`pmdsim._precompile`, tests/conftest.py).
+
+The signature parser is checked against numba's own types (``numba.typeof`` of real arrays, numba's
+constructors), the compiler against numba's cache index of a fresh cache directory it filled in
+another process, the manifest writer by a round trip through that index, and the session's
+process handling with real signals to a ``pytest`` subprocess.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pmdsim import _precompile
+
+TESTS = Path(__file__).parent
+SRC = Path(_precompile.__file__).resolve().parents[1]
+
+
+def _readonly(a):
+    a.flags.writeable = False
+    return a
+
+
+def test_signatures_parse_back_to_numbas_types():
+    import numba
+    from numba.core import types
+
+    values = [np.zeros((2, 3)), _readonly(np.zeros((2, 3, 4), np.uint8)), np.zeros((3, 2)).T,
+              np.zeros(5, np.float32)[::2], np.zeros(4, np.int16), 1.5, 3, True]
+    sig = tuple(numba.typeof(v) for v in values)
+    sig += (types.UniTuple(types.float64, 8), types.Tuple([types.int64, types.float64]),
+            types.literal(True), types.literal(0), types.ListType(numba.typeof(_readonly(np.zeros((2, 2))))))
+    assert _precompile.parse_signature(repr(sig)) == sig
+    assert _precompile.parse_signature(repr(sig) + " -> none") == sig
+    assert _precompile.parse_signature("(float64,)") == (types.float64,)
+
+
+@pytest.mark.parametrize("text", ["(os.system('true'),)", "(__import__('os'),)", "(float64.__class__,)",
+                                  "(Array(float64, 1, 'C'), Undefined)", "(lambda: 0,)", "(float64"])
+def test_anything_but_numba_types_is_refused(text):
+    with pytest.raises(ValueError):
+        _precompile.parse_signature(text)
+
+
+def _run_precompile(tmp_path, manifest_lines, parent=None):
+    manifest = tmp_path / "manifest.txt"
+    manifest.write_text("# comment\n" + "".join(f"{line}\n" for line in manifest_lines), encoding="utf-8")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nc"), "XDG_CACHE_HOME": str(tmp_path / "xdg"),
+           "PYTHONPATH": str(SRC)}
+    cmd = [sys.executable, "-m", "pmdsim._precompile", str(manifest)]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300), manifest
+
+
+def test_compiles_the_listed_signatures_into_the_cache_and_skips_stale_entries(tmp_path):
+    """Two signatures of one small kernel land in a fresh cache's index (read by numba's own
+    pickle format); a missing kernel, a missing module and an unparsable type are skipped
+    silently; the manifest written back from that cache lists exactly the two signatures."""
+    import pickle
+
+    good = ["pmdsim.geometry.camera._unpack\t(Array(float64, 1, 'C', False, aligned=True),)",
+            "pmdsim.geometry.camera._unpack\t(Array(float64, 1, 'C', True, aligned=True),)"]
+    stale = ["pmdsim.geometry.camera._no_such_kernel\t(float64,)",
+             "pmdsim.no_such_module._unpack\t(float64,)",
+             "pmdsim.geometry.camera._unpack\t(Blob(float64),)"]
+    proc, _ = _run_precompile(tmp_path, [stale[0], good[0], *stale[1:], good[1]])
+    assert (proc.returncode, proc.stdout, proc.stderr) == (0, "", "")
+    indexes = list((tmp_path / "nc").glob("geometry_*/camera._unpack-*.nbi"))
+    assert len(indexes) == 1
+    with open(indexes[0], "rb") as f:
+        pickle.load(f)
+        _, overloads = pickle.loads(f.read())
+    assert sorted(repr(key[0]) for key in overloads) == sorted(g.split("\t")[1] for g in good)
+    n = _precompile.write_manifest(tmp_path / "nc", SRC, tmp_path / "back.txt")
+    assert n == 2
+    assert sorted(line for line in (tmp_path / "back.txt").read_text().splitlines() if not line.startswith("#")) \
+        == sorted(good)
+
+
+def test_the_suites_manifest_parses():
+    """Every line of tests/precompile_signatures.txt is ``module.kernel<TAB>types`` with types the parser reads."""
+    entries = _precompile.read_manifest(TESTS / "precompile_signatures.txt")
+    assert len(entries) > 100
+    for module, kernel, sig in entries:
+        assert module.startswith("pmdsim.") and kernel.isidentifier()
+        _precompile.parse_signature(sig)
+
+
+def _children(pid):
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children", encoding="ascii") as f:
+            return [int(x) for x in f.read().split()]
+    except OSError:
+        return []
+
+
+def _gone(pid, timeout):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+                if f.read().split(") ")[1].startswith("Z"):
+                    return True  # exited, not yet reaped by its (new) parent
+        except OSError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
+def test_background_compiler_ends_with_the_session(tmp_path, sig):
+    """A cold ``pytest`` session starts exactly one background compiler and it ends with the
+    session: on Ctrl-C (a real SIGINT to pytest: exit status 2, nothing from the compiler in the
+    output) and when pytest is killed (SIGKILL: the kernel's parent-death signal)."""
+    (tmp_path / "waiter.py").write_text(textwrap.dedent("""
+        import time, pytest
+        @pytest.hookimpl(tryfirst=True)
+        def pytest_runtestloop(session):
+            print("WAITING", flush=True)
+            time.sleep(120)
+            return True
+    """), encoding="utf-8")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nc"), "XDG_CACHE_HOME": str(tmp_path / "xdg"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(SRC)])}
+    env.pop("PMDSIM_NO_PRECOMPILE", None)
+    proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-s", "-p", "waiter", "-p", "no:cacheprovider",
+                             str(TESTS / "test_precompile.py"), "-k", "no_test_has_this_name"],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith("pmdsim: numba kernels not compiled yet") and "a background process" in first
+        assert proc.stdout.readline().strip() == "WAITING"
+        children = _children(proc.pid)
+        assert len(children) == 1
+        time.sleep(1.0)  # compiling by now
+        proc.send_signal(sig)
+        out = proc.stdout.read()
+        assert proc.wait(timeout=15) == (2 if sig == signal.SIGINT else -signal.SIGKILL)
+        assert _gone(children[0], timeout=3)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    if sig == signal.SIGINT:
+        assert "KeyboardInterrupt" in out and "pmdsim._precompile" not in out and "Traceback" not in out
