@@ -23,7 +23,8 @@ compiling process and the process it serves both call it.
 
 ``python -m pmdsim._precompile MANIFEST [--parent PID]``: compile quietly (no output), at a
 lower priority, and stop when the process ``PID`` is gone (between kernels; on Linux at once, by
-the kernel's parent-death signal). SIGTERM ends it at once.
+the kernel's parent-death signal). SIGTERM ends it at once. ``PMDSIM_PRECOMPILE_LOG=<file>``:
+append a line per kernel (UTC time, seconds, outcome, name) for measurements.
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ def lock_cache_saves() -> None:
     cls.save = locked_save
 
 
-def compile_manifest(entries, keep_going=lambda: True) -> dict[str, int]:
+def compile_manifest(entries, keep_going=lambda: True, log=None) -> dict[str, int]:
     """Compile (or load from the cache) each entry's signature in order.
 
     Parameters
@@ -135,6 +136,8 @@ def compile_manifest(entries, keep_going=lambda: True) -> dict[str, int]:
     entries : list of (module, kernel name, signature text)
     keep_going : callable
         Asked before each entry; False stops.
+    log : file, optional
+        One line per entry: UTC time (s), seconds it took, ``done``/``skipped``, the kernel.
 
     Returns
     -------
@@ -142,16 +145,22 @@ def compile_manifest(entries, keep_going=lambda: True) -> dict[str, int]:
         Counts: ``"done"`` (compiled or loaded), ``"skipped"`` (kernel missing, not a numba
         dispatcher, signature not parsed or not compiled).
     """
+    import time
+
     counts = {"done": 0, "skipped": 0}
     for module, kernel, sig_text in entries:
         if not keep_going():
             break
+        t0, outcome = time.time(), "done"
         try:
             dispatcher = getattr(importlib.import_module(module), kernel)
             dispatcher.compile(parse_signature(sig_text))
-            counts["done"] += 1
         except Exception:  # noqa: BLE001 - a stale entry compiles at first use instead
-            counts["skipped"] += 1
+            outcome = "skipped"
+        counts[outcome] += 1
+        if log is not None:
+            log.write(f"{time.time():.3f}\t{time.time() - t0:.3f}\t{outcome}\t{module}.{kernel}\n")
+            log.flush()
     return counts
 
 
@@ -238,10 +247,15 @@ def main(argv=None) -> int:
     entries = read_manifest(args.manifest)
     lock_cache_saves()
     alive = (lambda: os.getppid() == args.parent) if args.parent is not None else (lambda: True)
+    log_path = os.environ.get("PMDSIM_PRECOMPILE_LOG")
+    log = open(log_path, "a", encoding="utf-8") if log_path else None
     try:
-        compile_manifest(entries, keep_going=alive)
+        compile_manifest(entries, keep_going=alive, log=log)
     except KeyboardInterrupt:
         return 130
+    finally:
+        if log is not None:
+            log.close()
     return 0
 
 
