@@ -115,6 +115,11 @@ def _gone(pid, timeout):
     return False
 
 
+def _default_sigint():
+    """A job started in the background by a non-interactive shell ignores SIGINT, and so would pytest."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
 def test_background_compiler_ends_with_the_session(tmp_path, sig):
@@ -134,7 +139,8 @@ def test_background_compiler_ends_with_the_session(tmp_path, sig):
     env.pop("PMDSIM_NO_PRECOMPILE", None)
     proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-s", "-p", "waiter", "-p", "no:cacheprovider",
                              str(TESTS / "test_precompile.py"), "-k", "no_test_has_this_name"],
-                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=_default_sigint)
     try:
         first = proc.stdout.readline()
         assert first.startswith("pmdsim: numba kernels not compiled yet") and "a background process" in first
