@@ -81,16 +81,41 @@ def test_compiles_the_listed_signatures_into_the_cache_and_skips_stale_entries(t
     assert sorted(repr(key[0]) for key in overloads) == sorted(g.split("\t")[1] for g in good)
     n = _precompile.write_manifest(tmp_path / "nc", SRC, tmp_path / "back.txt")
     assert n == 2
-    assert sorted(line for line in (tmp_path / "back.txt").read_text().splitlines() if not line.startswith("#")) \
-        == sorted(good)
+    back = _precompile.read_manifest(tmp_path / "back.txt")
+    assert sorted(f"{m}.{k}\t{sig}" for m, k, sig, _ in back) == sorted(good)
+    assert all(need >= 0.0 for *_, need in back)
+
+
+def test_entries_the_session_is_at_or_past_are_left_to_it(tmp_path):
+    """The frontier is the latest first need among kernels with an index this process did not
+    write; entries first needed before it + lead are passed over, later ones attempted."""
+    nc = tmp_path / "nc"
+    nc.mkdir()
+    entries = [("pmdsim.a.m", "k1", "(float64,)", 10.0), ("pmdsim.a.m", "k1", "(int64,)", 50.0),
+               ("pmdsim.a.m", "k2", "(float64,)", 40.0), ("pmdsim.no_such.m", "k3", "(float64,)", 75.0),
+               ("pmdsim.no_such.m", "k4", "(float64,)", 200.0), ("pmdsim.no_such.m", "k5", "(float64,)", None)]
+    assert _precompile.session_frontier(entries, set(), set()) is None
+    for name in ("m.k1-10.py311.nbi", "m.k2-20.py311.nbi", "other.k9-1.py311.nbi"):
+        (nc / name).touch()
+    indexed = _precompile._indexed([nc, tmp_path / "missing"])
+    assert indexed == {"m.k1", "m.k2", "other.k9"}
+    assert _precompile.session_frontier(entries, indexed, set()) == 40.0  # k1 counts at its first need, 10 s
+    assert _precompile.session_frontier(entries, indexed, {"m.k2"}) == 10.0
+    # a kernel compiled out of order (k10) does not move the frontier past the ones not yet indexed
+    tens = [("pmdsim.a.m", f"k{i}", "(float64,)", 10.0 * i) for i in range(1, 11)]
+    assert _precompile.session_frontier(tens, {"m.k1", "m.k2", "m.k3", "m.k10"}, set()) == 30.0
+    assert _precompile.session_frontier(tens, {f"m.k{i}" for i in range(1, 11)} - {"m.k5"}, set()) == 100.0
+    counts = _precompile.compile_manifest(entries, cache_dirs=[nc], lead_s=30.0)
+    # k1 (10, 50 < 40 + 30), k2 (40) passed; k3 (75), k4 (200) and k5 (no time) attempted: no such module
+    assert counts == {"done": 0, "skipped": 3, "passed": 3}
 
 
 def test_the_suites_manifest_parses():
     """Every line of tests/precompile_signatures.txt is ``module.kernel<TAB>types`` with types the parser reads."""
     entries = _precompile.read_manifest(TESTS / "precompile_signatures.txt")
     assert len(entries) > 100
-    for module, kernel, sig in entries:
-        assert module.startswith("pmdsim.") and kernel.isidentifier()
+    for module, kernel, sig, need in entries:
+        assert module.startswith("pmdsim.") and kernel.isidentifier() and need >= 0.0
         _precompile.parse_signature(sig)
 
 

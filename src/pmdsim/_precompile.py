@@ -6,10 +6,10 @@ process, one kernel after another. On a cold cache the test suite spends ≈ 230
 compiles the same signatures into the same on-disk cache (``NUMBA_CACHE_DIR``) lets the first
 process load them instead. The list ("manifest") is a text file, one signature a line::
 
-    pmdsim.evaluation.decoding._decode_kernel<TAB>(Array(uint8, 3, 'C', True, aligned=True), float64)
+    pmdsim.evaluation.decoding._decode_kernel<TAB>(Array(uint8, 3, 'C', True, aligned=True), float64)<TAB>37.2
 
 (the module, the kernel's name in it, the argument types as numba's ``repr`` writes them — as
-in its cache index). :func:`write_manifest` makes one from a cache directory; :func:`run`
+in its cache index —, and optionally when a cold session first compiled it, in seconds). :func:`write_manifest` makes one from a cache directory; :func:`run`
 compiles a manifest's entries in order. An entry whose kernel no longer exists or whose types
 do not parse or compile is skipped: the kernel then compiles at its first call, as without this
 module. Outputs do not change: a kernel loaded from the cache is the code the first process
@@ -92,16 +92,50 @@ def parse_signature(text: str) -> tuple:
     return sig if isinstance(sig, tuple) else (sig,)
 
 
-def read_manifest(path) -> list[tuple[str, str, str]]:
-    """``(module, kernel name, signature text)`` per non-empty, non-comment line of ``path``."""
+def read_manifest(path) -> list[tuple[str, str, str, float | None]]:
+    """``(module, kernel name, signature text, first need in s or None)`` per non-empty,
+    non-comment line of ``path`` (``module.kernel<TAB>types[<TAB>seconds]``)."""
     out = []
     with open(path, encoding="utf-8") as f:
         for line in f:
             if line.strip() and not line.startswith("#"):
-                name, sig = line.rstrip("\n").split("\t", 1)
+                name, sig, *need = line.rstrip("\n").split("\t")
                 module, _, kernel = name.rpartition(".")
-                out.append((module, kernel, sig))
+                out.append((module, kernel, sig, float(need[0]) if need else None))
     return out
+
+
+def _indexed(cache_dirs) -> set[str]:
+    """``<module file stem>.<kernel>`` of every numba index file in ``cache_dirs``."""
+    out = set()
+    for d in cache_dirs:
+        try:
+            names = os.listdir(d)
+        except OSError:
+            continue
+        out.update(n.rpartition("-")[0] for n in names if n.endswith(".nbi"))
+    return out
+
+
+def session_frontier(entries, indexed, own, coverage=0.7) -> float | None:
+    """How far the session being served has come, in the manifest's seconds.
+
+    The latest first need among the kernels with an index file (``indexed``) that this process
+    did not write (``own``: what appeared while it compiled, callees included), counting only
+    kernels up to which at least ``coverage`` of the manifest's kernels are indexed — a kernel
+    the session compiled out of the manifest's order (a new test) does not move the frontier.
+    None: no such kernel yet."""
+    first = {}
+    for module, kernel, _, need in entries:
+        if need is not None:
+            key = f"{module.rpartition('.')[2]}.{kernel}"
+            first[key] = min(need, first.get(key, need))
+    frontier, have = None, 0
+    for n, (key, t) in enumerate(sorted(first.items(), key=lambda kv: kv[1]), start=1):
+        have += key in indexed
+        if key in indexed and key not in own and have >= coverage * n:
+            frontier = t
+    return frontier
 
 
 def lock_cache_saves() -> None:
@@ -128,35 +162,48 @@ def lock_cache_saves() -> None:
     cls.save = locked_save
 
 
-def compile_manifest(entries, keep_going=lambda: True, log=None) -> dict[str, int]:
+def compile_manifest(entries, keep_going=lambda: True, log=None, cache_dirs=None, lead_s=30.0) -> dict[str, int]:
     """Compile (or load from the cache) each entry's signature in order.
 
     Parameters
     ----------
-    entries : list of (module, kernel name, signature text)
+    entries : list of (module, kernel name, signature text, first need in s or None)
     keep_going : callable
         Asked before each entry; False stops.
     log : file, optional
-        One line per entry: UTC time (s), seconds it took, ``done``/``skipped``, the kernel.
+        One line per entry: UTC time (s), seconds it took, ``done``/``skipped``/``passed``, the kernel.
+    cache_dirs : list of str, optional
+        The cache directories the served session writes to. With them, an entry first needed
+        less than ``lead_s`` after the session's frontier (:func:`session_frontier`) is passed
+        over: the session compiles it now or has done so, and compiling it here as well would
+        only duplicate the work.
 
     Returns
     -------
     dict
         Counts: ``"done"`` (compiled or loaded), ``"skipped"`` (kernel missing, not a numba
-        dispatcher, signature not parsed or not compiled).
+        dispatcher, signature not parsed or not compiled), ``"passed"`` (left to the session).
     """
     import time
 
-    counts = {"done": 0, "skipped": 0}
-    for module, kernel, sig_text in entries:
+    counts = {"done": 0, "skipped": 0, "passed": 0}
+    own: set[str] = set()
+    for module, kernel, sig_text, need in entries:
         if not keep_going():
             break
         t0, outcome = time.time(), "done"
-        try:
-            dispatcher = getattr(importlib.import_module(module), kernel)
-            dispatcher.compile(parse_signature(sig_text))
-        except Exception:  # noqa: BLE001 - a stale entry compiles at first use instead
-            outcome = "skipped"
+        before = _indexed(cache_dirs) if cache_dirs is not None else set()
+        frontier = session_frontier(entries, before, own) if cache_dirs is not None and need is not None else None
+        if frontier is not None and need < frontier + lead_s:
+            outcome = "passed"
+        else:
+            try:
+                dispatcher = getattr(importlib.import_module(module), kernel)
+                dispatcher.compile(parse_signature(sig_text))
+            except Exception:  # noqa: BLE001 - a stale entry compiles at first use instead
+                outcome = "skipped"
+            if cache_dirs is not None:
+                own |= _indexed(cache_dirs) - before
         counts[outcome] += 1
         if log is not None:
             log.write(f"{time.time():.3f}\t{time.time() - t0:.3f}\t{outcome}\t{module}.{kernel}\n")
@@ -173,7 +220,7 @@ def write_manifest(cache_root, src_root, path, head_s=0.0) -> int:
     except that those compiled in the first ``head_s`` seconds (from the first one) come last,
     latest first: a background process that starts with the kernels a session needs at once
     would compile them beside the session, not ahead of it (the test suite's manifest uses
-    ``head_s=110``; docs/benchmarks.md). Kernels whose name is not a module attribute (nested
+    ``head_s=150``; docs/benchmarks.md). The third column is that time, in seconds from the first. Kernels whose name is not a module attribute (nested
     functions) are left out. Returns the number of lines.
     """
     import glob
@@ -198,14 +245,16 @@ def write_manifest(cache_root, src_root, path, head_s=0.0) -> int:
             _, overloads = pickle.loads(f.read())
         for key, data in overloads.items():
             data_path = os.path.join(os.path.dirname(index), data)
-            mtime = os.path.getmtime(data_path) if os.path.exists(data_path) else float("inf")
-            rows.append((f"{package}.{stem}", kernel, repr(key[0]), mtime))
+            if not os.path.exists(data_path):
+                continue
+            rows.append((f"{package}.{stem}", kernel, repr(key[0]), os.path.getmtime(data_path)))
     rows.sort(key=lambda r: r[3])
     first = rows[0][3] if rows else 0.0
     rows = [r for r in rows if r[3] - first >= head_s] + [r for r in rows if r[3] - first < head_s][::-1]
     with open(path, "w", encoding="utf-8") as f:
-        f.write("# pmdsim kernel signatures to compile ahead (pmdsim._precompile): module.kernel<TAB>argument types\n")
-        f.writelines(f"{m}.{k}\t{s}\n" for m, k, s, _ in rows)
+        f.write("# pmdsim kernel signatures to compile ahead (pmdsim._precompile): module.kernel<TAB>argument types"
+                "<TAB>first compiled at (s, from the first)\n")
+        f.writelines(f"{m}.{k}\t{s}\t{t - first:.1f}\n" for m, k, s, t in rows)
     return len(rows)
 
 
@@ -247,10 +296,13 @@ def main(argv=None) -> int:
     entries = read_manifest(args.manifest)
     lock_cache_saves()
     alive = (lambda: os.getppid() == args.parent) if args.parent is not None else (lambda: True)
+    import pmdsim
+
+    cache_dirs = pmdsim._numba_cache_dirs(os.path.dirname(os.path.abspath(pmdsim.__file__)))
     log_path = os.environ.get("PMDSIM_PRECOMPILE_LOG")
     log = open(log_path, "a", encoding="utf-8") if log_path else None
     try:
-        compile_manifest(entries, keep_going=alive, log=log)
+        compile_manifest(entries, keep_going=alive, log=log, cache_dirs=cache_dirs if args.parent is not None else None)
     except KeyboardInterrupt:
         return 130
     finally:
