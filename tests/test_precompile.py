@@ -110,6 +110,24 @@ def test_entries_the_session_is_at_or_past_are_left_to_it(tmp_path):
     assert counts == {"done": 0, "skipped": 3, "passed": 3}
 
 
+def test_only_what_this_process_compiled_is_its_own(monkeypatch):
+    """A kernel counts as this process's once numba compiled it here (a cache miss), not before,
+    and not when only imported; named by its defining module's file stem."""
+    import types
+
+    import numba
+
+    mod = types.ModuleType("pmdsim_probe_mod.sub")
+    exec("import numba\n@numba.njit\ndef twice(x):\n    return 2 * x\n@numba.njit\ndef unused(x):\n    return x\n",
+         mod.__dict__)
+    mod.twice.py_func.__module__ = mod.unused.py_func.__module__ = "pmdsim_probe_mod.sub"
+    monkeypatch.setitem(sys.modules, "pmdsim_probe_mod.sub", mod)
+    assert _precompile.compiled_here("pmdsim_probe_mod.") == set()
+    assert mod.twice(3) == 6
+    assert _precompile.compiled_here("pmdsim_probe_mod.") == {"sub.twice"}
+    assert isinstance(mod.twice, numba.core.dispatcher.Dispatcher)
+
+
 def test_the_suites_manifest_parses():
     """Every line of tests/precompile_signatures.txt is ``module.kernel<TAB>types`` with types the parser reads."""
     entries = _precompile.read_manifest(TESTS / "precompile_signatures.txt")

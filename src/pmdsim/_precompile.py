@@ -117,6 +117,21 @@ def _indexed(cache_dirs) -> set[str]:
     return out
 
 
+def compiled_here(prefix: str = "pmdsim.") -> set[str]:
+    """``<module file stem>.<kernel>`` of every numba dispatcher in the loaded modules named
+    ``prefix…`` that this process compiled (numba counted a cache miss), callees included — the
+    index files this process wrote, told apart from the ones another process wrote meanwhile."""
+    from numba.core.dispatcher import Dispatcher
+
+    out = set()
+    for name, module in list(sys.modules.items()):
+        if name.startswith(prefix) and module is not None:
+            for obj in list(vars(module).values()):
+                if isinstance(obj, Dispatcher) and obj._cache_misses:
+                    out.add(f"{obj.py_func.__module__.rpartition('.')[2]}.{obj.py_func.__name__}")
+    return out
+
+
 def session_frontier(entries, indexed, own, coverage=0.7) -> float | None:
     """How far the session being served has come, in the manifest's seconds.
 
@@ -187,13 +202,13 @@ def compile_manifest(entries, keep_going=lambda: True, log=None, cache_dirs=None
     import time
 
     counts = {"done": 0, "skipped": 0, "passed": 0}
-    own: set[str] = set()
     for module, kernel, sig_text, need in entries:
         if not keep_going():
             break
         t0, outcome = time.time(), "done"
-        before = _indexed(cache_dirs) if cache_dirs is not None else set()
-        frontier = session_frontier(entries, before, own) if cache_dirs is not None and need is not None else None
+        frontier = None
+        if cache_dirs is not None and need is not None:
+            frontier = session_frontier(entries, _indexed(cache_dirs), compiled_here())
         if frontier is not None and need < frontier + lead_s:
             outcome = "passed"
         else:
@@ -202,8 +217,6 @@ def compile_manifest(entries, keep_going=lambda: True, log=None, cache_dirs=None
                 dispatcher.compile(parse_signature(sig_text))
             except Exception:  # noqa: BLE001 - a stale entry compiles at first use instead
                 outcome = "skipped"
-            if cache_dirs is not None:
-                own |= _indexed(cache_dirs) - before
         counts[outcome] += 1
         if log is not None:
             log.write(f"{time.time():.3f}\t{time.time() - t0:.3f}\t{outcome}\t{module}.{kernel}\n")
