@@ -75,7 +75,9 @@ def _start_precompiler() -> bool:
     environment and ``pmdsim`` sources; no output; lower priority; it stops when this process
     ends), unless ``PMDSIM_NO_PRECOMPILE=1`` or the file is missing. numba's cache saves of this process
     are locked against the background process's (:func:`pmdsim._precompile.lock_cache_saves`).
-    The list is regenerated from a cold run's cache with ``tests/precompile_signatures.py``."""
+    The list is written from a cold suite's cache (fresh ``NUMBA_CACHE_DIR``, the whole suite with
+    ``PMDSIM_NO_PRECOMPILE=1``) by ``pmdsim._precompile.write_manifest(<cache dir>, "src",
+    "tests/precompile_signatures.txt", head_s=150)``; a stale line costs nothing but its compile."""
     global _PRECOMPILER
     if os.environ.get("PMDSIM_NO_PRECOMPILE") == "1" or not KERNEL_SIGNATURES.exists():
         return False

@@ -233,8 +233,9 @@ def write_manifest(cache_root, src_root, path, head_s=0.0) -> int:
     except that those compiled in the first ``head_s`` seconds (from the first one) come last,
     latest first: a background process that starts with the kernels a session needs at once
     would compile them beside the session, not ahead of it (the test suite's manifest uses
-    ``head_s=150``; docs/benchmarks.md). The third column is that time, in seconds from the first. Kernels whose name is not a module attribute (nested
-    functions) are left out. Returns the number of lines.
+    ``head_s=150``; docs/benchmarks.md). The third column is that time, in seconds from the
+    first. Kernels whose name is not a module attribute (nested functions) are left out. Returns
+    the number of lines.
     """
     import glob
     import hashlib
