@@ -1,16 +1,18 @@
 """Compile pmdsim's numba kernels from a list of signatures, ahead of their first use.
 
 numba compiles a signature-less ``@njit(cache=True)`` kernel at its first call, in the calling
-process, one kernel after another. On a cold cache the test suite spends ≈ 230 s of its
-10 minutes compiling this way on one vCPU of the two (issue 25 item 4). A second process that
+process, one kernel after another. On a cold cache the test suite spent ≈ 290 s of its
+680 s compiling this way on one vCPU of the two (issue 25 item 4). A second process that
 compiles the same signatures into the same on-disk cache (``NUMBA_CACHE_DIR``) lets the first
 process load them instead. The list ("manifest") is a text file, one signature a line::
 
     pmdsim.evaluation.decoding._decode_kernel<TAB>(Array(uint8, 3, 'C', True, aligned=True), float64)<TAB>37.2
 
 (the module, the kernel's name in it, the argument types as numba's ``repr`` writes them — as
-in its cache index —, and optionally when a cold session first compiled it, in seconds). :func:`write_manifest` makes one from a cache directory; :func:`run`
-compiles a manifest's entries in order. An entry whose kernel no longer exists or whose types
+in its cache index —, and optionally when a cold session first compiled it, in seconds).
+:func:`write_manifest` makes one from a cache directory; :func:`compile_manifest` compiles a
+manifest's entries in order, leaving to the session those it has reached
+(:func:`session_frontier`). An entry whose kernel no longer exists or whose types
 do not parse or compile is skipped: the kernel then compiles at its first call, as without this
 module. Outputs do not change: a kernel loaded from the cache is the code the first process
 would have compiled.
