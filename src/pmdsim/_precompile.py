@@ -1,8 +1,8 @@
 """Compile pmdsim's numba kernels from a list of signatures, ahead of their first use.
 
 numba compiles a signature-less ``@njit(cache=True)`` kernel at its first call, in the calling
-process, one kernel after another. On a cold cache the test suite spent ≈ 290 s of its
-680 s compiling this way on one vCPU of the two (issue 25 item 4). A second process that
+process, one kernel after another. On a cold cache the test suite spent ≥ 230 s of its
+≈ 680 s compiling this way on one vCPU of the two (issue 25 item 4). A second process that
 compiles the same signatures into the same on-disk cache (``NUMBA_CACHE_DIR``) lets the first
 process load them instead. The list ("manifest") is a text file, one signature a line::
 
