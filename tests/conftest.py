@@ -15,6 +15,12 @@ field of view as the paper's Table 1).
 
 from __future__ import annotations
 
+import atexit
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from pmdsim.setup import default_setup
@@ -45,14 +51,65 @@ def make_small_toml(default_toml: str) -> str:
 def pytest_sessionstart(session):
     """Progress from the start (issue 25 item 4): on a cold numba cache the first tests compile
     the kernels for minutes before the first result appears; say so before they start (also
-    with ``-q``; nothing on a warm cache)."""
+    with ``-q``; nothing on a warm cache). And use the vCPU those serial compiles leave idle:
+    one background process compiles the kernels of ``precompile_signatures.txt`` into the same
+    cache, so that later tests load them (:func:`_start_precompiler`)."""
     import pmdsim
 
     cold = pmdsim._cold_kernel_packages()
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    ahead = _start_precompiler() if cold else False
     if cold and reporter is not None:
         reporter.write_line(f"pmdsim: numba kernels not compiled yet ({', '.join(cold)}): the first tests using them "
-                            "compile them (minutes on 2 cores, no output meanwhile); later runs use the cache")
+                            "compile them (minutes on 2 cores, no output meanwhile)"
+                            + (", a background process the later ones" if ahead else "") + "; later runs use the cache")
+
+
+#: The background compiler of a cold session (a ``subprocess.Popen``), or None.
+_PRECOMPILER = None
+KERNEL_SIGNATURES = Path(__file__).with_name("precompile_signatures.txt")
+
+
+def _start_precompiler() -> bool:
+    """Start ``python -m pmdsim._precompile tests/precompile_signatures.txt`` (same interpreter,
+    environment and ``pmdsim`` sources; no output; lower priority; it stops when this process
+    ends), unless ``PMDSIM_NO_PRECOMPILE=1`` or the file is missing. numba's cache saves of this process
+    are locked against the background process's (:func:`pmdsim._precompile.lock_cache_saves`).
+    The list is written from a cold suite's cache (fresh ``NUMBA_CACHE_DIR``, the whole suite with
+    ``PMDSIM_NO_PRECOMPILE=1``) by ``pmdsim._precompile.write_manifest(<cache dir>, "src",
+    "tests/precompile_signatures.txt", head_s=150)``; a stale line costs nothing but its compile."""
+    global _PRECOMPILER
+    if os.environ.get("PMDSIM_NO_PRECOMPILE") == "1" or not KERNEL_SIGNATURES.exists():
+        return False
+    import pmdsim
+    from pmdsim import _precompile
+
+    _precompile.lock_cache_saves()
+    src = os.path.dirname(os.path.dirname(os.path.abspath(pmdsim.__file__)))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])])}
+    _PRECOMPILER = subprocess.Popen(
+        [sys.executable, "-m", "pmdsim._precompile", "--parent", str(os.getpid()), str(KERNEL_SIGNATURES)],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    atexit.register(_stop_precompiler)
+    return True
+
+
+def _stop_precompiler() -> None:
+    global _PRECOMPILER
+    proc, _PRECOMPILER = _PRECOMPILER, None
+    if proc is None or proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """The background compiler does not outlive the session (also after Ctrl-C)."""
+    _stop_precompiler()
 
 
 @pytest.fixture(scope="session")

@@ -24,6 +24,7 @@ ALLOWED = {
             "api"},
     "__init__": set(),
     "__main__": {"cli"},  # python -m pmdsim
+    "_precompile": {"__init__"},  # compiles kernels named in a list (importlib); numba's cache directories
 }
 
 
