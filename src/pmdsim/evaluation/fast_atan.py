@@ -32,7 +32,7 @@ _TAN_3PI_8 = 2.41421356237309504880
 _PI = math.pi
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _phase_0_2pi(s, c):
     """atan2(s, c) mapped to [0, 2π); 0 for s = c = 0. NaN in, NaN out.
 

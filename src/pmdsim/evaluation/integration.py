@@ -111,7 +111,7 @@ def normals_from_registration(p, o, q) -> np.ndarray:
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scan_inputs(d, q, valid):
     """One pass over the valid pixels: counts and first flat indices (row-major) of
     [non-finite d, d_z == 0 (among finite d), non-finite q]."""
@@ -234,7 +234,7 @@ def _check_seed(seed_pixel, seed_height_mm, o, d, valid):
     return seed, z0
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _bisector(px, py, pz, ox, oy, oz, qx, qy, qz):
     ax = ox - px
     ay = oy - py
@@ -251,7 +251,7 @@ def _bisector(px, py, pz, ox, oy, oz, qx, qy, qz):
     return nx / ln, ny / ln, nz / ln
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _bisector_slopes(px, py, pz, ox, oy, oz, qx, qy, qz):
     """Slopes (−m_x/m_z, −m_y/m_z) of the bisector m = â + b̂ (its length does not matter)."""
     ax = ox - px
@@ -266,7 +266,7 @@ def _bisector_slopes(px, py, pz, ox, oy, oz, qx, qy, qz):
     return (ax * ia + bx * ib) * imz, (ay * ia + by * ib) * imz
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _points_normals(o, d, q, z, points, normals):
     """Points on the view rays at heights z (NaN stays NaN) and their bisector normals."""
     H, W = z.shape

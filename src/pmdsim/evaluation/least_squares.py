@@ -54,14 +54,14 @@ _COARSE_TOL_MM = 1e-3
 _ASSEMBLY_BLOCKS = 16
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _unit(x, y, z):
     """(x, y, z)/|(x, y, z)| and 1/|(x, y, z)|."""
     i = 1.0 / np.sqrt(x * x + y * y + z * z)
     return x * i, y * i, z * i, i
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
     """(x, y, g_x, g_y, dg_x/dz, dg_y/dz) of the point at height pz on the view ray through o
     with dp/dz = (ex, ey, 1), seeing the screen point q: its x, y, the slopes g of the
@@ -86,7 +86,7 @@ def _point_geometry(ox, oy, oz, ex, ey, pz, qx, qy, qz):
     return px, py, gx, gy, -(dmx + gx * dmz) * imz, -(dmy + gy * dmz) * imz  # d(−m_x/m_z)/dz
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row_geometry(o, d, q, S, z, v, geo):
     """For every pixel u of S in row v at height z: geo[u] = (x, y, g_x, g_y, dg_x/dz,
     dg_y/dz, d_x/d_z, d_y/d_z) — the point's x, y, the slopes g of the bisector normal there,
@@ -104,7 +104,7 @@ def _row_geometry(o, d, q, S, z, v, geo):
         geo[u, 7] = ey
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row_geometry_all(o, d, q, z, v, geo, rays):
     """geo (8, W) = the rows of :func:`_row_geometry` for every pixel of row v (no mask, so
     that the loop vectorises: off the mask the values are unused and may be NaN). The row's d
@@ -135,7 +135,7 @@ def _row_geometry_all(o, d, q, z, v, geo, rays):
         g7[u] = ey
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _edge(za, zb, ga, ia, gb, ib):
     """Residual of the trapezoidal equation of the edge a → b (heights za, zb; geometry rows
     ga, gb of :func:`_row_geometry` at columns ia, ib) and its derivatives with respect to
@@ -152,7 +152,7 @@ def _edge(za, zb, ga, ia, gb, ib):
     return ok, res, Ja, Jb
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
     """The n edges a = u → b = u + off (off = 1: along a row, ga is gb; 0: row a → row b
     below) of rows with masks Sa, Sb, heights za, zb and geometry ga, gb (8, W) of
@@ -175,7 +175,7 @@ def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
         jb_o[u] = Jb if ok else 0.0
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     """Gauss–Newton normal equations Jᵀ J δ = −Jᵀ res of the trapezoidal equations
     res = z_b − z_a − ½(g_a + g_b)·(xy_b − xy_a) of all 4-neighbour pairs in S at the heights
@@ -255,7 +255,7 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
                 rhs[v + 1, u + 1] = 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _apply_update(z, delta, D):
     """z += delta on the unknowns (D > 0; delta and D padded by one pixel). Returns the
     largest |delta| there (NaN if any is not finite, 0 if there are no unknowns)."""

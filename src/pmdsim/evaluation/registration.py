@@ -194,7 +194,7 @@ def _fma(typingctx, a, b, c):
     return sig, codegen
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _rotated(a0, a1, a2, rot, j):  # pragma: no cover - compiled
     """Component j of rot·a: fma(a₂, R_j2, fma(a₁, R_j1, a₀·R_j0)) — the operations of numpy's
     ``a @ rot.T`` (OpenBLAS's dgemm on this machine), so the same bits
@@ -202,7 +202,7 @@ def _rotated(a0, a1, a2, rot, j):  # pragma: no cover - compiled
     return _fma(a2, rot[j, 2], _fma(a1, rot[j, 1], a0 * rot[j, 0]))
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _register_kernel(xy, ok, conv, bounds, kind, gx, gy, coef, d_cam, rot_q, t_q, rot_d, block, status, q_ref,
                      d_ref):  # pragma: no cover - compiled
     """Status (``status`` (P,), uint8), screen points rot_q·(x, y, h(x, y)) + t_q (``q_ref``

@@ -31,7 +31,7 @@ STEP_TOL_MM = 1e-12
 STEP_TOL_ULPS = 16
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _max_abs_valid(q, valid):
     """max |q[v, u, c]| over the pixels of ``valid`` (H, W) of ``q`` (H, W, 3), NaN skipped
     (−1.0 if there is none), without the (n, 3) copy of ``q[valid]``."""
@@ -72,7 +72,7 @@ _NB_DU = np.array([0, 0, -1, 1], dtype=np.int64)
 _PREFETCH_AHEAD = 8
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
     """The inputs of the wavefront ``nxt[:n]``'s steps, as contiguous rows (index i: the
     wavefront's pixel): ``own`` (6, ≥ n) its view ray d and screen point q; ``nb`` (4, 5, ≥ n) per
@@ -102,7 +102,7 @@ def _gather_wavefront(d, q, state, nxt, n, nb_dv, nb_du, own, nb, m):
         _gather_end(nb, m, j, i)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _gather_own(d, q, vb, ub, own, i):
     """own[:, i] = pixel (vb, ub)'s view ray d and screen point q (:func:`_gather_wavefront`)."""
     for c in range(3):
@@ -110,7 +110,7 @@ def _gather_own(d, q, vb, ub, own, i):
         own[3 + c, i] = q[vb, ub, c]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _gather_neighbour(d, state, va, ua, nb, j, i):
     """Slot j of pixel i (:func:`_gather_wavefront`) from pixel (va, ua) if it is in the image and
     reconstructed (flag 1): t_a·d_a and g_a. Returns the next free slot (j + 1, or j)."""
@@ -124,7 +124,7 @@ def _gather_neighbour(d, state, va, ua, nb, j, i):
     return j + 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _gather_slot(d, va, ua, ta, gx, gy, nb, j, i):
     """Slot j of pixel i: t_a·d_a of the neighbour (va, ua) with ray parameter ta, and its slopes."""
     nb[j, 0, i] = ta * d[va, ua, 0]
@@ -134,7 +134,7 @@ def _gather_slot(d, va, ua, ta, gx, gy, nb, j, i):
     nb[j, 4, i] = gy
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _gather_end(nb, m, j, i):
     """m[i] = j neighbours gathered; the slots j … 3 of pixel i hold zeros."""
     m[i] = j
@@ -143,7 +143,7 @@ def _gather_end(nb, m, j, i):
             nb[jj, c, i] = 0.0
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _slot_terms(num, den, present, pred, rx, ry, rz, gx_a, gy_a, gx_b, gy_b, dx, dy, dz):
     """num, den plus one neighbour slot's terms (+0.0 for an absent slot)."""
     Gx = gx_a if pred else 0.5 * (gx_a + gx_b)
@@ -154,7 +154,7 @@ def _slot_terms(num, den, present, pred, rx, ry, rz, gx_a, gy_a, gx_b, gy_b, dx,
     return num + (tn if present else 0.0), den + (td if present else 0.0)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve_wavefront(o, own, nb, m, n, tol, max_iter, res, status):
     """One integration step for every pixel of a gathered wavefront (:func:`_gather_wavefront`),
     all pixels in lock-step (per iteration one branch-free loop over the pixels computes their
@@ -241,7 +241,7 @@ def _solve_wavefront(o, own, nb, m, n, tol, max_iter, res, status):
             st[i] = max_iter + 1  # the last iterate is kept
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
     """Layered (wavefront) stepwise integration from the reconstructed pixels ``cur[:n_cur]``.
 
@@ -326,7 +326,7 @@ def _expand_kernel(o, d, q, state, cur, n_cur, tol, max_iter, nb_dv, nb_du):
     return max_used, max_change, n_unconverged
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _seed_values(o, d, q, sv, su, z0):
     """The seed (sv, su) at height z0: its ray parameter t and slopes g_x, g_y (NaN slopes if its
     normal is unusable)."""
@@ -337,7 +337,7 @@ def _seed_values(o, d, q, sv, su, z0):
     return t, gx, gy
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _seed_state(o, d, q, state, sv, su, z0):
     """The seed (sv, su) at height z0 into ``state`` (t, slopes, flag 1). Returns False (nothing
     written) if its normal is unusable."""
@@ -351,7 +351,7 @@ def _seed_state(o, d, q, state, sv, su, z0):
     return True
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     """Stepwise integration from the seed (sv, su) at height z0: :func:`_expand_kernel` from
     the seed alone. Returns its statistics; the corrector count is −1 if the seed's normal is
@@ -366,7 +366,7 @@ def _stepwise_kernel(o, d, q, state, sv, su, z0, tol, max_iter, nb_dv, nb_du):
     return _expand_kernel(o, d, q, state, cur, np.int64(1), tol, max_iter, nb_dv, nb_du)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _init_state(valid, state):
     """state (H, W, 4) of :func:`_expand_kernel` before the integration: t, g NaN; flag 0 on
     ``valid``, −1 off it."""
@@ -379,7 +379,7 @@ def _init_state(valid, state):
             state[v, u, 3] = 0.0 if valid[v, u] else -1.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _heights(oz, d, state, z, done):
     """z (H, W) = o_z + t·d_z where the flag of ``state`` is 1 (reconstructed; ``done``), NaN
     elsewhere."""
@@ -422,7 +422,7 @@ def _run_stepwise(o, d, q, valid, seed, z0, tol=STEP_TOL_MM):
     return z, done, max_used, max_change, n_unconv
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _between(z0, z1, z2, z3):
     """Height of a pixel from the heights two apart along a row or column: z1, z2 on either
     side (z0 beyond z1, z3 beyond z2, at distance 3): linear interpolation, or linear
@@ -436,7 +436,7 @@ def _between(z0, z1, z2, z3):
     return np.nan
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _interpolate_coarse(S, z, a, b):
     """Heights z (H, W) known on some pixels (a + 2i, b + 2j) (NaN elsewhere): linear
     interpolation to the pixels of S between, first along the rows, at (a + 2i, b + 2j + 1),
@@ -468,7 +468,7 @@ def _interpolate_coarse(S, z, a, b):
     return n_left
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _fill_kernel(o, d, q, S, z, tol, max_iter, nb_dv, nb_du):
     """Complete the heights z (H, W) on the pixels of S by stepwise integration
     (:func:`_expand_kernel`) from all pixels of S whose height is finite. Filled heights are

@@ -50,7 +50,7 @@ PREFETCH_AHEAD = 8
 BAND_ROWS = 128
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def l1_layered(S, sv, su):
     """True if every pixel of S (H, W) bool except the seed (sv, su) has a 4-neighbour in S one
     step closer to the seed in the L1 distance (then each pixel's wavefront is its L1 distance:
@@ -68,7 +68,7 @@ def l1_layered(S, sv, su):
     return True
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nv, nu, n, dv, du, own, nb, m):
     """:func:`~pmdsim.evaluation.stepwise._gather_wavefront` for a sweep's step (the same rows
     ``own``, ``nb``, ``m``) without its search of the four neighbours: a pixel's reconstructed
@@ -97,7 +97,7 @@ def _gather_step(d, q, valid, tz, gb, gcol, sv, su, nv, nu, n, dv, du, own, nb, 
         _gather_end(nb, m, j, i)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, right, nv, nu, own, nb, m, res,
            status, stats):
     """One skewed sweep of the rows v0, v0 + dv, …, (``n_rows`` of them) right of the seed's column
@@ -153,7 +153,7 @@ def _sweep(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, 
     return True
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _half(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, band, stats):
     """The rows v0, v0 + dv, … (``n_rows``) in bands of ``band`` rows (:func:`_sweep` right, then
     left, per band), with their own batch buffers and slopes' rows ``gb``. Returns 1 at a failed
@@ -175,7 +175,7 @@ def _half(o, d, q, valid, tz, gb, gcol, sv, su, tol, max_iter, v0, dv, n_rows, b
     return 0
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def rows_stepwise_kernel(o, d, q, valid, z, sv, su, t0, gx0, gy0, tol, max_iter, band):
     """The stepwise integration from the seed (sv, su) (ray parameter t0, slopes gx0, gy0) over
     ``valid`` (H, W) in bands of image rows (module docstring); the other arguments as

@@ -59,7 +59,7 @@ def remove_piston_tilt(p_sample_mm, valid) -> tuple[np.ndarray, np.ndarray]:
     return out.reshape(shape), coef
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _plane_kernel(p, ok, use, out, coef):
     """Least-squares plane z = c₀ + c₁x + c₂y through the points ``p`` (N, 3) where ``ok`` and
     x, y, z are finite (``use``: those points, written by the first pass); ``out`` the residual
@@ -153,7 +153,7 @@ _STD_NOTE = ("standard uncertainties (k = 1) from the fit's (robustly weighted) 
              "pixels); the calibration's contribution, correlated over the field, is not included")
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _centre_kernel(xy, res, sig, ok, start, acc, cnt):  # pragma: no cover - compiled
     """Σx, Σy (``acc``) and their number (``cnt``) over the points i = start, start + 1, … of the
     pixels ``ok`` (P,) (a map's, flat) whose residuals, σ (``sig`` (P, 2), at the pixel) and x, y
@@ -172,7 +172,7 @@ def _centre_kernel(xy, res, sig, ok, start, acc, cnt):  # pragma: no cover - com
     return i
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _row_terms(acc, w, p, q):
     """``acc`` (9 sums) plus the terms of one design row with nonzero entries (p, q, 1) and weight
     w: (w·p)·p, (w·p)·q, w·p, (w·q)·p, (w·q)·q, w·q, w·p, w·q, w — entries (p, p), (p, q), (p, 1),
@@ -183,12 +183,12 @@ def _row_terms(acc, w, p, q):
             acc[6] + w * p, acc[7] + w * q, acc[8] + w)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _nine(a, k):
     return (a[k, 0], a[k, 1], a[k, 2], a[k, 3], a[k, 4], a[k, 5], a[k, 6], a[k, 7], a[k, 8])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _sandwich_kernel(xy, res, sig, ok, start, xc, yc, scale, acc):  # pragma: no cover - compiled
     """N = Σ w AᵢᵀAᵢ and B = Σ w² σ² AᵢᵀAᵢ over the g_x rows [2x, y, 0, 1, 0] and g_y rows
     [0, x, 2y, 0, 1] (centred x, y), w the bisquare weights of the residuals at ``scale`` (1 if 0),
@@ -338,7 +338,7 @@ _BRACKET_SIGMAS = 6.0
 _N_BINS_SELECT = 8192
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _sample_values(x, y, gx, gy, xc, yc, coef, mode, centre, stride):
     """The residuals (``mode`` 1: their |r − centre|) of every ``stride``-th point, both rows
     (at x − xc, y − yc: the centred coordinates, here and in the kernels below)."""
@@ -354,7 +354,7 @@ def _sample_values(x, y, gx, gy, xc, yc, coef, mode, centre, stride):
     return out[:j]
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre):
     """The two residuals of point i (``mode`` 1: their |r − centre|), at (x − xc, y − yc)."""
     xi = x[i] - xc
@@ -367,13 +367,13 @@ def _pair(x, y, gx, gy, xc, yc, i, a2, b, c2, d, e, mode, centre):
     return r0, r1
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _bin(v, lo, inv, nbins):
     """Histogram bin of v ∈ [lo, hi] (clamped; the float is clamped first: no integer overflow)."""
     return int(min(max((v - lo) * inv, 0.0), nbins - 1.0))
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _take(v, lo, hi, inv, nbins, kb):
     """v in [lo, hi] and in bin kb or kb + 1 — as an integer, without branches (the comparisons
     against lo are unpredictable: a branch per value costs ~10× the pass). One bin (a bracket
@@ -385,7 +385,7 @@ def _take(v, lo, hi, inv, nbins, kb):
     return (v >= lo) * (v <= hi) * ((k == kb) + (k == kb + 1))
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, nbins, kb, buf):
     """One pass over the 2M values (residuals, or ``mode`` 1: |r − centre|): the number of
     values < lo, and the values in [lo, hi] whose bin (``nbins`` equal bins over [lo, hi]) is
@@ -416,7 +416,7 @@ def _collect(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, nbins, kb, buf):
     return below, inside
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _histogram(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist):
     """One pass: the number of values < lo, and the histogram (``hist.size`` bins) of those in [lo, hi]."""
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
@@ -432,7 +432,7 @@ def _histogram(x, y, gx, gy, xc, yc, coef, mode, centre, lo, hi, hist):
     return below
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _all_values(x, y, gx, gy, xc, yc, coef, mode, centre):
     a2, b, c2, d, e = 2.0 * coef[0], coef[1], 2.0 * coef[2], coef[3], coef[4]
     out = np.empty(2 * x.size)
@@ -542,7 +542,7 @@ def _solve_normal(s) -> np.ndarray:
     return np.linalg.solve(M / dg[:, None] / dg[None, :], v / dg) / dg
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _residual_kernel(x, y, gx, gy, xc, yc, a2, b, c2, d, e, rx, ry):
     for i in range(0, x.size):
         xi = x[i] - xc  # read before writing: rx, ry may be x, y or gx, gy (in place)
@@ -553,7 +553,7 @@ def _residual_kernel(x, y, gx, gy, xc, yc, a2, b, c2, d, e, rx, ry):
         ry[i] = gyi - (b * xi + c2 * yi + e)
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _extents(x, y, gx, gy, xc, yc):
     """(max |x − xc|, max |y − yc|, max(|g_x|, |g_y|)) over the points, in one pass (exact in
     any order: fastmath only lets the maxima run on vector lanes; the points are finite)."""

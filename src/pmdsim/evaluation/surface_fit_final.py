@@ -36,7 +36,7 @@ __all__ = ["final_pass", "summary_in_parts"]
 _NSUM = 24
 
 
-@numba.njit(cache=True, fastmath=False, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, parallel=True, error_model="numpy")
 def _final_kernel(p, g, sig, ok, offs, xc, yc, coef, scale, use_sig, rx, ry, res, part):  # pragma: no cover - compiled
     """Residual map ``res`` (H, W, 2), residual rows ``rx``, ``ry`` ((M,) each) from index ``offs[v]`` for
     image row v, and ``part[v]`` the row's 24 sums (module docstring; zeros without ``use_sig``)."""

@@ -20,7 +20,7 @@ from ..geometry.kernel_args import readonly
 __all__ = ["slopes_and_mask", "slopes_and_rows", "gather_rows", "gather_sigma", "scatter_residuals"]
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _slopes_kernel(n, rec, g, ok):  # pragma: no cover - compiled
     h, w = rec.shape
     m = 0
@@ -30,7 +30,7 @@ def _slopes_kernel(n, rec, g, ok):  # pragma: no cover - compiled
     return m
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def _slope_at(n, rec, g, ok, v, u):  # pragma: no cover - compiled
     """Pixel (v, u): its slopes (−n_x/n_z, −n_y/n_z) written to ``g``, whether it is fitted
     (reconstructed, finite slopes) to ``ok``; returns (g_x, g_y, fitted)."""
@@ -55,7 +55,7 @@ def slopes_and_mask(n_sample, reconstructed) -> tuple[np.ndarray, np.ndarray, in
     return g, ok, int(m)
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _slopes_rows_kernel(n, rec, p, start, g, ok, x, y, gx, gy, ext):  # pragma: no cover - compiled
     h, w = rec.shape
     j = start
@@ -102,7 +102,7 @@ def slopes_and_rows(n_sample, reconstructed, p_sample_mm, start: int, rows, exte
     return g, ok, int(j)
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _gather_kernel(p, g, sig, ok, start, use_xy, use_sig, xy, gxy, sg):  # pragma: no cover - compiled
     h, w = ok.shape
     j = start
@@ -140,7 +140,7 @@ def gather_sigma(sig, ok, start: int, sg) -> int:
                               True, np.zeros((2, 1)), np.zeros((2, 1)), sg))
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _scatter_kernel(res, ok, start, out):  # pragma: no cover - compiled
     h, w = ok.shape
     j = start

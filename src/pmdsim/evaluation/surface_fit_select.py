@@ -31,7 +31,7 @@ __all__ = ["median_and_mad", "sample_bracket"]
 _BLOCK = 256  # points counted before a block is re-read for its values to copy
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     """One pass over the 2M residuals r: the number < lo and those in [lo, hi] (to ``buf_r``);
     the number with hi − dlo < r < lo + dlo and the others in [lo − dhi, hi + dhi] (to
@@ -70,7 +70,7 @@ def _collect_both(x, y, gx, gy, xc, yc, coef, lo, hi, dlo, dhi, buf_r, buf_z):
     return below, n_r, sure, n_z
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
 def split_value(v, lo, hi, out, below, inside):
     """``v`` counted (``below`` + 1) if < lo, written to ``out[inside]`` if in [lo, hi]; returns
     the new (below, inside)."""
@@ -82,7 +82,7 @@ def split_value(v, lo, hi, out, below, inside):
     return below, inside
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _deviations(z, centre, dlo, dhi, out):
     """|z − centre| of the collected residuals: the number < dlo, and those in [dlo, dhi]
     written to ``out``; returns (below, inside)."""

@@ -22,7 +22,7 @@ __all__ = ["add_rows", "moments", "weighted_sums", "SUM_BLOCK"]
 SUM_BLOCK = 4096
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def moments(acc, w, xi, yi, xx, xy, yy):
     """(acc[0] + w·xx, acc[1] + w·xy, acc[2] + w·yy, acc[3] + w·xi, acc[4] + w·yi, acc[5] + w):
     the weighted sums of one design row's (x², xy, y², x, y, 1), continued (``acc`` a 6-tuple
@@ -30,7 +30,7 @@ def moments(acc, w, xi, yi, xx, xy, yy):
     return (acc[0] + w * xx, acc[1] + w * xy, acc[2] + w * yy, acc[3] + w * xi, acc[4] + w * yi, acc[5] + w)
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"}, parallel=True)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"}, parallel=True)
 def _block_sums(x, y, gx, gy, xc, yc, coef, scale, robust, part):  # pragma: no cover - compiled
     """Row k of ``part`` (B, 18): the 18 sums of block k (points k·4096 …), at (x − xc, y − yc),
     w the bisquare weights (1 − (r/scale)²)² (0 beyond) at ``coef``, or 1 if not ``robust``.
@@ -74,7 +74,7 @@ def _block_sums(x, y, gx, gy, xc, yc, coef, scale, robust, part):  # pragma: no 
             part[k, 9 + j] = sy[j]
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _add_rows(part, out):  # pragma: no cover - compiled
     for k in range(0, part.shape[0]):
         for j in range(0, part.shape[1]):

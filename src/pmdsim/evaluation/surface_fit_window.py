@@ -38,14 +38,14 @@ _EPS = 2.220446049250313e-16
 _BLOCK = 256  # points classified without branches before a block is re-read for the points to copy
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _classes(r, lo, hi, zlo, zhi, slo, shi):
     """(r < lo, r in (slo, shi), r kept: in [lo, hi] or in [zlo, zhi] outside (slo, shi)) as integers."""
     s = (r > slo) * (r < shi)
     return (r < lo) * 1, s, (r >= lo) * (r <= hi) + (r >= zlo) * (r <= zhi) * (1 - s)
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _take(x, y, gx, gy, xc, yc, coef, bounds, xs, ys, gxs, gys):  # pragma: no cover - compiled
     """One pass over the points: those with a residual in [lo, hi] or in [zlo, zhi] \\ (slo, shi)
     (``bounds`` = (lo, hi, zlo, zhi, slo, shi)) copied to ``xs``, ``ys``, ``gxs``, ``gys`` (as
@@ -86,7 +86,7 @@ def _take(x, y, gx, gy, xc, yc, coef, bounds, xs, ys, gxs, gys):  # pragma: no c
     return below, sure, n
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _values(xs, ys, gxs, gys, xc, yc, coef, mode, centre, lo, hi, out):  # pragma: no cover - compiled
     """The window's residuals (``mode`` 1: |r − centre|): the number < lo, and those in [lo, hi]
     written to ``out``. Returns (below, inside)."""

@@ -135,7 +135,7 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(f * f))) if f.size else 0.0
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _pixel_jacobian(o, p, q, T, v, u, tv, tu, sig, a, g):
     """Pixel (v, u): a (2, 2) = J·diag(σ) with J = ∂g/∂(x_s, y_s) (module docstring), σ = sig[v, u]
     (2,), and g (2,) = the slopes' σ sqrt(Σ_j a_ij²); the screen tangents T[tv, tu] (3, 2)."""
@@ -169,7 +169,7 @@ def _pixel_jacobian(o, p, q, T, v, u, tv, tu, sig, a, g):
         g[i] = np.sqrt(a[i, 0] ** 2 + a[i, 1] ** 2)
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _jacobian_kernel(o, p, q, T, S, sig, A, gstd):
     """Per pixel of S: A = J·diag(σ) (2, 2) and the slopes' σ (:func:`_pixel_jacobian`); T
     (H, W, 3, 2) or (1, 1, 3, 2) the screen tangents. NaN off S."""
@@ -260,18 +260,18 @@ def _screen_tangents(reg_T_ref_screen_R, screen_model, xy) -> np.ndarray:
     return np.einsum("ij,hwjk->hwik", R, t)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _word(seed, pix, chunk, n_chunks):
     """64 random bits of pixel ``pix`` for samples 32·chunk … 32·chunk + 31 (bit 2k: ξ_x, 2k+1: ξ_y)."""
     return _draw_word(_seed_key(seed), pix, chunk, n_chunks)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _xi(w, k, axis):
     return 1.0 - 2.0 * float((w >> np.uint64(2 * k + axis)) & np.uint64(1))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _sample_dg(A, S, seed, k, n_chunks, dg):
     """dg = A ξ_k (H, W, 2) of sample k (0 off S), ξ the counter-based Rademacher draws."""
     H, W = S.shape
@@ -290,13 +290,13 @@ def _sample_dg(A, S, seed, k, n_chunks, dg):
             dg[v, u, 1] = A[v, u, 1, 0] * x + A[v, u, 1, 1] * y
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _geometry(o, d, q, S, z, geo):
     for v in numba.prange(0, S.shape[0]):
         _row_geometry(o, d, q, S, z, v, geo[v])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _bfs(S, sv, su, layer, order):
     """Wavefront index (4-connected distance from the seed within S; −1 unreached) and the
     pixels in wavefront order (flat indices). Returns the number of pixels reached."""
@@ -321,7 +321,7 @@ def _bfs(S, sv, su, layer, order):
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _stepwise_linear(geo, layer, order, n, dg, dz):
     """The stepwise recursion linearised: for each pixel b (wavefront order) from its
     neighbours a_i of the previous wavefront, Σ_i [J_a δz_a + J_b δz_b − ½(δg_a + δg_b)·Δxy] = 0.
@@ -351,7 +351,7 @@ def _stepwise_linear(geo, layer, order, n, dg, dz):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ls_rhs(S, sv, su, geo, dg, rhs):
     """−Jᵀ δr of the trapezoidal equations for slope perturbations dg (padded rhs), with
     δr_e = −½(δg_a + δg_b)·Δxy_e; the seed is not an unknown."""
@@ -490,7 +490,7 @@ def anchor_height_derivative(reg, anchor, method, *, T_world_ref, step_mm: float
     return (z[0] - z[1]) / (2 * step_mm)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _rss2_kernel(a, b, out):
     # sqrt(a² + b²) element by element: the same IEEE operations in the same order as numpy's
     # ``np.sqrt(0 + a**2 + b**2)`` (x + 0 = x for x = a² ≥ 0; no fused multiply-add without
@@ -513,7 +513,7 @@ def combine(*parts) -> np.ndarray:
     return np.sqrt(sum(p ** 2 for p in arrs))
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _rss_equals_first(a, b):
     """Whether sqrt(a² + b²) (:func:`_rss2_kernel`'s operations) equals a element by element (NaN
     equal to NaN, as ``np.array_equal(..., equal_nan=True)``), without the array of sums."""
@@ -539,7 +539,7 @@ def _combined(noise, cal) -> np.ndarray:
     return noise if np.array_equal(total, noise, equal_nan=True) else total
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _count_not_finite_on(S, a):
     """Number of pixels of S (H, W) where a (H, W, C) has a non-finite component."""
     H, W = S.shape

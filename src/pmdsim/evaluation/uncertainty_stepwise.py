@@ -28,7 +28,7 @@ import numpy as np
 
 __all__ = ["stepwise_sampled"]
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _splitmix64(x):
     """SplitMix64's output function (Steele, Lea & Flood 2014): the draws' counter-based hash."""
     z = x + np.uint64(0x9E3779B97F4A7C15)
@@ -37,13 +37,13 @@ def _splitmix64(x):
     return z ^ (z >> np.uint64(31))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _seed_key(seed):
     """The hashed seed of a set of draws (:func:`_draw_word`)."""
     return _splitmix64(np.uint64(seed))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _draw_word(key, pix, chunk, n_chunks):
     """64 random bits of pixel ``pix`` (flat index) for samples 32·chunk … 32·chunk + 31 (bit 2k:
     ξ_x, 2k + 1: ξ_y), ``key`` = :func:`_seed_key` (seed): the one definition of the σ
@@ -51,7 +51,7 @@ def _draw_word(key, pix, chunk, n_chunks):
     return _splitmix64(key ^ np.uint64(pix * n_chunks + chunk))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _edge_jac_rows(ga, gb):
     """J_a, J_b and Δx, Δy of the trapezoidal equation of the edge a → b (as least_squares._edge)
     from the two pixels' geometry rows ga, gb (8,) (``uncertainty._geometry``)."""
@@ -64,13 +64,13 @@ def _edge_jac_rows(ga, gb):
     return Ja, Jb, dx, dy
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _edge_jac(geo, va, ua, vb, ub):
     """:func:`_edge_jac_rows` of the edge (va, ua) → (vb, ub) of the geometry map geo (H, W, 8)."""
     return _edge_jac_rows(geo[va, ua], geo[vb, ub])
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _add_edge(ga, gb, Aa, Ab, e_c, e_pos, i, m, pa, den, ux, uy):
     """Pixel i's m-th upstream edge a → b (a at ``pa`` in the previous wavefront; ga, gb (8,)
     geometry rows, Aa, Ab (2, 2) J·diag(σ)): e_c[i, m] = ½ (A_a^T Δxy) x, y and J_a, e_pos[i, m] =
@@ -84,7 +84,7 @@ def _add_edge(ga, gb, Aa, Ab, e_c, e_pos, i, m, pa, den, ux, uy):
             m + 1)
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _edge_samples(cur, i, prev, pa, k0, n, w, vx, vy, Ja):
     """cur[i, k0 + k] += ±vx ± vy − J_a·prev[pa, k0 + k], k < n, for the samples of one word
     (signs: its bits 2k, 2k + 1)."""
@@ -96,7 +96,7 @@ def _edge_samples(cur, i, prev, pa, k0, n, w, vx, vy, Ja):
         z[k] += tx + ty - Ja * za[k]
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _own_samples(cur, i, k0, n, w, ux, uy, den):
     """z_k = (z_k ± ux ± uy) / den for the samples k < n of one word, z = cur[i, k0:]."""
     z = cur[i, k0:k0 + n]
@@ -106,7 +106,7 @@ def _own_samples(cur, i, k0, n, w, ux, uy, den):
         z[k] = (z[k] + tx + ty) / den
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _sum_squares(z):
     """Σ_k z_k² of z (K,) on 8 lanes: lane j sums z_k² for k ≡ j (mod 8) in sample order, then
     the lanes are added pairwise, ((0 + 1) + (2 + 3)) + ((4 + 5) + (6 + 7)), and the samples past
@@ -130,7 +130,7 @@ def _sum_squares(z):
     return s
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _fused_samples(z, za0, za1, n, m, w, ux, uy, den, w0, vx0, vy0, J0, w1, vx1, vy1, J1):
     """The samples k < n of one word of a pixel with m ≤ 2 upstream edges in one pass: z_k = 0, then
     per edge j < m z_k += ±vx_j ± vy_j − J_j·za_j[k] (its word w_j's bits), then z_k = (z_k ± ux
@@ -154,7 +154,7 @@ def _fused_samples(z, za0, za1, n, m, w, ux, uy, den, w0, vx0, vy0, J0, w1, vx1,
         z[k] = (acc + tx + ty) / den
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _wavefront_buffers(width, K):
     """The sampled recursion's per-wavefront buffers for ``width`` pixels: δz of the previous and
     the current wavefront (width, K), their draws' words (width, ⌈K/32⌉), and the coefficients
@@ -168,7 +168,7 @@ def _wavefront_buffers(width, K):
             np.zeros((width, 4), dtype=np.int64), np.zeros((width, 4, 3)), np.zeros((width, 3)), np.zeros(width))
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _pixel_samples(kb, key, K, m, e_pos, e_c, ux, uy, den, prev, cur, i, w_prev, w_cur):
     """All K samples of pixel kb (flat index) into cur[i] (K,) and its draws into w_cur[i], from
     its m upstream edges (δz in the rows e_pos[:m] of ``prev``, their draws in ``w_prev``; e_c[:m]
@@ -205,7 +205,7 @@ def _pixel_samples(kb, key, K, m, e_pos, e_c, ux, uy, den, prev, cur, i, w_prev,
     return _sum_squares(z)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _wavefront_samples(idx, nL, key, K, n_in, e_pos, e_c, b_c, prev, cur, w_prev, w_cur, s_out):
     """All K samples of the wavefront's pixels idx[:nL] (flat indices) from their gathered
     coefficients (n_in, e_pos, e_c, b_c) and the previous wavefront's δz ``prev`` and draws
@@ -223,7 +223,7 @@ def _wavefront_samples(idx, nL, key, K, n_in, e_pos, e_c, b_c, prev, cur, w_prev
     return ok
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def stepwise_sampled(geo, layer, order, starts, pos, A, seed, K, acc):
     """Σ_k δz_k² (added to ``acc`` (H, W)) for K samples through the linearised stepwise
     recursion (module docstring).

@@ -43,7 +43,7 @@ __all__ = ["stepwise_noise_sigma"]
 PREFETCH_AHEAD = 6
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _prefetch_pixel(d, q, z, p, sig, k):
     """Prefetch the inputs of flat pixel k (its d, q, z, p and σ)."""
     _prefetch(d, 3 * k)
@@ -53,21 +53,21 @@ def _prefetch_pixel(d, q, z, p, sig, k):
     _prefetch(sig, 2 * k)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _doubled(b):
     """``b`` (n,) uint8 with n zero bytes after its own: one signature for every buffer's growth
     (:func:`_grown`)."""
     return np.concatenate((b, np.zeros_like(b)))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _grown(a):
     """``a`` (n, ...) (C-contiguous, any dtype) with n more rows of zeros after its own (a
     wavefront buffer widened): :func:`_doubled` of its bytes, viewed as ``a``'s dtype and shape."""
     return _doubled(a.reshape(-1).view(np.uint8)).view(a.dtype).reshape((2 * a.shape[0],) + a.shape[1:])
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fused_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
     """The heights' σ sqrt(Σ_k δz_k² / K) into ``acc`` (H, W) (zeros on entry; NaN off S) and the
     slopes' σ into ``gstd`` (H, W, 2) for the pixels reached from the seed (sv, su) within S

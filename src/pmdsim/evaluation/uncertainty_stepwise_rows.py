@@ -33,7 +33,7 @@ from .uncertainty_stepwise import _add_edge, _draw_word, _pixel_samples, _seed_k
 __all__ = ["rows_kernel", "l1_layered"]
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
     """Pixel (v, u): its geometry row geo (8,) (as ``least_squares._row_geometry``), A (2, 2) and
     the slopes' σ gstd[v, u] (``uncertainty._pixel_jacobian``). Returns False if the geometry is
@@ -52,7 +52,7 @@ def _pixel_inputs(o, d, q, z, p, T, per_pixel, sig, v, u, geo, A, gstd):
     return ok
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row(o, d, q, z, S, sv, su, p, T, per_pixel, sig, key, K, acc, gstd, v, Z, WD, G, AA, e_c, e_pos):
     """Row v of :func:`rows_kernel`: its pixels of S from the seed's column outwards (the seed's
     column, the pixels right of it left to right, then those left of it right to left), their
@@ -101,7 +101,7 @@ def _row(o, d, q, z, S, sv, su, p, T, per_pixel, sig, key, K, acc, gstd, v, Z, W
     return status
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def rows_kernel(o, d, q, z, S, sv, su, p, T, sig, seed, K, acc, gstd):
     """The heights' σ sqrt(Σ_k δz_k² / K) into ``acc`` (H, W) (NaN off S) and the slopes' σ into
     ``gstd`` (H, W, 2) (left as they are off S) in row order (module docstring); the arguments

@@ -78,7 +78,7 @@ class UnwrapResult:
         return iter((self.coord_mm, self.flags))
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _coarse_coord(phi, p0, origin, upper):
     """Coordinate from the coarsest phase, in [origin, origin + p0), wrapped back by −p0 above
     ``upper`` (origin + extent + margin)."""
@@ -89,7 +89,7 @@ def _coarse_coord(phi, p0, origin, upper):
     return c
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _refine(c, phi, p, inv_p, tolerance):
     """Refine coordinate c with the phase of the finer period p (``inv_p`` = 1/p):
     returns (c_k, inconsistent)."""
@@ -98,7 +98,7 @@ def _refine(c, phi, p, inv_p, tolerance):
     return ck, abs(c - ck) > tolerance * p
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _refine_reversal(c, phi, p, inv_p, tolerance, contrast, prev_contrast, ratio):
     """:func:`_refine` aware of a reversed contrast (module docstring): returns (c_k,
     inconsistent, reversed). ``contrast``/``prev_contrast``: B/A of this and the coarser

@@ -34,7 +34,7 @@ DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", 
 OPENCV_LENGTHS = (4, 5, 8, 12, 14)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _unpack(c):
     """The kernels' coefficients: a 12-tuple (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4) from
     the array, and whether the rational (k4–k6) and thin-prism (s1–s4) terms are present. (A tuple
@@ -45,7 +45,7 @@ def _unpack(c):
     return t, rational, prism
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _distort(x, y, c, rational, prism):
     """OpenCV's distortion of normalised (x, y); c = (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4).
 
@@ -65,7 +65,7 @@ def _distort(x, y, c, rational, prism):
     return xd, yd
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _distort_jac(x, y, c, rational, prism):
     """Jacobian of the distortion with respect to (x, y): (dxd/dx, dxd/dy, dyd/dx, dyd/dy),
     and the rational model's numerator and denominator (num, den)."""
@@ -95,7 +95,7 @@ def _distort_jac(x, y, c, rational, prism):
     return a, b, cc, d, num, den
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _physical(x, y, c, rational, prism):
     """True if (x, y) lies where the distortion is a valid, orientation-preserving map: the
     rational model's denominator and the radial factor positive, det J > 0."""
@@ -103,7 +103,7 @@ def _physical(x, y, c, rational, prism):
     return den > 0.0 and num / den > 0.0 and (a * d - b * cc) > 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _newton(xd, yd, x, y, c, rational, prism, tol, max_iter, damped):
     """Newton's method for distort(x, y) = (xd, yd) from (x, y). With ``damped`` a step that
     does not reduce the residual is halved (up to 40 times). Returns (x, y, converged)."""
@@ -139,7 +139,7 @@ def _newton(xd, yd, x, y, c, rational, prism, tol, max_iter, damped):
     return x, y, False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _radial_start(xd, yd, c):
     """Initial guess on the identity's branch for strong distortion: the radius r with
     r·R(r²) = |(xd, yd)| of the radial part alone, bracketed by marching out from r = 0 while
@@ -185,7 +185,7 @@ def _radial_start(xd, yd, c):
     return xd * r / rho, yd * r / rho, True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _undistort_fallback(xd, yd, x, y, c, rational, prism, tol, max_iter):
     """The second attempt of :func:`_undistort_one` where Newton from (xd, yd) ended at (x, y)
     without a physical inverse: damped Newton from :func:`_radial_start`. Returns (x, y,
@@ -199,7 +199,7 @@ def _undistort_fallback(xd, yd, x, y, c, rational, prism, tol, max_iter):
     return x, y, False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _undistort_one(xd, yd, c, rational, prism, tol, max_iter):
     """Invert the distortion. Returns (x, y, converged).
 
@@ -239,7 +239,7 @@ _distort_inline = numba.njit(inline="always")(_distort.py_func)
 _distort_jac_inline = numba.njit(inline="always")(_distort_jac.py_func)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _newton_lanes(w, c, rational, prism, tol, max_iter):
     """Newton's first attempt of :func:`_undistort_one` for ``_LANES`` pixels in lock-step.
 
@@ -296,7 +296,7 @@ def _newton_lanes(w, c, rational, prism, tol, max_iter):
         w[_ST + k] = 1.0 if good else 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _lane_result(w, k, c, rational, prism, tol, max_iter):
     """Lane ``k``'s inverse after :func:`_newton_lanes`, with :func:`_undistort_fallback` where
     the first attempt failed: (x, y, converged) as :func:`_undistort_one` returns them."""
@@ -305,7 +305,7 @@ def _lane_result(w, k, c, rational, prism, tol, max_iter):
     return _undistort_fallback(w[_XD + k], w[_YD + k], w[_X + k], w[_Y + k], c, rational, prism, tol, max_iter)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
     """:func:`_undistort_one` of the points ``xyd`` (N, 2) into ``out`` (N, 2) and ``ok`` (N,),
     ``_LANES`` at a time (:func:`_newton_lanes`)."""
@@ -328,7 +328,7 @@ def _undistort_kernel(xyd, coeffs, tol, max_iter, out, ok):
                 ok[s + k] = conv
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _rays_kernel(uv, grid_w, fx, fy, ppx, ppy, coeffs, distorted, tol, max_iter, d, ok):
     """View rays (x, y, 1) of pixels: ``uv`` (N, 2), or with ``grid_w`` > 0 the pixel centres
     of a sensor ``grid_w`` wide (u = i mod w, v = i div w; ``uv`` unused) — one pass, no
@@ -376,7 +376,7 @@ def _rays_kernel(uv, grid_w, fx, fy, ppx, ppy, coeffs, distorted, tol, max_iter,
                 ok[s + k] = conv
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _jacobian_kernel(xy, coeffs, out):
     c, rational, prism = _unpack(coeffs)
     for i in range(xy.shape[0]):
