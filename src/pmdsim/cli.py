@@ -76,9 +76,59 @@ class _Command(click.Command):
     ``--quiet`` too (that flag hides progress bars, not notes): a silent minute is what it explains."""
 
     def invoke(self, ctx):
+        _RAN["command"] = self.name
         if self.name not in _NOTE_AFTER_CHECKS:
             _cold_note(self.name)
         return super().invoke(ctx)
+
+
+#: The command this process ran (:class:`_Command`), for :data:`_FAST_EXIT`.
+_RAN: dict = {}
+
+#: Commands whose process, once the command is over, ends by :func:`_exit_now` instead of
+#: Python's full shutdown: their outputs are committed and closed by then, and tearing down the
+#: modules (numba's and LLVM's objects) and freeing the arrays one by one took 0.20 s of each
+#: ``pmdsim evaluate`` (issue 25; docs/benchmarks.md, "the command's start-up").
+_FAST_EXIT = {"evaluate"}
+
+
+def _is_program() -> bool:
+    """Whether this process is the ``pmdsim`` program (the console script, ``python -m pmdsim``
+    or ``python -m pmdsim.cli``), not a Python program that called :func:`main` itself."""
+    import os
+
+    prog = os.path.abspath(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    here = os.path.dirname(os.path.abspath(__file__))
+    return os.path.basename(prog) == "pmdsim" or prog in (os.path.join(here, "cli.py"), os.path.join(here, "__main__.py"))
+
+
+def _exit_now(code) -> None:
+    """End the process with ``code`` (a :class:`SystemExit` code: None → 0, an int, else printed
+    and 1) after what Python's shutdown runs first — the threads' exit hooks and joins
+    (``threading._shutdown``: ``concurrent.futures`` workers), the :mod:`atexit` handlers, the
+    flush of stdout and stderr — but without the module teardown and garbage collection."""
+    import atexit
+    import os
+    import threading
+
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is None:  # not CPython's threading: leave the exit to Python
+        raise SystemExit(code)
+    if code is None:
+        status = 0
+    elif isinstance(code, int):
+        status = code
+    else:
+        print(code, file=sys.stderr)
+        status = 1
+    shutdown()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):  # closed or broken pipe: nothing more to write
+            pass
+    os._exit(status & 0xFF)
 
 
 #: Commands that print the first-run note themselves, once their input is checked and before
@@ -123,14 +173,20 @@ class _Group(click.Group):
         note = logging.StreamHandler(sys.stderr)
         note.setFormatter(logging.Formatter("pmdsim: note: %(message)s"))
         log.addHandler(note)
+        code = _RUNNING = object()
         try:
             return super().main(args, *a, **k)
+        except SystemExit as e:  # click's standalone mode ends every command so
+            code = e.code
+            raise
         finally:
             log.removeHandler(note)
             interrupts.finish(block=args is None)  # from now on signals are only recorded (or held back)
             if args is not None and interrupts.installed():
                 for s, h in old.items():
                     signal.signal(s, h)
+            if args is None and code is not _RUNNING and _RAN.get("command") in _FAST_EXIT and _is_program():
+                _exit_now(code)
 
     def invoke(self, ctx):
         try:

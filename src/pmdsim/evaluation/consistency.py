@@ -62,6 +62,7 @@ from .phase import (
     equal_shifts,
 )
 from .consistency_levels import check_stacks, fit_row, stack_images
+from .distributions import chi2_cdf, chi2_isf, chi2_ppf, nnls, norm_isf
 from .fast_atan import _phase_0_2pi
 
 __all__ = [
@@ -287,16 +288,13 @@ def _noise_idx(mask) -> np.ndarray:
 def _noise_model(sampled):
     """Fit σ_I² = a + b·A to the residual variances (see the module docstring): ``sampled`` per
     stack with more than 3 images (A, RSS, ν) at the pixels of :func:`_noise_idx`."""
-    from scipy import stats as sst
-    from scipy.optimize import nnls
-
     lines = []
     for av, rv, nu in sampled:
         vv = rv / nu  # RSS/ν at the sampled pixels only (no full-size quotient)
         # Mean of the lower 90 % of RSS/ν (robust to a few bad pixels, and smooth for the discrete
         # residuals of quantised images, unlike a median), corrected by its value for χ²(ν)/ν:
         # E[χ²_ν; χ²_ν < Q] = ν·F_{ν+2}(Q).
-        trim = sst.chi2.cdf(sst.chi2.ppf(_TRIM, nu), nu + 2) / _TRIM
+        trim = chi2_cdf(chi2_ppf(_TRIM, nu), nu + 2) / _TRIM
         edges = np.unique(np.quantile(av, np.linspace(0.0, 1.0, _N_BINS + 1)))
         centres, values = [], []
         for i in range(max(edges.size - 1, 1)):
@@ -408,8 +406,6 @@ def check_consistency(
     PhaseDecodingError
         If the stacks, periods or ``decoded`` do not fit together.
     """
-    from scipy import stats as sst
-
     if not (0.0 < float(false_alarm) < 0.5):
         raise PhaseDecodingError(f"false_alarm must be in (0, 0.5), got {false_alarm!r}")
     if not (0.0 < float(defect_fraction) <= 1.0):
@@ -455,7 +451,7 @@ def check_consistency(
     period_counts: dict = {}
     geometry_counts = {"outside_screen": 0, "orientation": 0}
     defects: list[str] = []
-    z = float(sst.norm.isf(float(false_alarm) / 2.0))
+    z = norm_isf(float(false_alarm) / 2.0)
     n_tested = int(np.count_nonzero(tested))
     limit = float(defect_fraction) * n_tested
 
@@ -470,7 +466,7 @@ def check_consistency(
         bounds.append((float(origin[axis]), float(origin[axis] + ext + margin), origin[axis] - tol,
                        origin[axis] + ext + tol))
         for it in items:
-            it["thr"] = float(sst.chi2.isf(float(false_alarm), it["n"] - 3)) if it["n"] > 3 else 0.0
+            it["thr"] = chi2_isf(float(false_alarm), it["n"] - 3) if it["n"] > 3 else 0.0
     typical = lines is not None and mask.any()  # A of all_items[0] at the noise pixels
     with np.errstate(invalid="ignore", divide="ignore"):
         rows = check_stacks([items for _, items in per_dir], lines=lines, given2=given2, tested=tested,
