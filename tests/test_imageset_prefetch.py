@@ -76,7 +76,7 @@ def test_stacks_are_slices_of_one_array_and_the_files_values(two_cameras, prefet
     if prefetch:
         p = pf._ACTIVE[pf._manifest_key(two_cameras)]
         p.thread.join(5.0)
-        assert not p.thread.is_alive() and p.ahead == 0
+        assert not p.thread.is_alive() and p.ahead == 0 and not p.buffers  # both arrays used
         assert {id(v) for v in p.state.values()} == {id(pf._TAKEN)}  # every frame handed over once
 
 
@@ -131,8 +131,10 @@ def test_frames_ahead_are_bounded(monkeypatch, two_cameras):
     p = pf._ACTIVE[pf._manifest_key(two_cameras)]
     with p.cond:
         assert p.cond.wait_for(lambda: p.ahead >= pf.MAX_AHEAD_BYTES, timeout=10.0)
+        ahead, decoded = p.ahead, sum(isinstance(v, np.ndarray) for v in p.state.values())
     p.thread.join(0.2)
-    assert p.thread.is_alive() and p.ahead == 3 * 40 * 64  # waits for the caller to take frames
+    # it waits for the caller to take frames: no more decoded (one frame, the first camera's array)
+    assert p.thread.is_alive() and p.ahead == ahead and decoded == 1 and len(p.buffers) == 1
     m = load_manifest(two_cameras)
     _check_stacks(load_camera_stacks(m, "left"), _pillow_stacks(two_cameras, "left"))
     _check_stacks(load_camera_stacks(m, "right"), _pillow_stacks(two_cameras, "right"))

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..errors import ImageSetError
 from .imageset_instrument import INTEGER_BIT_DEPTHS, InstrumentInfo, parse_instrument, read_frame
-from .imageset_prefetch import stop_prefetch
+from .imageset_prefetch import prefaulted, stop_prefetch
 from .imageset_prefetch import take as take_prefetched
 from .outputs import IMAGESET_FORMAT, MANIFEST_NAME
 
@@ -590,6 +590,8 @@ def _check_depth(img: np.ndarray, e: ImageEntry, source: str, bit_depth: int | N
         raise ImageSetError(f"{source}: {e.label()}: the image is {_BITS[img.dtype]}-bit, but 'bit_depth' is "
                             f"{bit_depth} (stored in {container}-bit files)")
     top = 2**bit_depth - 1
+    if top >= _MAX_VALUE[img.dtype]:  # the container's range: no grey level can exceed it (no pass over the image)
+        return
     mx = int(img.max()) if img.size else 0
     if mx > top:
         raise ImageSetError(f"{source}: {e.label()}: grey levels up to {mx} exceed the declared {bit_depth}-bit range "
@@ -598,11 +600,11 @@ def _check_depth(img: np.ndarray, e: ImageEntry, source: str, bit_depth: int | N
 
 def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], source: str,
                   bit_depth: int | None, size_wh: tuple[int, int] | None,
-                  full_scale: float | None = None) -> CameraImages:
+                  full_scale: float | None = None, empty: Callable = np.empty) -> CameraImages:
     """Fetch every image of ``camera`` with ``get``, check size and dtype, stack per period.
 
     The images are copied into one (N, H, W) array of the camera (x then y, coarse → fine, shift
-    by shift), allocated at the first image; the stacks are its consecutive slices, so that the
+    by shift), allocated at the first image (by ``empty(shape, dtype)``); the stacks are its consecutive slices, so that the
     decoder and the checks read them as one array without another copy
     (:func:`pmdsim.evaluation.decoding_fused.common_image_stack`)."""
     groups = [g for direction in DIRECTIONS for g in layout[camera][direction]]
@@ -634,7 +636,8 @@ def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], 
                 raise ImageSetError(f"{source}: {e.label()}: {what} like {r.label()}, the first image "
                                     f"of camera {camera!r}; all images of a camera must agree")
             if frames is None:
-                frames = np.empty((sum(len(gr.entries) for gr in groups),) + img.shape, img.dtype)
+                shape = (sum(len(gr.entries) for gr in groups),) + img.shape
+                frames = empty(shape, img.dtype)
             frames[i] = img
             i += 1
     assert ref is not None and frames is not None
@@ -705,7 +708,8 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str, *,
 
     try:
         imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
-                             manifest.image_size_px.get(camera), manifest.instrument.full_scale)
+                             manifest.image_size_px.get(camera), manifest.instrument.full_scale,
+                             lambda shape, dtype: prefaulted(manifest.path, shape, dtype))
     except ImageSetError:
         stop_prefetch(manifest.path)  # nothing more is read: no thread decodes on after the error
         raise
