@@ -146,3 +146,17 @@ def test_no_manifest_no_thread(tmp_path):
     pf.start_prefetch(tmp_path)  # no manifest.json: nothing started, nothing raised
     pf.start_prefetch(tmp_path / "nowhere")
     assert not pf._ACTIVE
+
+
+def test_a_second_start_drops_the_first_ones_frames(tmp_path, two_cameras):
+    d = tmp_path / "set"
+    shutil.copytree(two_cameras, d)
+    pf.start_prefetch(d)
+    first = pf._ACTIVE[pf._manifest_key(d)]
+    first.thread.join(5.0)  # every frame decoded, none taken (as for a camera no setup names)
+    Image.fromarray(np.full((40, 64), 7, np.uint8)).save(d / F6)  # the file changes between two commands
+    pf.start_prefetch(d)
+    assert not first.state and not first.thread.is_alive()
+    imgs = load_camera_stacks(load_manifest(d), "left")
+    assert (imgs.x_stacks[1][2] == 7).all()
+    _check_stacks(imgs, _pillow_stacks(d, "left"))

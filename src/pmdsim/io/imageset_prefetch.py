@@ -164,7 +164,8 @@ class _Prefetch:
 
 def start_prefetch(image_dir) -> None:
     """Start decoding the image files of the image set ``image_dir`` (its directory or manifest)
-    in a background thread; a no-op if already started or if the path names no manifest file.
+    in a background thread (one already started for it is stopped and its frames dropped: the
+    files may have changed since); a no-op if the path names no manifest file.
     Never raises: every problem is reported by the main thread's own reading."""
     try:
         key = _manifest_key(image_dir)
@@ -173,9 +174,11 @@ def start_prefetch(image_dir) -> None:
     except (OSError, TypeError, ValueError):
         return
     with _REGISTRY_LOCK:
-        if key in _ACTIVE:
-            return
+        old = _ACTIVE.pop(key, None)
         pf = _ACTIVE[key] = _Prefetch(key)
+    if old is not None:  # an earlier command's (in this process): its frames may be stale
+        old.stop()
+        old.thread.join()
     try:
         pf.thread.start()
     except RuntimeError:  # no thread to be had: the images are read in the main thread
