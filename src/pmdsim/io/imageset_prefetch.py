@@ -112,7 +112,10 @@ class _Prefetch:
                 self.state[key] = frame
                 self.cond.notify_all()
             if frame is not _FAILED and camera in self.per_camera:
-                self._prefault(self.per_camera.pop(camera), frame)
+                try:
+                    self._prefault(self.per_camera.pop(camera), frame)
+                except MemoryError:  # the caller allocates its own array
+                    pass
 
     def _prefault(self, n: int, frame) -> None:
         """A camera's (n, H, W) array for :func:`prefaulted`, its pages touched here (a first
