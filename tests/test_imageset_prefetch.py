@@ -66,18 +66,28 @@ def _check_stacks(imgs, ref):
     np.testing.assert_array_equal(base, np.concatenate(every), strict=True)
 
 
-@pytest.mark.parametrize("prefetch", [False, True], ids=["main-thread", "prefetched"])
+@pytest.mark.parametrize("prefetch", ["no", "done", "racing"], ids=["main-thread", "prefetched", "racing"])
 def test_stacks_are_slices_of_one_array_and_the_files_values(two_cameras, prefetch):
-    if prefetch:
+    p = bufs = None
+    if prefetch != "no":
         pf.start_prefetch(two_cameras)
+        p = pf._ACTIVE[pf._manifest_key(two_cameras)]
+    if prefetch == "done":  # every frame decoded and both arrays made before the first load
+        p.thread.join(5.0)
+        bufs = dict(p.buffers)
+        assert set(bufs) == {"left", "right"}
     m = load_manifest(two_cameras)
     for cam in ("right", "left"):  # not the manifest's order: frames are found by file
-        _check_stacks(load_camera_stacks(m, cam), _pillow_stacks(two_cameras, cam))
-    if prefetch:
-        p = pf._ACTIVE[pf._manifest_key(two_cameras)]
+        imgs = load_camera_stacks(m, cam)
+        _check_stacks(imgs, _pillow_stacks(two_cameras, cam))
+        if bufs is not None:  # filled into the thread's (prefaulted) array
+            assert np.shares_memory(imgs.x_stacks[0], bufs[cam])
+    if p is not None:
         p.thread.join(5.0)
-        assert not p.thread.is_alive() and p.ahead == 0 and not p.buffers  # both arrays used
-        assert {id(v) for v in p.state.values()} == {id(pf._TAKEN)}  # every frame handed over once
+        # every frame handed over once; no array left behind (one asked for before the thread
+        # made it is not made)
+        assert not p.thread.is_alive() and p.ahead == 0 and not p.buffers
+        assert {id(v) for v in p.state.values()} == {id(pf._TAKEN)}
 
 
 def test_image_stack_copies_only_what_is_not_consecutive():

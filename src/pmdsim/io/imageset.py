@@ -709,7 +709,7 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str, *,
     try:
         imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
                              manifest.image_size_px.get(camera), manifest.instrument.full_scale,
-                             lambda shape, dtype: prefaulted(manifest.path, shape, dtype))
+                             lambda shape, dtype: prefaulted(manifest.path, camera, shape, dtype))
     except ImageSetError:
         stop_prefetch(manifest.path)  # nothing more is read: no thread decodes on after the error
         raise

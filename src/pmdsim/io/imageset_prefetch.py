@@ -62,8 +62,9 @@ class _Prefetch:
         self.listed = False  # the manifest was read (or could not be: nothing prefetched)
         self.stopped = False
         self.ahead = 0  # bytes of decoded frames and arrays not taken
-        self.per_camera: dict = {}  # frames per camera name, until its array is made
-        self.buffers: list = []  # the cameras' (N, H, W) arrays, pages touched (prefaulted)
+        self.per_camera: dict = {}  # frames per camera name (the thread's, from the manifest)
+        self.buffers: dict = {}  # camera → its (N, H, W) array, pages touched (prefaulted)
+        self.claimed: set = set()  # cameras whose array the caller asked for: none made after
         self.thread = threading.Thread(target=self._run, name="pmdsim-image-prefetch", daemon=True)
 
     def _keys(self) -> list[tuple[str, int | None]]:
@@ -111,23 +112,27 @@ class _Prefetch:
                     self.ahead += frame.nbytes
                 self.state[key] = frame
                 self.cond.notify_all()
-            if frame is not _FAILED and camera in self.per_camera:
+            n = self.per_camera.pop(camera, None) if frame is not _FAILED else None
+            if n is not None:
                 try:
-                    self._prefault(self.per_camera.pop(camera), frame)
+                    self._prefault(camera, n, frame)
                 except MemoryError:  # the caller allocates its own array
                     pass
 
-    def _prefault(self, n: int, frame) -> None:
+    def _prefault(self, camera, n: int, frame) -> None:
         """A camera's (n, H, W) array for :func:`prefaulted`, its pages touched here (a first
         write faults each 4 kB page in: 27 000 faults for 24 8-bit 1920×1200 frames)."""
         import numpy as np
 
+        with self.cond:
+            if self.stopped or camera in self.claimed:
+                return
         buf = np.empty((n,) + frame.shape, frame.dtype)
         buf.fill(0)
         with self.cond:
-            if self.stopped:
+            if self.stopped or camera in self.claimed:  # asked for meanwhile: the caller made its own
                 return
-            self.buffers.append(buf)
+            self.buffers[camera] = buf
             self.ahead += buf.nbytes
 
     def take(self, path, page):
@@ -146,14 +151,15 @@ class _Prefetch:
             self.cond.notify_all()
             return frame
 
-    def prefaulted(self, shape, dtype):
+    def prefaulted(self, camera, shape, dtype):
         with self.cond:
-            for i, buf in enumerate(self.buffers):
-                if buf.shape == tuple(shape) and buf.dtype == dtype:
-                    self.ahead -= buf.nbytes
-                    self.cond.notify_all()
-                    return self.buffers.pop(i)
-        return None
+            self.claimed.add(camera)
+            buf = self.buffers.pop(camera, None)
+            if buf is None:
+                return None
+            self.ahead -= buf.nbytes
+            self.cond.notify_all()
+        return buf if buf.shape == tuple(shape) and buf.dtype == dtype else None
 
     def stop(self) -> None:
         with self.cond:
@@ -200,15 +206,16 @@ def take(manifest_path, path, page):
     return None if pf is None else pf.take(path, page)
 
 
-def prefaulted(manifest_path, shape, dtype):
-    """An uninitialised array of ``shape`` (N, H, W) and ``dtype`` whose memory pages the prefetch
-    of ``manifest_path`` has already faulted in (one per camera: N its frames in the manifest, H,
-    W and dtype its first frame's), handed over once; else a new ``np.empty`` array. Filling it
-    is then a plain copy (:func:`pmdsim.io.imageset.load_camera_stacks`)."""
+def prefaulted(manifest_path, camera: str, shape, dtype):
+    """An uninitialised array of ``shape`` (N, H, W) and ``dtype`` for ``camera``'s frames whose
+    memory pages the prefetch of ``manifest_path`` has already faulted in (N the camera's frames
+    in the manifest, H, W and dtype its first frame's), handed over once; else a new ``np.empty``
+    array (and the thread makes none for the camera after this call). Filling it is then a plain
+    copy (:func:`pmdsim.io.imageset.load_camera_stacks`)."""
     import numpy as np
 
     pf = _ACTIVE.get(_manifest_key(manifest_path)) if _ACTIVE else None
-    buf = None if pf is None else pf.prefaulted(shape, dtype)
+    buf = None if pf is None else pf.prefaulted(camera, shape, dtype)
     return np.empty(shape, dtype) if buf is None else buf
 
 
