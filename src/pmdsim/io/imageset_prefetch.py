@@ -134,6 +134,7 @@ class _Prefetch:
                 return
             self.buffers[camera] = buf
             self.ahead += buf.nbytes
+            self.cond.notify_all()
 
     def take(self, path, page):
         key = _frame_key(path, page)
