@@ -200,13 +200,13 @@ def test_writable_and_read_only_inputs_reach_one_compiled_kernel(monkeypatch, sm
         wrapped_phase(images)
         consistency._stack_stats(images)
     assert len(decoded) == 2 and decoded[0] == decoded[1] and not decoded[0][0].mutable, decoded
-    # the checks' stack kernel takes a typed list of read-only (H, W) images, as the fused decoder
-    assert len(stacked) == 2 and stacked[0] == stacked[1] and not stacked[0][0].dtype.mutable, stacked
+    # the checks' stack kernel takes a read-only (N, H, W) array (no typed list), as the fused decoder
+    assert len(stacked) == 2 and stacked[0] == stacked[1] and not stacked[0][0].mutable, stacked
     # decode_screen_coordinates (the fused kernel): per-image lists and stacks, writable or not
     fused = _argument_types(monkeypatch, decoding_fused, "_fused_kernel")
     for images in (img, _readonly_copy(img), list(img), [_readonly_copy(im) for im in img]):
         decoding.decode_screen_coordinates([images], [10.0], [images], [10.0], (10.0, 10.0), 255)
-    assert len(fused) == 4 and len(set(fused)) == 1 and not fused[0][0].dtype.mutable, fused
+    assert len(fused) == 4 and len(set(fused)) == 1 and not fused[0][0].mutable, fused
 
 
 def _readonly_copy(a):

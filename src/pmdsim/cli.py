@@ -398,6 +398,9 @@ def evaluate_cmd(image_dir, setup_path, out_dir, method, screen_model, seed_pixe
     Per-pixel standard uncertainties (k = 1) of heights and slopes go to evaluation.h5 and
     OUT/height_std_{camera}.png unless --no-uncertainty (with --stereo: absolute σ).
     """
+    from .io.imageset_prefetch import start_prefetch
+
+    start_prefetch(image_dir)  # the images decode in a background thread meanwhile (issue 25)
     from .evaluation.anchor import DistanceAnchor
     from .studies.jobs import JobInputError, evaluate_image_set, evaluate_image_set_stereo
 

@@ -717,7 +717,9 @@ def decode_screen_coordinates(
     ----------
     x_stacks, y_stacks : sequence of array_like, each shape (N_i, H, W)
         Image stacks per period for the x and y direction (grey levels); all with equal H, W.
-        A stack may be a list of N_i (H, W) images: those are read in place (not stacked).
+        A stack may be a list of N_i (H, W) images. The kernel reads all stacks as one (N, H, W)
+        array: a view where they are consecutive slices of one array (the stacks of
+        :func:`pmdsim.io.imageset.load_camera_stacks`), else one copy of them.
     x_periods_mm, y_periods_mm : array_like, shape (P_x,), (P_y,)
         Fringe periods in mm of the stacks.
     screen_size_mm : (float, float)

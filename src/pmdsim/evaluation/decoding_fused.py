@@ -1,8 +1,11 @@
 """Both fringe directions of :func:`~pmdsim.evaluation.decoding.decode_screen_coordinates` in
 one parallel pass over image rows (issue 25, item 3).
 
-The images are handed over as a numba typed list of (H, W) images — no ``np.stack`` copy of the 24 images —
-and each row is decoded coarse → fine for direction x, then y, in row buffers, with the
+The images are handed over as one read-only (N, H, W) array, the levels' images one after the
+other (:func:`common_image_stack`): a view of the camera's array when the stacks are consecutive
+slices of one (as :func:`pmdsim.io.imageset.load_camera_stacks` and the linearised stacks are), else
+one copy — no numba typed list (its helpers compiled in every process: 0.55–0.59 s of each
+``pmdsim evaluate``, they cannot be cached). Each row is decoded coarse → fine for direction x, then y, in row buffers, with the
 per-pixel arithmetic of ``decoding._finish_row`` expression for expression (bit for bit
 :func:`~pmdsim.evaluation.decoding.decode_direction`'s values) written as branch-free loops that
 vectorise, and the sums of four images per pass over the row; the row's results are combined
@@ -32,7 +35,7 @@ from .phase_flags import _NONFINITE, _UNWRAP_INCONSISTENT
 from .phase_noise import coordinate_std_scale
 from .unwrapping import REVERSAL_PHASE_TOLERANCE, _coarse_coord, _refine
 
-__all__ = ["ImageList", "as_image_list", "common_image_list", "decode_both_directions"]
+__all__ = ["ImageList", "as_image_list", "common_image_stack", "common_image_list", "decode_both_directions"]
 
 
 class ImageList(list):
@@ -85,7 +88,7 @@ def as_image_list(images, name: str) -> ImageList:
 
 @numba.njit(cache=True, fastmath=False, error_model="numpy")
 def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
-    """``decoding._accumulate_row`` for images ``first`` … ``first + n − 1`` of the list
+    """``decoding._accumulate_row`` for images ``first`` … ``first + n − 1`` of the (N, H, W) array
     ``images`` and weights ``w_*[first:first + n]``: per pixel the same sums in the same order,
     four images per pass over the row (one load and store of the sums per four images)."""
     w = sa.shape[0]
@@ -93,7 +96,7 @@ def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
     k = first
     end = first + n
     while k + 4 <= end:
-        r0, r1, r2, r3 = images[k][v], images[k + 1][v], images[k + 2][v], images[k + 3][v]
+        r0, r1, r2, r3 = images[k, v], images[k + 1, v], images[k + 2, v], images[k + 3, v]
         a0, a1, a2, a3 = w_a[k], w_a[k + 1], w_a[k + 2], w_a[k + 3]
         c0, c1, c2, c3 = w_c[k], w_c[k + 1], w_c[k + 2], w_c[k + 3]
         s0, s1, s2, s3 = w_s[k], w_s[k + 1], w_s[k + 2], w_s[k + 3]
@@ -108,7 +111,7 @@ def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
             mx[u] = max(max(max(max(mx[u], x0), x1), x2), x3)
         k += 4
     while k < end:
-        _add_image_row(images[k][v], w_a[k], w_c[k], w_s[k], sa, sc, ss, mx)
+        _add_image_row(images[k, v], w_a[k], w_c[k], w_s[k], sa, sc, ss, mx)
         k += 1
 
 
@@ -211,7 +214,7 @@ def _fused_kernel(images, level_start, level_period, dir_level, origin, upper, s
                   noise, xy, flags, std, modulation, offset, valid, rev):
     """Decode both directions; one parallel pass over image rows.
 
-    ``images``: typed list of (H, W) images, the levels' images one after the other (x coarse → fine,
+    ``images``: (N, H, W) read-only C-contiguous array, the levels' images one after the other (x coarse → fine,
     then y coarse → fine); level l has images ``level_start[l]`` … ``level_start[l + 1] − 1``,
     period ``level_period[l]`` mm; direction d has levels ``dir_level[d]`` … ``dir_level[d + 1] − 1``
     and ``origin[d]``, ``upper[d]``, ``std_scale[d]``. ``w_*``: per image. ``noise`` (1|H, 1|W).
@@ -224,26 +227,55 @@ def _fused_kernel(images, level_start, level_period, dir_level, origin, upper, s
                     rev_ratio, noise, xy, flags, std, modulation, offset, valid, rev)
 
 
-def _image_list(images) -> "numba.typed.List":
-    """The images as one numba typed list of read-only (H, W) views: its type holds the images'
-    dtype and layout but not their count, so the fused kernel compiles once per dtype and not
-    once per number of images (a tuple's length is part of its type: 15 compiles of the kernel
-    in the test suite)."""
-    out = numba.typed.List()
-    for im in images:
-        out.append(readonly(im))
-    return out
+def _consecutive_view(images):
+    """The (N, H, W) array whose images are ``images`` (N ≥ 1 C-contiguous (H, W) arrays of one
+    shape and dtype) if they lie one after the other in one array's memory — the slices of a
+    camera's (N, H, W) array, in order — else None. A view: nothing is copied."""
+    first = images[0]
+    base = first.base
+    if base is None or not first.flags.c_contiguous:
+        return None
+    nbytes = first.nbytes
+    start = first.__array_interface__["data"][0]
+    for k, im in enumerate(images):
+        if (im.base is not base or im.shape != first.shape or im.dtype != first.dtype or not im.flags.c_contiguous
+                or im.__array_interface__["data"][0] != start + k * nbytes):
+            return None
+    isz = first.dtype.itemsize
+    h, w = first.shape
+    # every image is inside ``base``'s memory and they are adjacent: the strided view spans them exactly
+    return np.lib.stride_tricks.as_strided(first, (len(images), h, w), (nbytes, w * isz, isz), writeable=False)
 
 
-def common_image_list(images) -> "numba.typed.List":
-    """:func:`_image_list` of (H, W) images of one dtype; images of mixed dtypes (rare) are first
-    promoted to their common type (one list type; the promotion keeps every grey level's
-    float64 value)."""
+def common_image_stack(images) -> np.ndarray:
+    """(H, W) images of the kernels as one read-only C-contiguous (N, H, W) array.
+
+    Parameters
+    ----------
+    images : sequence of N ≥ 1 ndarray (H, W)
+        One shape; numeric kernel dtypes (``decoding._KERNEL_DTYPES``), native byte order. Images
+        of mixed dtypes (rare) are promoted to their common type (it keeps every grey level's
+        float64 value).
+
+    Returns
+    -------
+    ndarray (N, H, W)
+        A view when the images are consecutive in one array's memory (:func:`_consecutive_view`:
+        the stacks of :func:`pmdsim.io.imageset.load_camera_stacks`), else one copy
+        (``np.stack``). Its numba type — read-only C array of the dtype, 3 dimensions — holds
+        neither the number of images nor of stacks: the kernels compile once per dtype.
+    """
     dtypes = {im.dtype for im in images}
     if len(dtypes) > 1:
         common = np.result_type(*dtypes)
         images = [im.astype(common) for im in images]
-    return _image_list(images)
+    view = _consecutive_view(images)
+    return view if view is not None else readonly(np.stack(images))
+
+
+#: The name :mod:`pmdsim.evaluation.consistency_levels` imports (its kernel indexes
+#: ``images[k][v]``: an (N, H, W) array as it was a list of (H, W) images).
+common_image_list = common_image_stack
 
 
 def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
@@ -277,7 +309,7 @@ def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:
     valid = np.empty((h, w), np.bool_)
     rev = np.empty((h, w, 2), np.bool_)
     _fused_kernel(
-        common_image_list([im for p in preps for stack in p.stacks for im in stack]), level_start,
+        common_image_stack([im for p in preps for stack in p.stacks for im in stack]), level_start,
         np.concatenate([px.periods, py.periods]).astype(np.float64),
         np.array([0, len(px.stacks), len(px.stacks) + len(py.stacks)], np.int64),
         np.array([px.origin, py.origin]), np.array([px.upper, py.upper]),

@@ -65,6 +65,8 @@ import numpy as np
 
 from ..errors import ImageSetError
 from .imageset_instrument import INTEGER_BIT_DEPTHS, InstrumentInfo, parse_instrument, read_frame
+from .imageset_prefetch import prefaulted, stop_prefetch
+from .imageset_prefetch import take as take_prefetched
 from .outputs import IMAGESET_FORMAT, MANIFEST_NAME
 
 __all__ = [
@@ -588,6 +590,8 @@ def _check_depth(img: np.ndarray, e: ImageEntry, source: str, bit_depth: int | N
         raise ImageSetError(f"{source}: {e.label()}: the image is {_BITS[img.dtype]}-bit, but 'bit_depth' is "
                             f"{bit_depth} (stored in {container}-bit files)")
     top = 2**bit_depth - 1
+    if top >= _MAX_VALUE[img.dtype]:  # the container's range: no grey level can exceed it (no pass over the image)
+        return
     mx = int(img.max()) if img.size else 0
     if mx > top:
         raise ImageSetError(f"{source}: {e.label()}: grey levels up to {mx} exceed the declared {bit_depth}-bit range "
@@ -596,42 +600,55 @@ def _check_depth(img: np.ndarray, e: ImageEntry, source: str, bit_depth: int | N
 
 def _stack_camera(camera: str, layout, get: Callable[[ImageEntry], np.ndarray], source: str,
                   bit_depth: int | None, size_wh: tuple[int, int] | None,
-                  full_scale: float | None = None) -> CameraImages:
-    """Fetch every image of ``camera`` with ``get``, check size and dtype, stack per period."""
+                  full_scale: float | None = None, empty: Callable = np.empty) -> CameraImages:
+    """Fetch every image of ``camera`` with ``get``, check size and dtype, stack per period.
+
+    The images are copied into one (N, H, W) array of the camera (x then y, coarse → fine, shift
+    by shift), allocated at the first image (by ``empty(shape, dtype)``); the stacks are its consecutive slices, so that the
+    decoder and the checks read them as one array without another copy
+    (:func:`pmdsim.evaluation.decoding_fused.common_image_stack`)."""
+    groups = [g for direction in DIRECTIONS for g in layout[camera][direction]]
+    frames = None  # (N, H, W): the camera's images
     ref: tuple[ImageEntry, tuple[int, int], np.dtype] | None = None
+    i = 0
+    for g in groups:
+        for e in g.entries:
+            img = get(e)
+            if img.ndim != 2:
+                raise ImageSetError(f"{source}: {e.label()}: expected a greyscale (H, W) image, "
+                                    f"got shape {img.shape}")
+            _check_depth(img, e, source, bit_depth)
+            if ref is None:
+                if size_wh is not None and (img.shape[1], img.shape[0]) != size_wh:
+                    raise ImageSetError(
+                        f"{source}: {e.label()}: image size {img.shape[1]}×{img.shape[0]} px (W×H) differs "
+                        f"from 'cameras.{camera}.image_size_px' = {size_wh[0]}×{size_wh[1]}"
+                    )
+                ref = (e, img.shape, img.dtype)
+            elif img.shape != ref[1] or img.dtype != ref[2]:
+                r = ref[0]
+                if img.shape != ref[1]:
+                    what = (f"image size {img.shape[1]}×{img.shape[0]} px (W×H), expected "
+                            f"{ref[1][1]}×{ref[1][0]} px")
+                else:
+                    what = (f"{_BITS[img.dtype]}-bit ({img.dtype}), expected {_BITS[ref[2]]}-bit ({ref[2]})"
+                            if img.dtype in _BITS and ref[2] in _BITS else f"pixel type {img.dtype}, expected {ref[2]}")
+                raise ImageSetError(f"{source}: {e.label()}: {what} like {r.label()}, the first image "
+                                    f"of camera {camera!r}; all images of a camera must agree")
+            if frames is None:
+                shape = (sum(len(gr.entries) for gr in groups),) + img.shape
+                frames = empty(shape, img.dtype)
+            frames[i] = img
+            i += 1
+    assert ref is not None and frames is not None
+    frames.setflags(write=False)
     out: dict[str, list[np.ndarray]] = {}
+    i = 0
     for direction in DIRECTIONS:
         out[direction] = []
         for g in layout[camera][direction]:
-            imgs = []
-            for e in g.entries:
-                img = get(e)
-                if img.ndim != 2:
-                    raise ImageSetError(f"{source}: {e.label()}: expected a greyscale (H, W) image, "
-                                        f"got shape {img.shape}")
-                _check_depth(img, e, source, bit_depth)
-                if ref is None:
-                    if size_wh is not None and (img.shape[1], img.shape[0]) != size_wh:
-                        raise ImageSetError(
-                            f"{source}: {e.label()}: image size {img.shape[1]}×{img.shape[0]} px (W×H) differs "
-                            f"from 'cameras.{camera}.image_size_px' = {size_wh[0]}×{size_wh[1]}"
-                        )
-                    ref = (e, img.shape, img.dtype)
-                elif img.shape != ref[1] or img.dtype != ref[2]:
-                    r = ref[0]
-                    if img.shape != ref[1]:
-                        what = (f"image size {img.shape[1]}×{img.shape[0]} px (W×H), expected "
-                                f"{ref[1][1]}×{ref[1][0]} px")
-                    else:
-                        what = (f"{_BITS[img.dtype]}-bit ({img.dtype}), expected {_BITS[ref[2]]}-bit ({ref[2]})"
-                                if img.dtype in _BITS and ref[2] in _BITS else f"pixel type {img.dtype}, expected {ref[2]}")
-                    raise ImageSetError(f"{source}: {e.label()}: {what} like {r.label()}, the first image "
-                                        f"of camera {camera!r}; all images of a camera must agree")
-                imgs.append(img)
-            stack = np.stack(imgs)
-            stack.setflags(write=False)
-            out[direction].append(stack)
-    assert ref is not None
+            out[direction].append(frames[i:i + len(g.entries)])
+            i += len(g.entries)
     return CameraImages(
         camera=camera,
         x_stacks=tuple(out["x"]), x_periods_mm=tuple(g.period_mm for g in layout[camera]["x"]),
@@ -679,13 +696,23 @@ def load_camera_stacks(manifest: ImageSetManifest, camera: str, *,
     _check_camera_direction(manifest.layout, camera, "x", src)
 
     def get(e: ImageEntry) -> np.ndarray:
+        # decoded in the background if `pmdsim evaluate` started it (.imageset_prefetch), else
+        # (or where the background read failed) read here; either is copied into the camera's array
+        frame = take_prefetched(manifest.path, e.path, e.page)
+        if frame is not None:
+            return frame
         try:
-            return read_frame(e.path, e.page)
+            return read_frame(e.path, e.page, writable=False)
         except ImageSetError as exc:
             raise ImageSetError(f"{src}: {e.label()}: {exc}") from None
 
-    imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
-                         manifest.image_size_px.get(camera), manifest.instrument.full_scale)
+    try:
+        imgs = _stack_camera(camera, manifest.layout, get, src, manifest.bit_depth,
+                             manifest.image_size_px.get(camera), manifest.instrument.full_scale,
+                             lambda shape, dtype: prefaulted(manifest.path, camera, shape, dtype))
+    except ImageSetError:
+        stop_prefetch(manifest.path)  # nothing more is read: no thread decodes on after the error
+        raise
     if expected_size_px is not None:
         w, h = (int(v) for v in expected_size_px)
         if (imgs.shape[1], imgs.shape[0]) != (w, h):

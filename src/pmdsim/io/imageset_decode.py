@@ -11,7 +11,7 @@ from __future__ import annotations
 from ..errors import ImageSetError
 from ..evaluation.phase import ScreenCoordinates, decode_screen_coordinates
 from .imageset import DIRECTIONS, CameraImages, ImageSetManifest, _screen_size, load_camera_stacks
-from .imageset_instrument import apply_mask_and_map, linearise_stacks, linearised_noise_std
+from .imageset_instrument import apply_mask_and_map, linearise_camera, linearised_noise_std
 
 __all__ = ["decode_camera", "decode_camera_images"]
 
@@ -69,8 +69,7 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
             size, images.max_value, noise_std, **decoder_kw,
         )
     full = float(images.max_value)
-    xs, sat_x = linearise_stacks(images.x_stacks, full, response)
-    ys, sat_y = linearise_stacks(images.y_stacks, full, response)
+    xs, ys, saturated = linearise_camera(images, full, response)
     # σ_I (grey levels; default quantisation noise) → display-level units through the inverse
     # response's slope at each pixel's mean level of the finest x period.
     sigma = linearised_noise_std(images, response, noise_std)
@@ -79,7 +78,7 @@ def decode_camera_images(images: CameraImages, screen_size_mm, noise_std=None, *
     dec = decode_screen_coordinates(xs, list(images.x_periods_mm), ys, list(images.y_periods_mm), size, 1.0,
                                     sigma, **kw)
     if decoder_kw.get("check_saturation", True):
-        return apply_mask_and_map(dec, saturated=sat_x | sat_y)
+        return apply_mask_and_map(dec, saturated=saturated)
     return dec
 
 

@@ -61,6 +61,9 @@ import numpy as np
 from ..errors import ImageSetError
 from ..evaluation.phase import PhaseFlag, ScreenCoordinates
 from ..setup.response import IntensityResponse, ResponseError
+# read_frame (image pages, bit depths, float images) lives in .images, whose imports are light (the
+# background decoding of .imageset_prefetch runs it in its thread), and is re-exported here
+from .images import read_frame
 
 __all__ = [
     "INTEGER_BIT_DEPTHS",
@@ -70,6 +73,7 @@ __all__ = [
     "read_frame",
     "parse_instrument",
     "linearise_stacks",
+    "linearise_camera",
     "linearised_noise_std",
     "consistency_stacks",
     "apply_mask_and_map",
@@ -80,57 +84,6 @@ INTEGER_BIT_DEPTHS = (8, 10, 12, 14, 16)
 
 _RESPONSE_KEYS = {"gamma", "black_level", "white_level", "display_levels", "camera_levels", "file",
                   "display_full_scale", "camera_full_scale", "interpolation"}
-
-
-# ============================================================================ image pages
-def read_frame(path: Path, page: int | None) -> np.ndarray:
-    """Read one greyscale frame: (H, W) uint8, uint16 or float32/float64.
-
-    PNG and single-page TIFF are read whole; a multi-page TIFF needs ``page`` (0-based) and a
-    page index beyond the file's pages is an error. Float TIFF (mode ``F``) is returned as
-    float32.
-
-    Raises
-    ------
-    ImageSetError
-        Missing or unreadable file, colour/palette image, a multi-page file without ``page``
-        or a page out of range.
-    """
-    from PIL import Image
-
-    p = Path(path)
-    if not p.is_file():
-        raise ImageSetError(f"image file {str(p)!r} does not exist")
-    try:
-        with Image.open(p) as im:
-            n = int(getattr(im, "n_frames", 1))
-            if page is None and n > 1:
-                raise ImageSetError(
-                    f"image {str(p)!r} is a multi-page file with {n} pages; give the entry a 'page' "
-                    f"(0 … {n - 1}) — pmdsim does not read page 0 of a stack silently")
-            k = 0 if page is None else page
-            if k >= n:
-                raise ImageSetError(f"image {str(p)!r}: 'page' = {k} is out of range (the file has {n} page(s))")
-            im.seek(k)
-            mode = im.mode
-            arr = np.array(im)
-    except ImageSetError:
-        raise
-    except Exception as e:  # PIL raises several types for broken files
-        raise ImageSetError(f"cannot read image {str(p)!r}: {e}") from None
-    if arr.ndim != 2 or mode not in ("L", "I;16", "I;16B", "I;16L", "I", "F"):
-        raise ImageSetError(
-            f"image {str(p)!r} is not greyscale (mode {mode}, shape {arr.shape}); 8/16-bit or float greyscale "
-            "expected — palette, colour and 1-bit images are not fringe images")
-    if mode == "F":
-        return arr.astype(np.float32, copy=False)
-    if mode in ("I;16", "I;16B", "I;16L", "I") and arr.dtype != np.uint16:
-        if arr.min() < 0 or arr.max() > 65535:
-            raise ImageSetError(f"image {str(p)!r}: values outside the 16-bit range")
-        arr = arr.astype(np.uint16)
-    if arr.dtype not in (np.uint8, np.uint16):
-        raise ImageSetError(f"image {str(p)!r} has pixel type {arr.dtype}; 8/16-bit or float greyscale expected")
-    return arr
 
 
 # ============================================================================ response
@@ -387,17 +340,35 @@ def parse_instrument(doc: dict, src: str, directory: Path) -> InstrumentInfo:
 # ============================================================================ decoding steps
 def linearise_stacks(stacks, max_value: float, response):
     """Linearise image stacks with ``response``: returns (stacks of display levels d ∈ [0, 1],
-    per-pixel saturated mask (H, W): a sample at full scale or above the series' brightest level)."""
+    per-pixel saturated mask (H, W): a sample at full scale or above the series' brightest level).
+
+    The linearised stacks (N_i, H, W) float64 are consecutive slices of one array, so that the
+    decoder and the checks read them without another copy (pass a camera's x and y stacks in one
+    call: :func:`pmdsim.evaluation.decoding_fused.common_image_stack`)."""
     top = response.camera_levels[-1]
-    out = []
+    counts = [np.shape(st)[0] for st in stacks]
+    lin = None
     sat = None
-    for st in stacks:
+    i = 0
+    for st, n in zip(stacks, counts):
         c = np.asarray(st, dtype=float) / max_value
         d, _ = response.linearise(c)
         s = ((c > top) | (np.asarray(st) >= max_value)).any(axis=0)
         sat = s if sat is None else (sat | s)
-        out.append(d)
-    return out, sat
+        if lin is None:
+            lin = np.empty((sum(counts),) + d.shape[1:], d.dtype)
+        lin[i:i + n] = d
+        i += n
+    offsets = np.cumsum([0] + counts)
+    return [lin[a:b] for a, b in zip(offsets[:-1], offsets[1:])], sat
+
+
+def linearise_camera(images, full: float, response):
+    """(x stacks, y stacks, saturated (H, W)) of :func:`linearise_stacks` of a camera's x and y
+    stacks in one call (slices of one array)."""
+    n_x = len(images.x_stacks)
+    lin, sat = linearise_stacks([*images.x_stacks, *images.y_stacks], full, response)
+    return lin[:n_x], lin[n_x:], sat
 
 
 def linearised_noise_std(images, response, noise_std=None) -> np.ndarray:
@@ -487,8 +458,7 @@ def consistency_stacks(images, response, noise_std=None, lit=None):
     if response is None:
         return list(images.x_stacks), list(images.y_stacks), noise_std, None
     full = float(images.max_value)
-    xs, _ = linearise_stacks(images.x_stacks, full, response)
-    ys, _ = linearise_stacks(images.y_stacks, full, response)
+    xs, ys = linearise_camera(images, full, response)[:2]
     sigma_d = linearised_noise_std(images, response, noise_std)
     if lit is None:
         lit = np.ones(sigma_d.shape, bool)
