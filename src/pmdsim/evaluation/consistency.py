@@ -195,9 +195,9 @@ class ConsistencyResult:
         return out
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _stack_kernel(images, cos_d, sin_d, a_out, b_out, phi_out, rss_out, worst_out):
-    """Per pixel of one stack (a typed list of its N (H, W) images) with equal shifts: A, B,
+    """Per pixel of one stack (its N images as one read-only (N, H, W) array) with equal shifts: A, B,
     φ ∈ [0, 2π), RSS of the N-step fit and argmax_k |r_k| (docs/conventions.md, "Fringe
     patterns").
 
@@ -231,7 +231,7 @@ def _stack_stats(stack):
     return (*out, worst)
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _grad(xy, v, u, d, axis):
     """np.gradient of component d along ``axis`` (1: u, 0: v) at (v, u): central inside,
     one-sided at the border."""
@@ -249,7 +249,7 @@ def _grad(xy, v, u, d, axis):
     return (xy[v + 1, u, d] - xy[v - 1, u, d]) / 2.0
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _orientation_kernel(measured, expected, out):
     """det(J₀⁻¹J) < 0 or trace(J₀⁻¹J) < 0 per pixel (see :func:`_orientation_flipped`); rows in parallel."""
     h, w = measured.shape[0], measured.shape[1]
@@ -618,7 +618,7 @@ def nominal_screen_xy(camera: Camera, T_world_cam: RigidTransform, T_world_sampl
     return xy
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _nominal_kernel(d_cam, ok, r_wc, o, n, p0, m, t_scr, r_sw, t_sw, out):
     """Per pixel of :func:`nominal_screen_xy`: the view ray d = R·d_cam from o, reflected at the
     plane (p0, n), intersected with the plane (t_scr, m), in the screen frame (R_sw·q + t_sw); rows

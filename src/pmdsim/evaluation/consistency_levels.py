@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from ..geometry.kernel_args import readonly
-from .decoding_fused import common_image_list
+from .decoding_fused import common_image_stack
 from .fast_atan import _phase_0_2pi
 from .phase import PhaseFlag, equal_shifts
 from .unwrapping import REVERSAL_CONTRAST_RATIO, _refine_reversal
@@ -49,14 +49,15 @@ def stack_array(stack) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-def stack_images(stacks) -> "numba.typed.List":
-    """The images of (N_i, H, W) stacks, one after the other, as one numba typed list of read-only
-    (H, W) views (:func:`stack_array` per stack; stacks of different dtypes promoted to their
-    common type, which holds every grey level exactly)."""
-    return common_image_list([im for st in stacks for im in stack_array(st)])
+def stack_images(stacks) -> np.ndarray:
+    """The images of (N_i, H, W) stacks, one after the other, as one read-only (ΣN_i, H, W) array
+    (:func:`stack_array` per stack, then :func:`~pmdsim.evaluation.decoding_fused.common_image_stack`:
+    a view where the images already lie one after the other, else one copy; stacks of different
+    dtypes promoted to their common type, which holds every grey level exactly)."""
+    return common_image_stack([im for st in stacks for im in stack_array(st)])
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def _fit4_row(r0, r1, r2, r3, cos_d, sin_d, sa, sc, ss, rss):  # pragma: no cover - compiled
     """:func:`fit_row` of N = 4 rows ``r0`` … ``r3`` with the residual sum of squares, in one loop
     along the row: per pixel the same sums in the same order (from 0.0, shift by shift; x/4 as
@@ -81,10 +82,10 @@ def _fit4_row(r0, r1, r2, r3, cos_d, sin_d, sa, sc, ss, rss):  # pragma: no cove
         rss[u] = (((0.0 + e0 * e0) + e1 * e1) + e2 * e2) + e3 * e3
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def fit_row(images, first, n, v, cos_d, sin_d, sa, sc, ss, rss, best, worst, residuals):  # pragma: no cover
-    """The N-step fit of row v of the stack ``images[first]`` … ``images[first + n − 1]`` (a
-    list of (H, W) images) with equal shifts (``cos_d``, ``sin_d`` (n,)): A, C = B cos φ,
+    """The N-step fit of row v of the stack ``images[first]`` … ``images[first + n − 1]`` (an
+    (N, H, W) array) with equal shifts (``cos_d``, ``sin_d`` (n,)): A, C = B cos φ,
     S = B sin φ into ``sa``, ``sc``, ``ss``; with ``residuals`` ≥ 1 the residual sum of squares
     into ``rss``, with 2 also argmax_k |r_k| into ``worst`` (``best``: scratch) — image by image
     along the row (contiguous, vectorised across pixels; per pixel the sums run over k in
@@ -168,7 +169,7 @@ def _sigma2_row(a_row, lines, g_row, est):  # pragma: no cover - compiled
 _RATIO_EPS = 2.0 ** -44
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def _same_outcome(r, cur):  # pragma: no cover - compiled
     """Whether every r* within ``_RATIO_EPS``·r of a test ratio r ≥ 0 has r's outcome: r·(1 ± ε)
     lie on one side of 1 (the test), on one side of ``cur`` (the stored maximum, float32; NaN:
@@ -180,7 +181,7 @@ def _same_outcome(r, cur):  # pragma: no cover - compiled
             & ((hi < 1.0) | (lo > 1.0)) & (np.isnan(cu) | (cu < lo) | (cu > hi)))
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def _fit_ratio_row(rss, s2, thr, cur, out, exact):  # pragma: no cover - compiled
     """RSS/σ_I²/threshold along a row into ``out`` (W,), bit for bit that expression's value
     wherever it decides anything: one division, RSS/(σ_I²·threshold) (within 4 ulp of it), where
@@ -200,7 +201,7 @@ def _fit_ratio_row(rss, s2, thr, cur, out, exact):  # pragma: no cover - compile
             out[u] = rss[u] / s2[u] / thr
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy", inline="always")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")
 def _mismatch_ratio_row(c, ck, s2_prev, b2_prev, k_prev, s2, b2, k, z, cur, out, exact):  # pragma: no cover
     """|c − c_k| / (z·hypot(σ_prev, σ)) along a row into ``out`` (W,), σ = k·√σ_I² / √B² of
     each stack (the decoder's σ model; ``b2`` = C² + S²), bit for bit that expression's value
@@ -231,7 +232,7 @@ def _mismatch_ratio_row(c, ck, s2_prev, b2_prev, k_prev, s2, b2, k, z, cur, out,
             out[u] = abs(c[u] - ck[u]) / (z * math.hypot(sig_prev, sig))
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _stack_row(images, v, s, ax, n_rev, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig, st_level, origin,
                upper, lines, given2, tested, rev, z, a_stack, mask, a_offs, a_buf, fit_ratio, worst_image, mis_ratio,
                bits_fit, bits_per, counts, top, c, sa_prev, b2_prev, s2_prev, dir_bad, sa, sc, ss, rss, best, worst,
@@ -338,7 +339,7 @@ def _stack_row(images, v, s, ax, n_rev, st_img, cos_d, sin_d, st_first, st_n4, s
     top[s, v] = t_max
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _checks_kernel(images, st_img, cos_d, sin_d, st_first, st_n4, st_thr, st_p, st_ksig, st_level, dir_st, origin,
                    upper, lo, hi, lines, given2, tested, rev, z, a_stack, mask, a_offs, a_buf, fit_ratio, worst_image,
                    mis_ratio, final, bits_fit, bits_per, geometry, flags, counts, top, n_out):  # pragma: no cover

@@ -19,7 +19,7 @@ from .phase import equal_shifts
 __all__ = ["stack_at_pixels"]
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _at_pixels_kernel(images, cos_d, sin_d, idx, a_out, rss_out):
     """A and RSS of the N-step fit at the flat pixel indices ``idx`` (module docstring)."""
     n, h, w = images.shape

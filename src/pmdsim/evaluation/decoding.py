@@ -178,7 +178,7 @@ class ScreenCoordinates:
 # --------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _quality(sa, b, mx, check_saturation, max_value, dark_level, min_modulation, min_ratio):
     f = np.uint8(0)
     if sa < dark_level:
@@ -196,7 +196,7 @@ _MODE_COARSE = 1  # the coordinate from the coarsest period (first unwrapping le
 _MODE_REFINE = 2  # ``out`` holds the coordinate of the previous level and is refined
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _accumulate_row(images, v, w_a, w_c, w_s, sa, sc, ss, mx):
     """Row v: sa = Σ w_a I, sc = Σ w_c I, ss = Σ w_s I, mx = max I (image by image along the
     row: contiguous and vectorisable). The only part that depends on the image dtype."""
@@ -205,7 +205,7 @@ def _accumulate_row(images, v, w_a, w_c, w_s, sa, sc, ss, mx):
         _add_image_row(images[k, v], w_a[k], w_c[k], w_s[k], sa, sc, ss, mx)
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _clear_row_sums(sa, sc, ss, mx):
     """The row sums before the first image: 0, 0, 0 and −∞ (the maximum), each (W,)."""
     for u in range(sa.shape[0]):
@@ -215,7 +215,7 @@ def _clear_row_sums(sa, sc, ss, mx):
         mx[u] = -np.inf
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _add_image_row(row, ca, cc, cs, sa, sc, ss, mx):
     """One image's row (W,) into the row sums: sa += ca·I, sc += cc·I, ss += cs·I, mx = max."""
     for u in range(sa.shape[0]):
@@ -226,7 +226,7 @@ def _add_image_row(row, ca, cc, cs, sa, sc, ss, mx):
         mx[u] = max(mx[u], x)
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _modulation_phase_row(sc, ss):
     """Modulation B = √(c² + s²) and phase φ ∈ [0, 2π) in place of the row's B cos φ (``sc``)
     and B sin φ (``ss``), each (W,): a branch-free, vectorised loop."""
@@ -237,7 +237,7 @@ def _modulation_phase_row(sc, ss):
         ss[u] = _phase_0_2pi(bs, bc)
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_modulation,
                 min_ratio, mode, period, inv_period, origin, upper, tolerance, store, finish,
                 std_scale, noise, out, flags, modulation, offset, std, contrast, rev, rev_ratio):
@@ -289,7 +289,7 @@ def _finish_row(v, sa, sc, ss, mx, check_saturation, max_value, dark_level, min_
             out[v, u] = val
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _decode_kernel(images, w_a, w_c, w_s, check_saturation, max_value, dark_level,
                    min_modulation, min_ratio, mode, period, origin, upper, tolerance,
                    store, finish, std_scale, noise, out, flags, modulation, offset, std,

@@ -35,7 +35,7 @@ from .phase_flags import _NONFINITE, _UNWRAP_INCONSISTENT
 from .phase_noise import coordinate_std_scale
 from .unwrapping import REVERSAL_PHASE_TOLERANCE, _coarse_coord, _refine
 
-__all__ = ["ImageList", "as_image_list", "common_image_stack", "common_image_list", "decode_both_directions"]
+__all__ = ["ImageList", "as_image_list", "common_image_stack", "decode_both_directions"]
 
 
 class ImageList(list):
@@ -86,7 +86,7 @@ def as_image_list(images, name: str) -> ImageList:
     return ImageList(_as_image_stack(images, name))
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
     """``decoding._accumulate_row`` for images ``first`` … ``first + n − 1`` of the (N, H, W) array
     ``images`` and weights ``w_*[first:first + n]``: per pixel the same sums in the same order,
@@ -115,7 +115,7 @@ def _accumulate_images_row(images, first, n, v, w_a, w_c, w_s, sa, sc, ss, mx):
         k += 1
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _finish_level_row(sa, sc, ss, mx, coarse, last, check_saturation, max_value, dark_level, min_modulation,
                       min_ratio, period, origin, upper, tolerance, rev_ratio, std_scale, noise_row, coord, f_row,
                       contrast, rev, mod, off, sd):
@@ -164,7 +164,7 @@ def _finish_level_row(sa, sc, ss, mx, coarse, last, check_saturation, max_value,
             coord[u] = val
 
 
-@numba.njit(cache=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _decode_row(images, v, level_start, level_period, dir_level, origin, upper, std_scale, w_a, w_c, w_s,
                 check_saturation, max_value, dark_level, min_modulation, min_ratio, tolerance, rev_ratio,
                 noise, xy, flags, std, modulation, offset, valid, rev):
@@ -208,7 +208,7 @@ def _decode_row(images, v, level_start, level_period, dir_level, origin, upper, 
                 std[v, u, d] = np.nan
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
+@numba.njit(parallel=True, cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _fused_kernel(images, level_start, level_period, dir_level, origin, upper, std_scale, w_a, w_c, w_s,
                   check_saturation, max_value, dark_level, min_modulation, min_ratio, tolerance, rev_ratio,
                   noise, xy, flags, std, modulation, offset, valid, rev):
@@ -272,10 +272,6 @@ def common_image_stack(images) -> np.ndarray:
     view = _consecutive_view(images)
     return view if view is not None else readonly(np.stack(images))
 
-
-#: The name :mod:`pmdsim.evaluation.consistency_levels` imports (its kernel indexes
-#: ``images[k][v]``: an (N, H, W) array as it was a list of (H, W) images).
-common_image_list = common_image_stack
 
 
 def decode_both_directions(preps, check_saturation: bool) -> ScreenCoordinates:

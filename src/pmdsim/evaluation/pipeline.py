@@ -35,7 +35,7 @@ def decode_images(setup: Setup, images: dict, *, response=None) -> ScreenCoordin
         return decode_images_imaging(setup, images, response=response)
     seq = setup.patterns.sequence
     full = float(2**setup.patterns.bit_depth - 1)
-    # the per-image lists as they are: the decoder reads the images in place (no np.stack copy)
+    # the per-image lists as they are: the decoder takes a view where they already lie in one array, else stacks them once
     xs = [images[("x", p)] for p in seq.periods_x_mm]
     ys = [images[("y", p)] for p in seq.periods_y_mm]
     noise = np.hypot(setup.patterns.noise_std, 1.0 / np.sqrt(12.0))
