@@ -183,3 +183,25 @@ def test_evaluation_file_camera_by_camera_keeps_the_documented_order(tmp_path):
             assert list(f[c].attrs) == sorted(["method", "seed_pixel", "converged", "iterations"])
             np.testing.assert_array_equal(f[c]["screen_xy_mm"][()], d.screen_xy_mm)
             np.testing.assert_array_equal(f[c]["height_std_um"][()], extras[c]["height_std_um"])
+
+
+@pytest.mark.parametrize("name, value", [("PMDSIM_CAMERA_THREADS", "one"), ("PMDSIM_CAMERA_THREADS", "3"),
+                                         ("PMDSIM_CAMERA_OVERLAP", "ful")])
+def test_unknown_environment_value_is_one_line_naming_it(tmp_path, monkeypatch, name, value):
+    """A typo in either variable is refused with one line naming the variable, the value and the
+    choices — not silently run as the default — and nothing is written."""
+    from pmdsim.errors import InputError
+    from pmdsim.setup import default_setup
+    from pmdsim.studies.jobs import evaluate_image_set, simulate_to_dir
+
+    setup = default_setup().binned(32)
+    simulate_to_dir(setup, tmp_path / "img")
+    monkeypatch.delenv(ec.CAMERA_THREADS_ENV, raising=False)
+    monkeypatch.setenv(name, value)
+    with pytest.raises(InputError) as e:
+        evaluate_image_set(tmp_path / "img", setup, tmp_path / "ev", progress=None)
+    msg = str(e.value)
+    assert name in msg and repr(value) in msg and "expected one of" in msg and "\n" not in msg
+    assert not (tmp_path / "ev").exists()
+    monkeypatch.setenv(name, "")  # empty = unset: the default
+    assert ec._env_choice(name, ("a", "b")) == "a"

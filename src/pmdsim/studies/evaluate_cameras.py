@@ -25,7 +25,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, ContextManager, Iterator, Sequence
 
-from ..errors import PmdsimError
+from ..errors import InputError, PmdsimError
 
 __all__ = ["CameraResult", "CameraCancelled", "evaluate_camera", "camera_results", "concurrent_cameras",
            "THREAD_SAFE_LAYERS", "CAMERA_THREADS_ENV", "CAMERA_OVERLAP_ENV", "STAGES"]
@@ -42,6 +42,22 @@ CAMERA_OVERLAP_ENV = "PMDSIM_CAMERA_OVERLAP"
 #: The stages of :func:`evaluate_camera`, each entered by one camera at a time when overlapped
 #: by stage: reading + decoding + checks, registration + reconstruction, σ.
 STAGES = ("decode", "reconstruct", "sigma")
+
+
+def _env_choice(name: str, allowed: tuple[str, ...]) -> str:
+    """The value of environment variable ``name`` (stripped; unset or empty: ``allowed[0]``).
+
+    Raises
+    ------
+    InputError
+        A value not in ``allowed`` (a typo would otherwise silently run the default)."""
+    value = os.environ.get(name, "").strip()
+    if value == "":
+        return allowed[0]
+    if value not in allowed:
+        raise InputError(f"environment variable {name}={value!r}: expected one of {', '.join(allowed)} "
+                         f"(unset: {allowed[0]})")
+    return value
 
 
 class CameraCancelled(Exception):
@@ -145,7 +161,7 @@ def concurrent_cameras(n_cameras: int) -> bool:
     off (:data:`CAMERA_THREADS_ENV` = 1) and numba's threading layer thread-safe
     (:data:`THREAD_SAFE_LAYERS`; the layer is loaded here if no parallel kernel ran yet). Any
     other layer, or one that cannot be loaded: False (serial, never an abort)."""
-    if n_cameras < 2 or os.environ.get(CAMERA_THREADS_ENV, "").strip() == "1":
+    if _env_choice(CAMERA_THREADS_ENV, ("2", "1")) == "1" or n_cameras < 2:
         return False
     try:
         import numba
@@ -176,7 +192,7 @@ def camera_results(cameras: Sequence[str], work: Callable[..., CameraResult], *,
         for cam in cameras:
             yield work(cam, stop=stop, stage=lambda name: contextlib.nullcontext())
         return
-    gate = _Gates(full=os.environ.get(CAMERA_OVERLAP_ENV, "stages").strip() == "full")
+    gate = _Gates(full=_env_choice(CAMERA_OVERLAP_ENV, ("stages", "full")) == "full")
     pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="pmdsim-camera")
     try:
         futures: list[Future] = []
