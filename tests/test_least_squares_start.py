@@ -70,3 +70,14 @@ def test_loose_update_never_decides_convergence(noisy_plane):
         # a loosely solved first update is followed by a tight one (with max_iter 1 it is tight)
         assert (it, converged) == (iterations, True) and change < 0.1 * TOL_MM
         assert np.nanmax(np.abs(z - rec.height_mm)) < 0.1 * TOL_MM
+
+
+def test_every_second_is_numpys_slice():
+    rng = np.random.default_rng(2)
+    for shape in ((7, 9, 3), (8, 10, 3), (5, 4, 3)):
+        x = rng.standard_normal(shape)
+        for a in (0, 1):
+            for b in (0, 1):
+                for src in (x, np.asfortranarray(x)):
+                    r = LS._every_second(src, a, b)
+                    assert r.flags.c_contiguous and np.array_equal(r, x[a::2, b::2])

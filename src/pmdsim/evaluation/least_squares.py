@@ -423,6 +423,16 @@ def _coarse_mask(S, seed):
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
 
 
+def _every_second(x, a, b):
+    """x[a::2, b::2] of x (H, W, 3) as a C-contiguous copy. The pixels are copied as items of
+    three elements (numpy copies three strided doubles per pixel ≈ 1.8× slower: 4.6 → 2.6 ms
+    for the full frame's view rays); the same bytes."""
+    if x.flags.c_contiguous and x.ndim == 3:
+        v = x.view(np.dtype((np.void, x.shape[2] * x.itemsize)))[a::2, b::2]
+        return np.ascontiguousarray(v).view(x.dtype).reshape(v.shape[0], v.shape[1], x.shape[2])
+    return np.ascontiguousarray(x[a::2, b::2])
+
+
 def _starts_coarse(S) -> bool:
     """Whether the Gauss–Newton iteration on the pixels S (H, W) starts coarse to fine
     (:func:`_start_heights`)."""
@@ -450,8 +460,8 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter, fields=None):
     z = None
     if _starts_coarse(S):
         a, b, Sc, sc = _coarse_mask(S, seed)
-        dc = np.ascontiguousarray(d[a::2, b::2])
-        qc = np.ascontiguousarray(q[a::2, b::2])
+        dc = _every_second(d, a, b)
+        qc = _every_second(q, a, b)
         tol_c = max(tol, _COARSE_TOL_MM)
         try:
             zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter, fields)
