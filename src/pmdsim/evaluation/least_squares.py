@@ -564,7 +564,8 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     Reconstruction
         ``iterations`` is the number of outer iterations on the full grid, ``converged``
         whether the last one changed no height by ``tol_mm`` or more (with its sparse solve
-        converged).
+        converged to ``tol_mm``/10: after the coarse-to-fine start the loosely solved first
+        update never counts, so such a run has at least 2 iterations if ``max_iter`` > 1).
 
     Raises
     ------
