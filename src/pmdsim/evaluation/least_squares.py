@@ -49,6 +49,22 @@ _COARSE_START_MIN_PIXELS = 50_000
 _COARSE_TOL_MM = 1e-3
 
 
+#: The updates on the coarse levels of the start are solved to this fraction of
+#: :data:`_COARSE_TOL_MM` (3e-5 mm; see :func:`_gauss_newton`): well below the coarse–fine
+#: discrepancy that sets the start's error (≈ 1.1e-4 mm on Table 1). 0.01 took one more CG
+#: iteration per level for a start only 6 % closer, which saved nothing on the full grid
+#: (docs/benchmarks.md, "Full-grid iterations (start25h)").
+_COARSE_ATOL_FRAC = 0.03
+
+
+#: The first full-grid update after the coarse-to-fine start is solved only to this fraction of
+#: the convergence tolerance (the later ones to :data:`_INNER_CAP`): it is ≈ 1e-4 mm, far above
+#: the tolerance, so it never decides convergence, and the update that follows — solved to
+#: ``tol``/10 — removes its error along with the second-order remainder (see
+#: :func:`_gauss_newton`). Table 1: 6 instead of 7 CG iterations, the same checking update.
+_FIRST_UPDATE_FRAC = 0.2
+
+
 #: Row blocks of :func:`_assemble_gauss_newton` (a constant, so that the result does not
 #: depend on the number of threads).
 _ASSEMBLY_BLOCKS = 16
@@ -314,7 +330,7 @@ class _Fields:
         return buf[:n].reshape(shape)
 
 
-def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=None):
+def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=None, first_frac=None):
     """Gauss–Newton iterations of the least-squares integration on the pixels S (H, W),
     updating the heights z (H, W) in place, until the largest update is below ``tol`` (its
     linear solve having converged) or after ``max_iter`` iterations. Returns (iterations,
@@ -326,11 +342,20 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=Non
     (checking) update is below ``tol`` — with a good start (see :func:`_start_heights`) one
     full solve and one cheap checking solve suffice —, and relatively to 1e-4 when that is
     finer, but never below ``atol_frac · tol``, the accuracy to which the last update is
-    known when it is compared with ``tol``: ``tol/100`` on the coarse levels of the start
-    (whose result must be accurate to start the next level well), ``tol/10`` on the full grid
+    known when it is compared with ``tol``: ``tol`` · :data:`_COARSE_ATOL_FRAC` on the coarse
+    levels of the start (whose result must be accurate to start the next level well),
+    ``tol/10`` on the full grid
     (:func:`reconstruct_least_squares`: the result is that accurate; the checking update is
     then typically solved in one iteration instead of three). ``fields`` (:class:`_Fields`)
-    provides the work arrays (a new one if not given)."""
+    provides the work arrays (a new one if not given).
+
+    ``first_frac`` (with ``max_iter`` > 1): the first update is solved only until its estimated
+    error is below ``first_frac · tol``, and it never decides convergence (if it is below
+    ``tol``, one more update follows). The update that follows is linear in that error
+    (δ₂ = −e₁ + O(|δ₁|²)), so it removes it with the second-order remainder, and it is solved
+    to the usual accuracy: the result is as accurate as with every update solved to
+    ``atol_frac · tol``, and the first solve saves its last CG iteration or two. Meant for
+    a start whose first update is far above ``tol`` (the coarse-to-fine start: ≈ 1e-4 mm)."""
     H, W = S.shape
     if fields is None:
         fields = _Fields((H + 2) * (W + 2))
@@ -347,19 +372,20 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=Non
     it = 0
     for it in range(1, max_iter + 1):
         _assemble_gauss_newton(o, d, q, S, z, seed[0], seed[1], D, iD, Ex, Ey, rhs)
+        loose = first_frac is not None and it == 1 and max_iter > 1
+        atol, cap = (first_frac * tol, first_frac * tol) if loose else (atol_frac * tol, _INNER_CAP * tol)
         if lap is not None:  # a full frame: CG preconditioned by the DCT (poisson.py)
-            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
-                                       cap=_INNER_CAP * tol, lap=lap, work=work)
+            X, _, ok = poisson.dct_pcg(D, Ex, Ey, rhs[None], seed, atol, _INNER_RTOL, _INNER_MAX_ITER,
+                                       cap=cap, lap=lap, work=work)
             delta, solved = X[0], bool(ok[0])
         else:
-            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol_frac * tol, _INNER_RTOL, _INNER_MAX_ITER,
-                                    cap=_INNER_CAP * tol, work=work)
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol, _INNER_RTOL, _INNER_MAX_ITER, cap=cap, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
             raise ReconstructionError(
                 "the least-squares iteration diverged (non-finite heights); check that q and d are "
                 "consistent (q must be the screen points seen via the surface along d)")
-        if change < tol and solved:  # a partial update proves nothing
+        if change < tol and solved and not loose:  # a partial or loosely solved update proves nothing
             converged = True
             break
     return it, converged, change
@@ -389,10 +415,28 @@ def _coarse_mask(S, seed):
         Sc[sc[0], sc[1] + 1] = False
     if sc[0] + 1 < Hc and not down[sc]:
         Sc[sc[0] + 1, sc[1]] = False
+    if Sc.all():  # one component (a full frame): no labelling needed
+        return a, b, Sc, sc
     from scipy import ndimage  # here, not at import: not on evaluate's start-up path
 
     labels, _ = ndimage.label(Sc)  # 4-connectivity
     return a, b, np.ascontiguousarray(labels == labels[sc]), sc
+
+
+def _every_second(x, a, b):
+    """x[a::2, b::2] of x (H, W, 3) as a C-contiguous copy. The pixels are copied as items of
+    three elements (numpy copies three strided doubles per pixel ≈ 1.8× slower: 4.6 → 2.6 ms
+    for the full frame's view rays); the same bytes."""
+    if x.flags.c_contiguous and x.ndim == 3:
+        v = x.view(np.dtype((np.void, x.shape[2] * x.itemsize)))[a::2, b::2]
+        return np.ascontiguousarray(v).view(x.dtype).reshape(v.shape[0], v.shape[1], x.shape[2])
+    return np.ascontiguousarray(x[a::2, b::2])
+
+
+def _starts_coarse(S) -> bool:
+    """Whether the Gauss–Newton iteration on the pixels S (H, W) starts coarse to fine
+    (:func:`_start_heights`)."""
+    return int(np.count_nonzero(S)) >= _COARSE_START_MIN_PIXELS and min(S.shape) >= 4
 
 
 def _start_heights(o, d, q, S, seed, z0, tol, max_iter, fields=None):
@@ -414,26 +458,26 @@ def _start_heights(o, d, q, S, seed, z0, tol, max_iter, fields=None):
     if fields is None:
         fields = _Fields((H + 2) * (W + 2))
     z = None
-    if int(np.count_nonzero(S)) >= _COARSE_START_MIN_PIXELS and min(H, W) >= 4:
+    if _starts_coarse(S):
         a, b, Sc, sc = _coarse_mask(S, seed)
-        dc = np.ascontiguousarray(d[a::2, b::2])
-        qc = np.ascontiguousarray(q[a::2, b::2])
+        dc = _every_second(d, a, b)
+        qc = _every_second(q, a, b)
         tol_c = max(tol, _COARSE_TOL_MM)
         try:
             zc = _start_heights(o, dc, qc, Sc, sc, z0, tol_c, max_iter, fields)
-            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter, fields=fields)
+            _gauss_newton(o, dc, qc, Sc, sc, zc, tol_c, max_iter, atol_frac=_COARSE_ATOL_FRAC, fields=fields)
         except ReconstructionError:
             zc = None  # fall back to the stepwise start
         if zc is not None:
             z = np.full((H, W), np.nan)
-            z[a::2, b::2] = np.where(Sc, zc, np.nan)
+            z[a::2, b::2] = zc  # NaN off Sc ⊂ S (as returned below; the updates change only unknowns)
             if _interpolate_coarse(S, z, a, b) > 0:
                 _fill_kernel(o, d, q, S, z, max(tol, 1e-9), STEP_MAX_ITER, _NB_DV, _NB_DU)
     if z is None:
         # The stepwise solution is only a start: its correctors need not converge far below
         # the final tolerance.
         z, _, _, _, _ = _run_stepwise(o, d, q, S, seed, z0, tol=max(tol, 1e-9))
-    z = np.where(S, z, np.nan)
+        z = np.where(S, z, np.nan)  # (the coarse start writes only pixels of S)
     z[S & ~np.isfinite(z)] = z0
     z[seed] = z0
     return z
@@ -489,8 +533,11 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     inverse of the Neumann Laplacian instead (:func:`pmdsim.evaluation.poisson.prefers_dct`;
     the same result, fewer iterations). Each update on the full grid is solved until its
     estimated error is below ``tol_mm``/10 (on the coarse levels of the start: or 1e-4
-    relative, if finer, but not below a hundredth of their tolerance), so that the update that
-    follows, which decides convergence, and the result are accurate to a tenth of ``tol_mm``.
+    relative, if finer, but not below 3 % of their tolerance), so that the update that
+    follows, which decides convergence, and the result are accurate to a tenth of ``tol_mm``;
+    after the coarse-to-fine start the first full-grid update (≈ 1e-4 mm) is solved only to
+    ``tol_mm``/5 and never decides convergence — the checking update removes its error
+    (:func:`_gauss_newton`, ``first_frac``).
 
     Parameters
     ----------
@@ -517,7 +564,8 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
     Reconstruction
         ``iterations`` is the number of outer iterations on the full grid, ``converged``
         whether the last one changed no height by ``tol_mm`` or more (with its sparse solve
-        converged).
+        converged to ``tol_mm``/10: after the coarse-to-fine start the loosely solved first
+        update never counts, so such a run has at least 2 iterations if ``max_iter`` > 1).
 
     Raises
     ------
@@ -552,11 +600,13 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
 
     fields = _Fields((H + 2) * (W + 2))  # the work arrays of every level
     z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, fields)
-    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields)
+    first = _FIRST_UPDATE_FRAC if _starts_coarse(S) else None
+    it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields,
+                                          first_frac=first)
     del fields
 
     recon = S & np.isfinite(z)
-    z = np.where(recon, z, np.nan)
+    z[~recon] = np.nan  # z is this call's own array
     pts, nrm = _points_and_normals(o, d, q, z)
     return Reconstruction(
         height_mm=z,
