@@ -193,8 +193,8 @@ def _substitute_columns(x, im, tail, cut, u0, u1):
 
 @numba.njit(cache=True, parallel=True)
 def _direction_matvec(D, Ex, Ey, Z, P, AP, beta, X, alpha):
-    """X += αP (the previous iteration's step, deferred to this pass, which reads P anyway),
-    then P = Z + βP and AP = N P as N Z + β·AP (N P_old is AP already: one pass, no row
+    """X += αP (the previous iteration's step, deferred to this pass, which reads P anyway;
+    skipped for α = 0, the first pass, as adding 0·P leaves X unchanged), then P = Z + βP and AP = N P as N Z + β·AP (N P_old is AP already: one pass, no row
     dependencies between threads); returns P·AP. Padded (H + 2, W + 2) fields."""
     Hp, Wp = D.shape
     s = 0.0
@@ -204,7 +204,8 @@ def _direction_matvec(D, Ex, Ey, Z, P, AP, beta, X, alpha):
             y = (D[w, u] * Z[w, u] - Ex[w, u - 1] * Z[w, u - 1] - Ex[w, u] * Z[w, u + 1]
                  - Ey[w - 1, u] * Z[w - 1, u] - Ey[w, u] * Z[w + 1, u])
             q = P[w, u]
-            X[w, u] += alpha * q
+            if alpha != 0.0:  # loop-invariant (unswitched): no X traffic on a solve's first pass
+                X[w, u] += alpha * q
             p = Z[w, u] + beta * q
             a = y + beta * AP[w, u]
             P[w, u] = p
