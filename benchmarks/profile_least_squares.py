@@ -8,7 +8,10 @@ Table 1, left camera, Δh = 3 mm, 1920×1200 (the frame ``bench_kernel_floors.py
 assembly of the normal equations, every preconditioned CG solve (with its iterations), every
 Gauss–Newton loop and coarse-to-fine start level, the final points and normals — and prints
 each call's CPU (process) time for the last of ``--repeat`` runs (the first one warms up),
-per grid level, with the run's total and the 1-minute load average.
+per grid level, with the run's total and the 1-minute load average. With ``--cg-kernels``, each
+``dct_pcg`` line is followed by its passes' CPU time and call counts (the transforms
+``scipy.fft.dct``/``idct``, the column substitutions, the scatter, direction/product, update
+and start passes, the final step; the rest is Python glue).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--cg-kernels", action="store_true", help="per dct_pcg call, its passes' CPU time")
     a = ap.parse_args()
     from pmdsim.evaluation import least_squares as LS
     from pmdsim.evaluation import poisson as P
@@ -43,6 +47,20 @@ def main() -> None:
     numba.set_num_threads(a.threads)
 
     log = []
+    passes: dict = {}  # name → [CPU s, calls] within the current dct_pcg call
+
+    def wrap_pass(owner, name):
+        fn = getattr(owner, name)
+
+        def timed(*args, **kw):
+            c = time.process_time()
+            out = fn(*args, **kw)
+            acc = passes.setdefault(name, [0.0, 0])
+            acc[0] += time.process_time() - c
+            acc[1] += 1
+            return out
+
+        setattr(owner, name, timed)
 
     def wrap(mod, name):
         fn = getattr(mod, name)
@@ -58,6 +76,11 @@ def main() -> None:
             elif name == "_gauss_newton":
                 extra = f" Gauss–Newton iterations {out[0]}, last update {out[2]:.2e} mm"
             log.append(f"{name:24s} {str(shape):14s} {dt * 1e3:7.1f} ms{extra}")
+            if name == "dct_pcg" and passes:
+                log.extend(f"    {k:22s} {v[0] * 1e3:7.1f} ms in {v[1]} calls"
+                           for k, v in sorted(passes.items(), key=lambda kv: -kv[1][0]))
+                log.append(f"    {'(rest: np.sum, D > 0, glue)':22s} {(dt - sum(v[0] for v in passes.values())) * 1e3:7.1f} ms")
+            passes.clear()
             return out
 
         setattr(mod, name, timed)
@@ -65,6 +88,15 @@ def main() -> None:
     for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_and_normals", "_start_heights",
                  "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
         wrap(LS, name)
+    if a.cg_kernels:
+        import scipy.fft
+
+        for name in ("dct", "idct"):
+            wrap_pass(scipy.fft, name)
+        for name in ("_start_fields", "_scatter_dot_max", "_direction_matvec", "_update_gather", "_finish_step",
+                     "_column_substitution"):  # the kernels dct_pcg calls from Python (not nested ones)
+            if hasattr(P, name):  # (an older tree may lack one)
+                wrap_pass(P, name)
     wrap(P, "dct_pcg")
     for r in range(a.repeat):
         log.clear()
