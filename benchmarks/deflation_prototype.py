@@ -279,10 +279,11 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
             return X, its, True
         if its >= max_iter:
             return X, its, False
-        pAp = _direction_matvec(D, Ex, Ey, ZD, P, AP, beta)
+        pAp = _direction_matvec(D, Ex, Ey, ZD, P, AP, beta, X, 0.0)  # X's step applied below
         if not (pAp > 0.0 and rz > 0.0):  # breakdown (round-off at convergence)
             return X, its, False
-        total = _update_gather(X, R, P, AP, rz / pAp, buf)
+        X += (rz / pAp) * P
+        total = _update_gather(R, AP, rz / pAp, buf)
         its += 1
         rz_old = rz
         rz, zmax = precondition(total)

@@ -10,7 +10,10 @@ Gauss–Newton loop and coarse-to-fine start level, the final points and normals
 each call's CPU (process) time for the last of ``--repeat`` runs (the first one warms up),
 per grid level, with the run's total and the 1-minute load average, and the error of the
 full grid's coarse-to-fine start against the result (max and median |z_start − z|, mm: what the
-full-grid Gauss–Newton iterations have to remove).
+full-grid Gauss–Newton iterations have to remove). With ``--cg-kernels``, each
+``dct_pcg`` line is followed by its passes' CPU time and call counts (the transforms
+``scipy.fft.dct``/``idct``, the column substitutions, the scatter, direction/product, update
+and start passes, the final step; the rest is Python glue).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--cg-kernels", action="store_true", help="per dct_pcg call, its passes' CPU time")
     a = ap.parse_args()
     from pmdsim.evaluation import least_squares as LS
     from pmdsim.evaluation import poisson as P
@@ -46,6 +50,20 @@ def main() -> None:
 
     log = []
     starts = {}  # the start heights per grid shape (the last run's)
+    passes: dict = {}  # name → [CPU s, calls] within the current dct_pcg call
+
+    def wrap_pass(owner, name):
+        fn = getattr(owner, name)
+
+        def timed(*args, **kw):
+            c = time.process_time()
+            out = fn(*args, **kw)
+            acc = passes.setdefault(name, [0.0, 0])
+            acc[0] += time.process_time() - c
+            acc[1] += 1
+            return out
+
+        setattr(owner, name, timed)
 
     def wrap(mod, name):
         fn = getattr(mod, name)
@@ -63,6 +81,11 @@ def main() -> None:
             elif name == "_gauss_newton":
                 extra = f" Gauss–Newton iterations {out[0]}, last update {out[2]:.2e} mm"
             log.append(f"{name:24s} {str(shape):14s} {dt * 1e3:7.1f} ms{extra}")
+            if name == "dct_pcg" and passes:
+                log.extend(f"    {k:22s} {v[0] * 1e3:7.1f} ms in {v[1]} calls"
+                           for k, v in sorted(passes.items(), key=lambda kv: -kv[1][0]))
+                log.append(f"    {'(rest: np.sum, D > 0, glue)':22s} {(dt - sum(v[0] for v in passes.values())) * 1e3:7.1f} ms")
+            passes.clear()
             return out
 
         setattr(mod, name, timed)
@@ -70,6 +93,15 @@ def main() -> None:
     for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_and_normals", "_start_heights",
                  "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
         wrap(LS, name)
+    if a.cg_kernels:
+        import scipy.fft
+
+        for name in ("dct", "idct"):
+            wrap_pass(scipy.fft, name)
+        for name in ("_start_fields", "_scatter_dot_max", "_direction_matvec", "_update_gather", "_finish_step",
+                     "_column_substitution"):  # the kernels dct_pcg calls from Python (not nested ones)
+            if hasattr(P, name):  # (an older tree may lack one)
+                wrap_pass(P, name)
     wrap(P, "dct_pcg")
     for r in range(a.repeat):
         log.clear()

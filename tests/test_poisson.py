@@ -172,3 +172,44 @@ def test_least_squares_integration_with_the_dct_preconditioner(monkeypatch):
         runs[kind] = rec.height_mm
     assert dec.valid.all() and np.isfinite(runs["dct"]).all()
     assert np.max(np.abs(runs["dct"] - runs["multigrid"])) < 1e-9
+
+
+def test_dct_pivots_converged_tail_and_parallel_transforms():
+    """The inverse pivots per column converge to a limit that ``pivot_tail`` holds: right of
+    ``pivot_cut[v]`` every stored value equals it (the substitution reads only the tail
+    there), the limit is most of the array on a large grid, and the solve with the
+    transforms split between two scipy.fft workers equals the one-worker solve bit for bit
+    (the default follows numba's thread count)."""
+    rng = np.random.default_rng(7)
+    for H, W in ((1, 6), (2, 5), (240, 384)):
+        for dtype in (np.float32, np.float64):
+            lap = DCTLaplacian((H, W), (0, 0), dtype=dtype)
+            im, tail, cut = lap.inv_pivots, lap.pivot_tail, lap.pivot_cut
+            assert cut[-1] == W and np.array_equal(tail, im[max(H - 2, 0)])
+            assert all(np.array_equal(im[v, cut[v]:], tail[cut[v]:]) for v in range(H))
+    assert cut.sum() < 0.2 * H * W  # (240, 384), float64: the stored part is small
+    b = rng.standard_normal((240, 384))
+    one = DCTLaplacian((240, 384), (100, 200), dtype=np.float32, workers=1).solve(b)
+    two = DCTLaplacian((240, 384), (100, 200), dtype=np.float32, workers=2).solve(b)
+    assert np.array_equal(one, two)
+
+
+def test_dct_pcg_stopped_by_max_iter_keeps_its_last_step():
+    """With ``max_iter`` = 1 (not converged) X is CG's first step α z, z = M⁻¹ b the
+    preconditioned right-hand side and α = (b·z)/(z·N z), N the sparse operator: the step
+    X += αP deferred to the next pass over P is applied when the solve stops (without it X
+    would be 0). z here is the double-precision DCT solve, the solver's single-precision
+    one agrees to ≈ 1e-7 (relative)."""
+    rng = np.random.default_rng(9)
+    H, W, seed = 30, 44, (12, 5)
+    D, Ex, Ey = _laplacian(np.ones((H, W), bool), seed, weights=0.05, rng=rng)
+    A, unk = _sparse(D, Ex, Ey)
+    B = np.zeros((1, H + 2, W + 2))
+    B[0, 1:-1, 1:-1] = rng.standard_normal((H, W))
+    B[0, D == 0] = 0.0
+    X, its, conv = dct_pcg(D, Ex, Ey, B, seed, 0.0, 1e-13, 1)
+    assert its[0] == 1 and not conv[0]
+    z = DCTLaplacian((H, W), seed).solve(B[0, 1:-1, 1:-1]).ravel()[unk]
+    b = B[0, 1:-1, 1:-1].ravel()[unk]
+    ref = (b @ z) / (z @ (A @ z)) * z
+    assert np.max(np.abs(X[0, 1:-1, 1:-1].ravel()[unk] - ref)) < 1e-6 * np.max(np.abs(ref))

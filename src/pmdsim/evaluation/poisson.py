@@ -70,18 +70,22 @@ class DCTLaplacian:
         float32 (the transforms and substitutions in single precision: about 2× faster,
         relative error ≈ 4e-7, as the 2-D transforms in single precision; for
         preconditioning).
-    workers : int
-        scipy.fft workers.
+    workers : int, optional
+        scipy.fft workers; default: numba's thread count at each :meth:`solve`
+        (``numba.get_num_threads()``; the rows' transforms split between the threads give the
+        same values as on one).
     """
 
-    def __init__(self, shape, pinned, dtype=np.float64, workers: int = 1):
+    def __init__(self, shape, pinned, dtype=np.float64, workers=None):
         H, W = (int(n) for n in shape)
         self.shape = (H, W)
         self.pinned = (int(pinned[0]), int(pinned[1]))
         self.dtype = np.dtype(dtype)
-        self.workers = int(workers)
+        self.workers = None if workers is None else int(workers)
         self.inv_pivots = np.empty((H, W), dtype=self.dtype)
-        _column_pivots(self.inv_pivots)
+        self.pivot_tail = np.empty(W, dtype=self.dtype)
+        self.pivot_cut = np.empty(H, dtype=np.int64)
+        _column_pivots(self.inv_pivots, self.pivot_tail, self.pivot_cut)
 
     def solve(self, r, overwrite: bool = False, totals=None, pin: bool = True) -> np.ndarray:
         """x = L_s⁻¹ r for r (H, W) or (k, H, W) (r at the pinned pixel is ignored; x is 0
@@ -97,59 +101,100 @@ class DCTLaplacian:
         x[..., sv, su] = -np.asarray(totals)  # a consistent right-hand side: Σ = 0
         import scipy.fft  # here, not at import: not on evaluate's start-up path
 
-        f = np.ascontiguousarray(scipy.fft.dct(x, type=2, norm="ortho", axis=-1, workers=self.workers,
-                                               overwrite_x=True))
-        _column_substitution(f.reshape((-1,) + self.shape), self.inv_pivots, numba.get_num_threads())
-        y = scipy.fft.idct(f, type=2, norm="ortho", axis=-1, workers=self.workers, overwrite_x=True)
+        threads = numba.get_num_threads()
+        workers = threads if self.workers is None else self.workers
+        f = np.ascontiguousarray(scipy.fft.dct(x, type=2, norm="ortho", axis=-1, workers=workers, overwrite_x=True))
+        _column_substitution(f.reshape((-1,) + self.shape), self.inv_pivots, self.pivot_tail, self.pivot_cut, threads)
+        y = scipy.fft.idct(f, type=2, norm="ortho", axis=-1, workers=workers, overwrite_x=True)
         if pin:
             y -= y[..., sv, su][..., None, None]
         return y
 
 
 @numba.njit(cache=True)
-def _column_pivots(im):
+def _column_pivots(im, tail, cut):
     """1/m (H, W), m the pivots of the LU factorisation of L_H + μ_k I per row frequency k
     (column k): m_0 = 1 + μ_k, m_v = 2 + μ_k − 1/m_{v−1}, the last row 1 + μ_k − 1/m_{H−2}
     (Neumann ends; H = 1: μ_k). For k = 0 the last pivot is 0 (L_H is singular, its null space
     the constants): 1/m is set to 0 there, which picks the solution with y_{H−1} = 0 of the
-    consistent system. Written to ``im`` (H, W) (float32 or float64; computed in float64)."""
+    consistent system. Written to ``im`` (H, W) (float32 or float64; computed in float64).
+
+    The recurrence converges to its fixed point within a few rows except for the smallest
+    frequencies (at 1920×1200 in float32, 1.6 % of the values differ from their column's
+    limit): ``tail`` (W,) receives row H − 2 (row 0 if H = 1), and ``cut`` (H,) the column
+    bound per row: in row v < H − 1, every column u ≥ cut[v] holds tail[u] exactly (as
+    stored); cut[H − 1] = W (:func:`_column_substitution` reads ``im`` only left of it)."""
     H, W = im.shape
     mu = 2.0 - 2.0 * np.cos(np.pi * np.arange(W) / W)
     prev = np.zeros(W)
+    last = np.zeros(W, dtype=np.int64)  # per column: the first row of the run equal to row H − 2
     for v in range(H):  # rows outer: the columns' recurrences are independent (vectorised)
         c = 0.0 if H == 1 else (1.0 if v == 0 or v == H - 1 else 2.0)
         for u in range(W):
             m = mu[u] + c - prev[u]
             prev[u] = 1.0 / m if m != 0.0 else 0.0
             im[v, u] = prev[u]
+            if 0 < v < H - 1 and im[v, u] != im[v - 1, u]:
+                last[u] = v
     im[H - 1, 0] = 0.0
+    tail[:] = im[max(H - 2, 0)]
+    cut[:] = 0
+    for u in range(W):  # cut[v] = 1 + the largest u with last[u] > v
+        if last[u] > 0:
+            cut[last[u] - 1] = u + 1
+    for v in range(H - 2, -1, -1):
+        cut[v] = max(cut[v], cut[v + 1])
+    cut[H - 1] = W
 
 
 @numba.njit(cache=True, parallel=True)
-def _column_substitution(f, im, n_chunks):
+def _column_substitution(f, im, tail, cut, n_chunks):
     """In place, f (k, H, W) → y with (L_H + μ_j I) y[:, :, j] = f[:, :, j] for every column
-    j (pivots im of :func:`_column_pivots`): forward, g_v = (f_v + g_{v−1})/m_v, then back,
-    y_v = g_v + y_{v+1}/m_v, row by row (the inner loop along the contiguous columns
-    vectorises); the columns split into ``n_chunks`` blocks per field run in parallel."""
+    j (pivots of :func:`_column_pivots`; :func:`_substitute_columns`); the columns split into
+    ``n_chunks`` blocks per field run in parallel."""
     K, H, W = f.shape
     cw = (W + n_chunks - 1) // n_chunks
     for t in numba.prange(0, K * n_chunks):
-        x = f[t // n_chunks]
         u0 = (t % n_chunks) * cw
-        u1 = min(W, u0 + cw)
-        for u in range(u0, u1):
-            x[0, u] = x[0, u] * im[0, u]
-        for v in range(1, H):
-            for u in range(u0, u1):
-                x[v, u] = (x[v, u] + x[v - 1, u]) * im[v, u]
-        for v in range(H - 2, -1, -1):
-            for u in range(u0, u1):
-                x[v, u] = x[v, u] + x[v + 1, u] * im[v, u]
+        _substitute_columns(f[t // n_chunks], im, tail, cut, u0, min(W, u0 + cw))
+
+
+@numba.njit(cache=True)
+def _substitute_columns(x, im, tail, cut, u0, u1):
+    """Columns u0 ≤ u < u1 of x (H, W), in place: forward, g_v = (f_v + g_{v−1})/m_v, then
+    back, y_v = g_v + y_{v+1}/m_v, row by row, the inverse pivots 1/m read as im[v, u] left of
+    cut[v] and as tail[u] (the same value) right of it: ``im`` is read only where the
+    recurrence has not converged. The loops run over row slices from 0 (outside a parallel
+    loop's body, with indices known to be non-negative, they vectorise: 5× faster than the
+    same loops indexed from u0 in the body of the prange)."""
+    H = x.shape[0]
+    for v in range(H):
+        c = min(max(cut[v], u0), u1)
+        xa, ia, xb, tb = x[v, u0:c], im[v, u0:c], x[v, c:u1], tail[c:u1]
+        if v == 0:
+            for j in range(0, xa.size):
+                xa[j] = xa[j] * ia[j]
+            for j in range(0, xb.size):
+                xb[j] = xb[j] * tb[j]
+        else:
+            ga, gb = x[v - 1, u0:c], x[v - 1, c:u1]
+            for j in range(0, xa.size):
+                xa[j] = (xa[j] + ga[j]) * ia[j]
+            for j in range(0, xb.size):
+                xb[j] = (xb[j] + gb[j]) * tb[j]
+    for v in range(H - 2, -1, -1):
+        c = min(max(cut[v], u0), u1)
+        xa, ia, ya, xb, tb, yb = x[v, u0:c], im[v, u0:c], x[v + 1, u0:c], x[v, c:u1], tail[c:u1], x[v + 1, c:u1]
+        for j in range(0, xa.size):
+            xa[j] = xa[j] + ya[j] * ia[j]
+        for j in range(0, xb.size):
+            xb[j] = xb[j] + yb[j] * tb[j]
 
 
 @numba.njit(cache=True, parallel=True)
-def _direction_matvec(D, Ex, Ey, Z, P, AP, beta):
-    """P = Z + βP and AP = N P as N Z + β·AP (N P_old is AP already: one pass, no row
+def _direction_matvec(D, Ex, Ey, Z, P, AP, beta, X, alpha):
+    """X += αP (the previous iteration's step, deferred to this pass, which reads P anyway;
+    skipped for α = 0, the first pass, as adding 0·P leaves X unchanged), then P = Z + βP and AP = N P as N Z + β·AP (N P_old is AP already: one pass, no row
     dependencies between threads); returns P·AP. Padded (H + 2, W + 2) fields."""
     Hp, Wp = D.shape
     s = 0.0
@@ -158,7 +203,10 @@ def _direction_matvec(D, Ex, Ey, Z, P, AP, beta):
         for u in range(1, Wp - 1):
             y = (D[w, u] * Z[w, u] - Ex[w, u - 1] * Z[w, u - 1] - Ex[w, u] * Z[w, u + 1]
                  - Ey[w - 1, u] * Z[w - 1, u] - Ey[w, u] * Z[w + 1, u])
-            p = Z[w, u] + beta * P[w, u]
+            q = P[w, u]
+            if alpha != 0.0:  # loop-invariant (unswitched): no X traffic on a solve's first pass
+                X[w, u] += alpha * q
+            p = Z[w, u] + beta * q
             a = y + beta * AP[w, u]
             P[w, u] = p
             AP[w, u] = a
@@ -167,20 +215,34 @@ def _direction_matvec(D, Ex, Ey, Z, P, AP, beta):
 
 
 @numba.njit(cache=True, parallel=True)
-def _update_gather(X, R, P, AP, alpha, buf):
-    """X += αP, R −= αAP, and buf = R's interior (single precision, for the transforms);
-    returns Σ R."""
-    Hp, Wp = X.shape
+def _update_gather(R, AP, alpha, buf):
+    """R −= αAP and buf = R's interior (single precision, for the transforms); returns Σ R
+    (X += αP is deferred to the next :func:`_direction_matvec` or :func:`_finish_step`)."""
+    Hp, Wp = R.shape
     s = 0.0
     for v in numba.prange(0, Hp - 2):
         w = v + 1
         for u in range(1, Wp - 1):
-            X[w, u] += alpha * P[w, u]
             r = R[w, u] - alpha * AP[w, u]
             R[w, u] = r
             buf[v, u - 1] = r
             s += r
     return s
+
+
+@numba.njit(cache=True, parallel=True)
+def _finish_step(X, P, alpha, Z, add_z):
+    """X += αP (the deferred last step), then X += Z if ``add_z`` (the last preconditioned
+    residual of a converged solve), in one pass over the interior, rounded as the two
+    separate updates."""
+    Hp, Wp = X.shape
+    for v in numba.prange(0, Hp - 2):
+        w = v + 1
+        for u in range(1, Wp - 1):
+            x = X[w, u] + alpha * P[w, u]
+            if add_z:
+                x += Z[w, u]
+            X[w, u] = x
 
 
 @numba.njit(cache=True, parallel=True)
@@ -295,21 +357,26 @@ def dct_pcg(D, Ex, Ey, B, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None,
     tol = np.maximum(atol, np.minimum(rtol * zmax, cap))
     beta = np.zeros(k)
     pAp = np.zeros(k)
+    alpha = np.zeros(k)  # the step X += αP not yet applied (deferred to the next pass over P)
     while True:
         done = active & (zmax <= tol)
-        for i in np.flatnonzero(done):
-            X[i] += Z[i]
         converged |= done
+        leaving = active & ~(~done & (its < max_iter))
         active &= ~done & (its < max_iter)
+        for i in np.flatnonzero(leaving):
+            _finish_step(X[i], P[i], alpha[i], Z[i], bool(done[i]))
+            alpha[i] = 0.0
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
         for i in idx:
-            pAp[i] = _direction_matvec(D, Ex, Ey, Z[i], P[i], AP[i], beta[i])
+            pAp[i] = _direction_matvec(D, Ex, Ey, Z[i], P[i], AP[i], beta[i], X[i], alpha[i])
+            alpha[i] = 0.0
             if not (pAp[i] > 0.0 and rz[i] > 0.0):  # breakdown (round-off at convergence)
                 active[i] = False
                 continue
-            sums[i] = _update_gather(X[i], R[i], P[i], AP[i], rz[i] / pAp[i], buf[i])
+            alpha[i] = rz[i] / pAp[i]
+            sums[i] = _update_gather(R[i], AP[i], alpha[i], buf[i])
             its[i] += 1
         idx = np.flatnonzero(active)
         if idx.size == 0:
