@@ -3,7 +3,7 @@ item 3): ``least_squares._assemble_gauss_newton`` (one Gauss–Newton linearisat
 ``integration._points_normals`` (the final points and normals, also on ``evaluate``'s stepwise
 path), each on 1 and 2 numba threads, with the assembly's stages on one thread.
 
-    python benchmarks/bench_geometry_passes.py [--repeat 7]
+    python benchmarks/bench_geometry_passes.py [--repeat 7] [--save frame.npz]
 
 Inputs as ``profile_least_squares.py`` (Table 1, left camera, Δh = 3 mm, 1920×1200, seed
 (600, 960)) at the reconstructed heights. The assembly's work arrays are allocated once and
@@ -13,6 +13,8 @@ and into preallocated ones. Stages of the assembly, one thread, each over every 
 geometry pass (``_row_geometry_all``: gathering the rays, then the arithmetic), the two edge
 passes (``_row_edges``), the sums and the diagonal (``_row_sums``, ``_row_diagonal``). Best of
 ``--repeat`` runs, CPU (process) and wall time; the load average and UTC are printed.
+``--save`` also writes the frame (o, d, q, valid, seed, z0: the input of
+``bench_stepwise_rows.py``).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ def _best(fn, repeat):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--save", default="", help="write the frame (o, d, q, valid, seed, z0) to this .npz")
     a = ap.parse_args()
     from pmdsim.evaluation import integration as I
     from pmdsim.evaluation import least_squares as LS
@@ -47,6 +50,8 @@ def main() -> None:
     reg, rec, seed = table1_integration_frame()
     o, d, q, S, z = reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, rec.height_mm
     H, W = S.shape
+    if a.save:
+        np.savez(a.save, o=o, d=d, q=q, valid=S, seed=np.array(seed), z0=float(z[seed]))
     fields = [np.zeros((H + 2, W + 2)) for _ in range(5)]
     P, N = np.empty(d.shape), np.empty(d.shape)
 
