@@ -25,7 +25,7 @@ import time
 import numba
 import numpy as np
 
-from _common import rendered_images
+from _common import table1_integration_frame
 
 
 def main() -> None:
@@ -36,15 +36,8 @@ def main() -> None:
     a = ap.parse_args()
     from pmdsim.evaluation import least_squares as LS
     from pmdsim.evaluation import poisson as P
-    from pmdsim.evaluation.pipeline import decode_images, evaluate_decoded
-    from pmdsim.setup import default_setup
-    from pmdsim.simulation import trace_setup_camera
 
-    s = default_setup().with_bulge(3.0)
-    m = trace_setup_camera(s, "left", store_points=True)
-    dec = decode_images(s, rendered_images(s, "left", m))
-    seed = (600, 960)
-    reg, rec = evaluate_decoded(s.with_bulge(0.0), "left", dec, method="least_squares", seed_pixel=seed)
+    reg, rec, seed = table1_integration_frame()
     args = (reg.o_ref_mm, reg.d_ref, reg.q_ref_mm, reg.valid, seed, float(rec.height_mm[seed]))
     numba.set_num_threads(a.threads)
 

@@ -185,10 +185,42 @@ def _row_edges(Sa, Sb, za, zb, ga, gb, off, n, e):
         res = zb[ib] - za[u] - (Gx * dx + Gy * dy)
         Ja = -1.0 + (Gx * ga[6, u] + Gy * ga[7, u]) - 0.5 * (ga[4, u] * dx + ga[5, u] * dy)
         Jb = 1.0 - (Gx * gb[6, ib] + Gy * gb[7, ib]) - 0.5 * (gb[4, ib] * dx + gb[5, ib] * dy)
-        ok = Sa[u] and Sb[ib] and np.isfinite(res) and np.isfinite(Ja) and np.isfinite(Jb)
+        ok = Sa[u] & Sb[ib] & np.isfinite(res) & np.isfinite(Ja) & np.isfinite(Jb)  # & : no branches
         res_o[u] = res if ok else 0.0
         ja_o[u] = Ja if ok else 0.0
         jb_o[u] = Jb if ok else 0.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _row_sums(eh, ev, Dr, rr, Dn, rn, Exr, Eyr):
+    """Adds row v's edges (eh to the right, ev below, (3, W) of :func:`_row_edges`) to the
+    normal equations: Dr, rr (W,) = row v's diagonal and right-hand side (its upper edge's
+    terms already in), Dn, rn (W,) = row v + 1's from its upper edges (set), Exr, Eyr (W,) =
+    row v's couplings to the right and below. Sums in the order above, left, right, below."""
+    W = Dr.shape[0]
+    Dr[0] = Dr[0] + eh[1, 0] * eh[1, 0] + ev[1, 0] * ev[1, 0]
+    rr[0] = rr[0] - eh[1, 0] * eh[0, 0] - ev[1, 0] * ev[0, 0]
+    for u in range(1, W):
+        Dr[u] = Dr[u] + eh[2, u - 1] * eh[2, u - 1] + eh[1, u] * eh[1, u] + ev[1, u] * ev[1, u]
+        rr[u] = rr[u] - eh[2, u - 1] * eh[0, u - 1] - eh[1, u] * eh[0, u] - ev[1, u] * ev[0, u]
+    for u in range(W):
+        Dn[u] = ev[2, u] * ev[2, u]
+        rn[u] = -(ev[2, u] * ev[0, u])
+        Exr[u] = -eh[1, u] * eh[2, u]
+        Eyr[u] = -ev[1, u] * ev[2, u]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _row_diagonal(Dr, rr, iDr):
+    """A complete row's diagonal (W,): iDr = 1/Dr where Dr > 0, else Dr, iDr, rr = 0 (not an
+    unknown). Without branches (the loop vectorises)."""
+    for u in range(Dr.shape[0]):
+        dd = Dr[u]
+        pos = dd > 0.0
+        i = 1.0 / dd
+        iDr[u] = i if pos else 0.0
+        Dr[u] = dd if pos else 0.0
+        rr[u] = rr[u] if pos else 0.0
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
@@ -202,10 +234,13 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
     Every edge is evaluated once, from its left or upper pixel. The rows are split into
     :data:`_ASSEMBLY_BLOCKS` blocks processed in parallel, each with a rolling two-row buffer
     of the pixel geometry (:func:`_row_geometry_all`) and the row's edges
-    (:func:`_row_edges`); the contributions of a block's last row to the next block's first
-    row go through a buffer that is added afterwards. Every sum is formed in the same order
-    whatever the blocks (above, left, right, below; a block's first row: left, right,
-    below, above), so the result does not depend on the number of threads."""
+    (:func:`_row_edges`), added to the system by :func:`_row_sums`; the contributions of a
+    block's last row to the next block's first row go through a buffer that is added
+    afterwards. Every sum is formed in the same order whatever the blocks (above, left,
+    right, below; a block's first row: left, right, below, above), so the result does not
+    depend on the number of threads. A row's diagonal (iD, and the rows that are not
+    unknowns cleared, :func:`_row_diagonal`) is formed as soon as the row is complete, while
+    it is in cache (a block's first row after the buffer is added)."""
     H, W = S.shape
     nb = min(H, _ASSEMBLY_BLOCKS)
     bD = np.zeros((nb, W))
@@ -231,44 +266,28 @@ def _assemble_gauss_newton(o, d, q, S, z, sv, su, D, iD, Ex, Ey, rhs):
                 _row_edges(S[v], S[v + 1], z[v], z[v + 1], gc, gn, 0, W, ev)
             else:
                 ev[:, :] = 0.0
-            Dr, rr, Dn, rn = D[v + 1, 1:], rhs[v + 1, 1:], D[v + 2, 1:], rhs[v + 2, 1:]
-            # pixel u: D (its upper edge's J_b² already) + left J_b² + right J_a² + lower J_a²
-            Dr[0] = Dr[0] + eh[1, 0] * eh[1, 0] + ev[1, 0] * ev[1, 0]
-            rr[0] = rr[0] - eh[1, 0] * eh[0, 0] - ev[1, 0] * ev[0, 0]
-            for u in range(1, W):
-                Dr[u] = Dr[u] + eh[2, u - 1] * eh[2, u - 1] + eh[1, u] * eh[1, u] + ev[1, u] * ev[1, u]
-                rr[u] = rr[u] - eh[2, u - 1] * eh[0, u - 1] - eh[1, u] * eh[0, u] - ev[1, u] * ev[0, u]
             if v + 1 < v1:
-                for u in range(W):
-                    Dn[u] = ev[2, u] * ev[2, u]
-                    rn[u] = -(ev[2, u] * ev[0, u])
-            elif below:
-                for u in range(W):
-                    bD[blk, u] = ev[2, u] * ev[2, u]
-                    brhs[blk, u] = -ev[2, u] * ev[0, u]
-            for u in range(W):
-                Ex[v + 1, u + 1] = -eh[1, u] * eh[2, u]
-                Ey[v + 1, u + 1] = -ev[1, u] * ev[2, u]
-    for blk in range(nb - 1):
-        v1 = (blk + 1) * H // nb
+                Dn, rn = D[v + 2, 1:W + 1], rhs[v + 2, 1:W + 1]
+            else:  # the next block's first row (or, below the image, unused)
+                Dn, rn = bD[blk], brhs[blk]
+            Dr, rr = D[v + 1, 1:W + 1], rhs[v + 1, 1:W + 1]
+            _row_sums(eh, ev, Dr, rr, Dn, rn, Ex[v + 1, 1:W + 1], Ey[v + 1, 1:W + 1])
+            if v > v0 or blk == 0:  # the row is complete: its diagonal while it is in cache
+                _row_diagonal(Dr, rr, iD[v + 1, 1:W + 1])
+    for blk in range(1, nb):  # the blocks' first rows: the terms of the row above, then the diagonal
+        v0 = blk * H // nb
         for u in range(W):
-            D[v1 + 1, u + 1] += bD[blk, u]
-            rhs[v1 + 1, u + 1] += brhs[blk, u]
+            D[v0 + 1, u + 1] += bD[blk - 1, u]
+            rhs[v0 + 1, u + 1] += brhs[blk - 1, u]
+        _row_diagonal(D[v0 + 1, 1:W + 1], rhs[v0 + 1, 1:W + 1], iD[v0 + 1, 1:W + 1])
     if sv >= 0:  # the gauge: no row, no couplings
         D[sv + 1, su + 1] = 0.0
+        iD[sv + 1, su + 1] = 0.0
+        rhs[sv + 1, su + 1] = 0.0
         Ex[sv + 1, su + 1] = 0.0
         Ex[sv + 1, su] = 0.0
         Ey[sv + 1, su + 1] = 0.0
         Ey[sv, su + 1] = 0.0
-    for v in numba.prange(0, H):
-        for u in range(W):
-            dd = D[v + 1, u + 1]
-            if dd > 0.0:
-                iD[v + 1, u + 1] = 1.0 / dd
-            else:
-                D[v + 1, u + 1] = 0.0
-                iD[v + 1, u + 1] = 0.0
-                rhs[v + 1, u + 1] = 0.0
 
 
 @numba.njit(cache=True, nogil=True)
