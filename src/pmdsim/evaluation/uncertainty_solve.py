@@ -10,8 +10,12 @@ batch: 35 ms for two at 1920×1200 on two threads against 2 × 45 ms, serial in 
 and solved together:
 
 * on a large full frame (:func:`pmdsim.evaluation.poisson.prefers_dct`), by CG
-  preconditioned with the pinned Neumann Laplacian's DCT inverse
-  (:func:`pmdsim.evaluation.poisson.dct_pcg`, the transforms of a batch stacked);
+  preconditioned with the pinned Neumann Laplacian's DCT inverse with the lowest DCT modes and
+  the seed's Green's function deflated (:func:`pmdsim.evaluation.uncertainty_deflation.deflated_dct_pcg`,
+  to :data:`SIGMA_DEFLATED_RTOL`, one right-hand side at a time: the deflation's setup, 0.23 s
+  at 1920×1200, is paid once per camera; 1 iteration per right-hand side against 4–5 for
+  :func:`pmdsim.evaluation.poisson.dct_pcg` to :data:`SIGMA_RTOL`, still the solver with
+  ``SIGMA_DEFLATED_RTOL = None``);
 * on masked domains, by the multigrid-preconditioned CG
   (:func:`pmdsim.evaluation.multigrid._pcg`), which needs fewer iterations there (measured:
   docs/benchmarks.md, "Integration: DCT-preconditioned solve").
@@ -32,12 +36,21 @@ from .multigrid import _CGWork, _pcg
 from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
 from .uncertainty import UncertaintyError, _xi
+from .uncertainty_deflation import LowModes, deflated_dct_pcg
 from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key
 
 __all__: list[str] = []
 
 #: Relative tolerance of one σ right-hand side's solve (module docstring).
 SIGMA_RTOL = 1e-3
+
+#: Relative tolerance of one σ right-hand side's deflated solve on a full frame
+#: (:mod:`pmdsim.evaluation.uncertainty_deflation`; None: :func:`~pmdsim.evaluation.poisson.dct_pcg`
+#: to :data:`SIGMA_RTOL`, :data:`SIGMA_BATCH` at a time). Its stopping test is on the deflated
+#: preconditioned residual, whose initial value no longer holds the smooth modes: measured on
+#: the Table 1 frame (docs/benchmarks.md, lsq25h), 3e-2 stops after one iteration with a
+#: smaller error than ``dct_pcg`` to 1e-3 (4–5 iterations).
+SIGMA_DEFLATED_RTOL = 3e-2
 
 #: Iteration limit of one σ right-hand side's solve.
 SIGMA_MAX_ITER = 500
@@ -191,7 +204,13 @@ class _SigmaSolver:
         if self.kind == "dct":
             self.unknown = unknown
             self.lap = DCTLaplacian(lin.S.shape, lin.seed, dtype=np.float32)
-            self.work = _DCTWork(SIGMA_BATCH, lin.D.shape)
+            self.modes = None
+            if SIGMA_DEFLATED_RTOL is not None:  # one right-hand side at a time, W E⁻¹ Wᵀ set up once
+                self.work = _DCTWork(1, lin.D.shape)
+                self.modes = LowModes(lin.S.shape, lin.seed, lap=self.lap)
+                self.modes.prepare(lin.D, lin.Ex, lin.Ey, unknown)
+            else:
+                self.work = _DCTWork(SIGMA_BATCH, lin.D.shape)
         else:
             self.work = _CGWork(lin.D.shape)
 
@@ -201,6 +220,15 @@ class _SigmaSolver:
         lin = self.lin
         fail = ("the linearised least-squares system did not converge (singular or ill-conditioned normal "
                 "equations); no σ")
+        if self.kind == "dct" and self.modes is not None:
+            for b in B:
+                x, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
+                                            SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
+                                            unknown=self.unknown)
+                if not ok:
+                    raise UncertaintyError(fail)
+                yield x
+            return
         if self.kind == "dct":
             X, _, ok = dct_pcg(lin.D, lin.Ex, lin.Ey, B, lin.seed, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, lap=self.lap,
                                work=self.work, unknown=self.unknown)
