@@ -269,8 +269,8 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
     U, VT, h = modes.U, modes.VT, modes.h
     # x₀ = W E⁻¹ Wᵀ b, r₀ = b − N x₀
     mu, mu_h = modes.coefficients(b, None, D, Ex, Ey)
-    ZD[:] = 0.0
-    _expand(ZD, U, VT, -mu, -mu_h, h, unknown, X)
+    Z[:] = 0.0  # (Z, the kernel's one argument type: the scatter overwrites it below)
+    _expand(Z, U, VT, -mu, -mu_h, h, unknown, X)
     _residual(D, Ex, Ey, b, X, R)  # 0 off the unknowns (b is, and N has no couplings there)
     _start_fields(ZD, R, R, buf)  # buf = r's interior (ZD zeroed again)
 
