@@ -31,8 +31,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .multigrid import _residual
-from .poisson import DCTLaplacian, _DCTWork, _direction_matvec, _scatter_dot_max, _start_fields, _update_gather
+from .poisson import DCTLaplacian, _DCTWork, _direction_matvec, _scatter_dot_max, _update_gather
 
 __all__: list[str] = []
 
@@ -182,6 +181,22 @@ def _galerkin_sums(D, Ex, Ey, PA, PAy, PB, PBx):
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _residual_start(D, Ex, Ey, b, x, R, ZD, buf):
+    """R = b − N x on the interior (``multigrid._residual``'s sums; the padding kept), buf =
+    R's interior (single precision, for the transforms) and ZD = 0, in one parallel pass."""
+    Hp, Wp = D.shape
+    for v in numba.prange(0, Hp):
+        for u in range(Wp):
+            ZD[v, u] = 0.0
+        if 0 < v < Hp - 1:
+            for u in range(1, Wp - 1):
+                r = (b[v, u] - D[v, u] * x[v, u] + Ex[v, u - 1] * x[v, u - 1] + Ex[v, u] * x[v, u + 1]
+                     + Ey[v - 1, u] * x[v - 1, u] + Ey[v, u] * x[v + 1, u])
+                R[v, u] = r
+                buf[v - 1, u - 1] = r
+
+
 class LowModes:
     """The deflation space W of one grid and gauge pixel (module docstring) and, after
     :meth:`prepare`, E = WᵀNW of one operator."""
@@ -271,8 +286,7 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
     mu, mu_h = modes.coefficients(b, None, D, Ex, Ey)
     Z[:] = 0.0  # (Z, the kernel's one argument type: the scatter overwrites it below)
     _expand(Z, U, VT, -mu, -mu_h, h, unknown, X)
-    _residual(D, Ex, Ey, b, X, R)  # 0 off the unknowns (b is, and N has no couplings there)
-    _start_fields(ZD, R, R, buf)  # buf = r's interior (ZD zeroed again)
+    _residual_start(D, Ex, Ey, b, X, R, ZD, buf)  # r₀ 0 off the unknowns (b is, and N has no couplings there)
 
     def precondition(total):
         y = lap.solve(buf[None], overwrite=True, totals=np.array([total]), pin=False)[0]
