@@ -385,6 +385,7 @@ class _LinearisedIntegration:
         self.S = S
         self.seed = tuple(int(x) for x in rec.seed_pixel)
         self.method = rec.method
+        self._mg = self._work = None  # least squares: built on first use (:attr:`mg`, :attr:`work`)
         z = np.ascontiguousarray(np.where(S, rec.height_mm, 0.0))
         d = np.ascontiguousarray(d, dtype=float)
         q = np.ascontiguousarray(np.where(S[..., None], q, 0.0))
@@ -409,8 +410,21 @@ class _LinearisedIntegration:
                                    self.rhs)
             if not (self.D > 0).any():
                 raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
-            self.mg = _Multigrid(self.D, self.iD, self.Ex, self.Ey)
-            self.work = _CGWork(shape)
+
+    @property
+    def mg(self):
+        """The multigrid preconditioner of N (built on first use: the DCT-preconditioned σ
+        solves of a full frame never need it, nor its ≈ 125 MB at 1920×1200)."""
+        if self._mg is None:
+            self._mg = _Multigrid(self.D, self.iD, self.Ex, self.Ey)
+        return self._mg
+
+    @property
+    def work(self):
+        """The multigrid CG's work arrays (:meth:`apply`; built on first use, 92 MB at 1920×1200)."""
+        if self._work is None:
+            self._work = _CGWork(self.D.shape)
+        return self._work
 
     def apply(self, dg) -> np.ndarray:
         """δz (H, W) for slope perturbations dg (H, W, 2) (0 where not reconstructed); NaN off S."""

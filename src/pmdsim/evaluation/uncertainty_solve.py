@@ -2,13 +2,20 @@
 issue 25 item 3).
 
 The K right-hand sides of the estimator (:mod:`pmdsim.evaluation.uncertainty`) share one
-matrix, the Gauss–Newton matrix N of the reconstruction at convergence. They are built as
-before (``uncertainty._sample_dg``, ``uncertainty._ls_rhs``: the same seeds give the same
-right-hand sides) and solved :data:`SIGMA_BATCH` at a time:
+matrix, the Gauss–Newton matrix N of the reconstruction at convergence. A batch of
+:data:`SIGMA_BATCH` of them is built in one parallel pass (:func:`_sampled_rhs`: the draws of
+``uncertainty._sample_dg`` and the sums of ``uncertainty._ls_rhs``, bit for bit, without the
+(H, W, 2) slope perturbations of each sample and with each edge's Jacobian formed once per
+batch: 35 ms for two at 1920×1200 on two threads against 2 × 45 ms, serial in ``_ls_rhs``)
+and solved together:
 
 * on a large full frame (:func:`pmdsim.evaluation.poisson.prefers_dct`), by CG
-  preconditioned with the pinned Neumann Laplacian's DCT inverse
-  (:func:`pmdsim.evaluation.poisson.dct_pcg`, the transforms of a batch stacked);
+  preconditioned with the pinned Neumann Laplacian's DCT inverse with the lowest DCT modes and
+  the seed's Green's function deflated (:func:`pmdsim.evaluation.uncertainty_deflation.deflated_dct_pcg`,
+  to :data:`SIGMA_DEFLATED_RTOL`, one right-hand side at a time: the deflation's setup, 0.23 s
+  at 1920×1200, is paid once per camera; 1 iteration per right-hand side against 4–5 for
+  :func:`pmdsim.evaluation.poisson.dct_pcg` to :data:`SIGMA_RTOL`, still the solver with
+  ``SIGMA_DEFLATED_RTOL = None``);
 * on masked domains, by the multigrid-preconditioned CG
   (:func:`pmdsim.evaluation.multigrid._pcg`), which needs fewer iterations there (measured:
   docs/benchmarks.md, "Integration: DCT-preconditioned solve").
@@ -28,12 +35,22 @@ from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads
 from .multigrid import _CGWork, _pcg
 from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
-from .uncertainty import UncertaintyError, _ls_rhs, _sample_dg
+from .uncertainty import UncertaintyError, _xi
+from .uncertainty_deflation import LowModes, deflated_dct_pcg
+from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key
 
 __all__: list[str] = []
 
 #: Relative tolerance of one σ right-hand side's solve (module docstring).
 SIGMA_RTOL = 1e-3
+
+#: Relative tolerance of one σ right-hand side's deflated solve on a full frame
+#: (:mod:`pmdsim.evaluation.uncertainty_deflation`; None: :func:`~pmdsim.evaluation.poisson.dct_pcg`
+#: to :data:`SIGMA_RTOL`, :data:`SIGMA_BATCH` at a time). Its stopping test is on the deflated
+#: preconditioned residual, whose initial value no longer holds the smooth modes: measured on
+#: the Table 1 frame (docs/benchmarks.md, lsq25h), 3e-2 stops after one iteration with a
+#: smaller error than ``dct_pcg`` to 1e-3 (4–5 iterations).
+SIGMA_DEFLATED_RTOL = 3e-2
 
 #: Iteration limit of one σ right-hand side's solve.
 SIGMA_MAX_ITER = 500
@@ -60,6 +77,122 @@ def _accumulate_sq(S, X, acc):
     return bad == 0
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_dg(A, S, key, k0, n, n_chunks, v, dg):
+    """dg[u, j] = A ξ_{k0 + j} (2,) for every pixel u of row v in S, j < n (as
+    ``uncertainty._sample_dg``: the same products and sum); dg (W, n, 2)."""
+    W = S.shape[1]
+    for u in range(W):
+        if not S[v, u]:
+            continue
+        a00 = A[v, u, 0, 0]
+        a01 = A[v, u, 0, 1]
+        a10 = A[v, u, 1, 0]
+        a11 = A[v, u, 1, 1]
+        w = np.uint64(0)
+        for j in range(n):
+            k = k0 + j
+            if j == 0 or k % 32 == 0:
+                w = _draw_word(key, v * W + u, k // 32, n_chunks)
+            x = _xi(w, k % 32, 0)
+            y = _xi(w, k % 32, 1)
+            dg[u, j, 0] = a00 * x + a01 * y
+            dg[u, j, 1] = a10 * x + a11 * y
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_edges(geo, S, v, E, ok):
+    """The edges of row v: E[0:4, u] = J_a, J_b, Δx, Δy of the edge (v, u) → (v, u + 1), E[4:8, u]
+    of (v, u) → (v + 1, u) (``uncertainty_stepwise._edge_jac``); ok[0, u], ok[1, u]: the edge
+    joins two pixels of S and its J_a, J_b are finite (else ``uncertainty._ls_rhs`` leaves it
+    out)."""
+    H, W = S.shape
+    for u in range(W):
+        ok[0, u] = False
+        ok[1, u] = False
+        if not S[v, u]:
+            continue
+        if u + 1 < W and S[v, u + 1]:
+            Ja, Jb, dx, dy = _edge_jac(geo, v, u, v, u + 1)
+            E[0, u], E[1, u], E[2, u], E[3, u] = Ja, Jb, dx, dy
+            ok[0, u] = np.isfinite(Ja) and np.isfinite(Jb)
+        if v + 1 < H and S[v + 1, u]:
+            Ja, Jb, dx, dy = _edge_jac(geo, v, u, v + 1, u)
+            E[4, u], E[5, u], E[6, u], E[7, u] = Ja, Jb, dx, dy
+            ok[1, u] = np.isfinite(Ja) and np.isfinite(Jb)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
+    """B[j] = the right-hand side −Jᵀ δr (padded, ``uncertainty._ls_rhs``) of sample k0 + j's
+    slope perturbations A ξ (``uncertainty._sample_dg``), j < len(B), in one pass: the rows in
+    ``n_blocks`` blocks in parallel, each row's edge Jacobians formed once for the batch (a
+    block's first row also forms the edges down from the row above it), each pixel's terms
+    subtracted in the order ``_ls_rhs`` adds them (the edges up, left, right, down: bit for bit
+    its sums)."""
+    H, W = S.shape
+    n = B.shape[0]
+    key = _seed_key(seed)
+    rows = (H + n_blocks - 1) // n_blocks
+    for t in numba.prange(0, n_blocks):
+        v0 = t * rows
+        v1 = min(H, v0 + rows)
+        if v0 >= v1:
+            continue
+        cur = np.empty((W, n, 2))  # δg of row v
+        nxt = np.empty((W, n, 2))  # δg of row v + 1
+        up = np.zeros((n, W))  # J_b δr of the edge down into row v (0: none)
+        E = np.empty((8, W))
+        ok = np.empty((2, W), dtype=np.bool_)
+        _row_dg(A, S, key, k0, n, n_chunks, v0, cur)
+        if v0 > 0:  # the edges from the row above the block
+            _row_dg(A, S, key, k0, n, n_chunks, v0 - 1, nxt)
+            _row_edges(geo, S, v0 - 1, E, ok)
+            for j in range(n):
+                for u in range(W):
+                    if ok[1, u]:
+                        dr = -0.5 * ((nxt[u, j, 0] + cur[u, j, 0]) * E[6, u] + (nxt[u, j, 1] + cur[u, j, 1]) * E[7, u])
+                        if np.isfinite(dr):
+                            up[j, u] = E[5, u] * dr
+        for v in range(v0, v1):
+            if v + 1 < H:
+                _row_dg(A, S, key, k0, n, n_chunks, v + 1, nxt)
+            _row_edges(geo, S, v, E, ok)
+            for j in range(n):
+                Bv = B[j, v + 1]
+                upj = up[j]
+                Bv[0] = 0.0
+                Bv[W + 1] = 0.0
+                left = 0.0
+                for u in range(W):
+                    if not S[v, u]:
+                        Bv[u + 1] = 0.0
+                        upj[u] = 0.0
+                        left = 0.0
+                        continue
+                    r = 0.0
+                    r -= upj[u]
+                    r -= left
+                    left = 0.0
+                    if ok[0, u]:
+                        dr = -0.5 * ((cur[u, j, 0] + cur[u + 1, j, 0]) * E[2, u]
+                                     + (cur[u, j, 1] + cur[u + 1, j, 1]) * E[3, u])
+                        if np.isfinite(dr):
+                            r -= E[0, u] * dr
+                            left = E[1, u] * dr
+                    upj[u] = 0.0
+                    if ok[1, u]:
+                        dr = -0.5 * ((cur[u, j, 0] + nxt[u, j, 0]) * E[6, u] + (cur[u, j, 1] + nxt[u, j, 1]) * E[7, u])
+                        if np.isfinite(dr):
+                            r -= E[4, u] * dr
+                            upj[u] = E[5, u] * dr
+                    Bv[u + 1] = 0.0 if v == sv and u == su else r
+            cur, nxt = nxt, cur
+    for j in range(n):  # the padding rows
+        B[j, 0, :] = 0.0
+        B[j, H + 1, :] = 0.0
+
+
 class _SigmaSolver:
     """Solves N X = B for stacks of right-hand sides of one linearised least-squares
     integration (module docstring); ``kind`` is "dct" or "multigrid"."""
@@ -71,7 +204,13 @@ class _SigmaSolver:
         if self.kind == "dct":
             self.unknown = unknown
             self.lap = DCTLaplacian(lin.S.shape, lin.seed, dtype=np.float32)
-            self.work = _DCTWork(SIGMA_BATCH, lin.D.shape)
+            self.modes = None
+            if SIGMA_DEFLATED_RTOL is not None:  # one right-hand side at a time, W E⁻¹ Wᵀ set up once
+                self.work = _DCTWork(1, lin.D.shape)
+                self.modes = LowModes(lin.S.shape, lin.seed, lap=self.lap)
+                self.modes.prepare(lin.D, lin.Ex, lin.Ey, unknown)
+            else:
+                self.work = _DCTWork(SIGMA_BATCH, lin.D.shape)
         else:
             self.work = _CGWork(lin.D.shape)
 
@@ -81,6 +220,15 @@ class _SigmaSolver:
         lin = self.lin
         fail = ("the linearised least-squares system did not converge (singular or ill-conditioned normal "
                 "equations); no σ")
+        if self.kind == "dct" and self.modes is not None:
+            for b in B:
+                x, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
+                                            SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
+                                            unknown=self.unknown)
+                if not ok:
+                    raise UncertaintyError(fail)
+                yield x
+            return
         if self.kind == "dct":
             X, _, ok = dct_pcg(lin.D, lin.Ex, lin.Ey, B, lin.seed, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, lap=self.lap,
                                work=self.work, unknown=self.unknown)
@@ -109,14 +257,12 @@ def least_squares_sum_sq(lin, A, seed: int, K: int) -> np.ndarray:
 def _least_squares_sum_sq(lin, S, A, seed, K):
     solver = _SigmaSolver(lin)
     acc = np.zeros(S.shape)
-    dg = np.empty(S.shape + (2,))
-    B = np.zeros((SIGMA_BATCH,) + lin.D.shape)
+    B = np.empty((SIGMA_BATCH,) + lin.D.shape)
     n_chunks = (K + 31) // 32
+    n_blocks = 4 * numba.get_num_threads()
     for k0 in range(0, K, SIGMA_BATCH):
         n = min(SIGMA_BATCH, K - k0)
-        for j in range(n):
-            _sample_dg(A, S, seed, k0 + j, n_chunks, dg)
-            _ls_rhs(S, lin.seed[0], lin.seed[1], lin.geo, dg, B[j])
+        _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.geo, B[:n], n_blocks)
         for x in solver.solve(B[:n]):
             if not _accumulate_sq(S, x, acc):
                 raise UncertaintyError("the linearised least-squares system gave non-finite heights; no σ")

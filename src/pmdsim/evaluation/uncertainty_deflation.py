@@ -1,0 +1,319 @@
+"""Deflated DCT-preconditioned conjugate gradients for the least-squares integration's normal
+equations on a full frame (issue 25 item 3): the solver of the least-squares height σ's sampled
+right-hand sides (:mod:`pmdsim.evaluation.uncertainty_solve`), which all share one matrix N,
+so that the deflation space's setup is paid once per camera and used K = 64 times.
+
+CG preconditioned by the pinned Laplacian's DCT inverse (:mod:`pmdsim.evaluation.poisson`), with
+the lowest DCT modes and the Laplacian's Green's function at the gauge pixel deflated (Saad,
+Yeung, Erhel & Guyomarc'h 2000, "A deflated version of the conjugate gradient algorithm", SIAM
+J. Sci. Comput. 21, 1909), in the A-DEF2 form (Tang, Nabben, Vuik & Erlangga 2009), which stays
+stable to 1e-13 where the plain deflated form drifts.
+
+Why: the Gauss–Newton matrix N differs from the Laplacian L most in its smoothest modes (Robin
+terms on the border, the weak dependence of the residuals on the absolute height, which competes
+with the one pinned pixel), so the spectrum of L_s⁻¹N spreads over [0.64, 1.84] there (Ritz values
+of the Table 1 frame) and CG spends its iterations on them: the error of every iterate of the
+plain solve is ≥ 94 % in the lowest 4×6 DCT modes. Deflation solves the problem exactly on the
+space W spanned by those modes and the Green's function h (the "level" of the surface against
+the pin) and runs CG on the N-orthogonal complement (measured on the σ right-hand sides of the
+Table 1 frame: docs/benchmarks.md, "`evaluate --method least_squares` end to end (lsq25h)").
+First written as benchmarks/deflation_prototype.py (which times it on one integration).
+
+The basis is separable, W = {U_r(v) V_s(u)} ∪ {h}, U, V the orthonormal DCT-II vectors, all
+restricted to the unknowns. Nothing of size N·W is stored: E = WᵀNW is formed from the padded
+operator arrays by sums over the basis' pair products (:meth:`LowModes.prepare`), and the
+projections Wᵀ(N z − r) that every iteration needs are accumulated in the pass that forms N z
+(:func:`_project`), per row (T = y V, then Uᵀ T).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .poisson import DCTLaplacian, _DCTWork, _direction_matvec, _finish_step, _scatter_dot_max, _update_gather
+
+__all__: list[str] = []
+
+
+#: Row and column DCT modes deflated (the lowest 4 × 6, plus the Green's function at the seed).
+DEFLATION_MODES = (4, 6)
+
+
+def _dct_basis(n: int, m: int) -> np.ndarray:
+    """The m lowest orthonormal DCT-II basis vectors of length n, as columns (n, m)."""
+    i = np.arange(n)[:, None] + 0.5
+    B = np.cos(np.pi * i * np.arange(m)[None, :] / n) * np.sqrt(2.0 / n)
+    B[:, 0] = np.sqrt(1.0 / n)
+    return B
+
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+def _project_row(F, G, VT, h, matvec, D, Ex, Ey, T, th, v, y):
+    """Row v of :func:`_project` (y: a row buffer (W,))."""
+    Wp = F.shape[1]
+    m2 = VT.shape[0]
+    w = v + 1
+    if matvec > 0:
+        for u in range(1, Wp - 1):
+            y[u - 1] = (D[w, u] * F[w, u] - Ex[w, u - 1] * F[w, u - 1] - Ex[w, u] * F[w, u + 1]
+                        - Ey[w - 1, u] * F[w - 1, u] - Ey[w, u] * F[w + 1, u])
+        if matvec == 2:
+            for u in range(1, Wp - 1):
+                y[u - 1] -= G[w, u]
+    else:
+        for u in range(1, Wp - 1):
+            y[u - 1] = F[w, u]
+    for s in range(m2):
+        a = 0.0
+        for u in range(Wp - 2):
+            a += y[u] * VT[s, u]
+        T[v, s] = a
+    a = 0.0
+    for u in range(1, Wp - 1):
+        a += y[u - 1] * h[w, u]
+    th[v] = a
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _project(F, G, VT, h, matvec, D, Ex, Ey, T, th):
+    """Per row v of the padded field y (``matvec`` 0: y = F, 1: N F, 2: N F − G; F float64):
+    T[v, s] = Σ_u y V[u, s] (VT = Vᵀ, (m2, W)) and th[v] = Σ_u y h (h padded). The row sums
+    are reassociated (``fastmath``, vectorised): they only choose the deflation's coefficients,
+    whose round-off CG corrects like any other error."""
+    for v in numba.prange(0, F.shape[0] - 2):
+        _project_row(F, G, VT, h, matvec, D, Ex, Ey, T, th, v, np.empty(F.shape[1] - 2))
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _project_z(F, G, VT, h, matvec, D, Ex, Ey, T, th):
+    """:func:`_project` for F the single-precision preconditioned residual of
+    :class:`pmdsim.evaluation.poisson._DCTWork` (one signature per kernel)."""
+    for v in numba.prange(0, F.shape[0] - 2):
+        _project_row(F, G, VT, h, matvec, D, Ex, Ey, T, th, v, np.empty(F.shape[1] - 2))
+
+
+@numba.njit(cache=True, parallel=True)
+def _expand(Z, U, VT, mu, mu_h, h, unknown, out):
+    """out = Z − (Σ_rs mu[r, s] U_r V_s + mu_h h) on the unknowns, 0 elsewhere (padded fields;
+    U (H, m1), VT (m2, W)); returns max |out|."""
+    Hp, Wp = out.shape
+    m1 = U.shape[1]
+    m2 = VT.shape[0]
+    m = 0.0
+    for v in numba.prange(0, Hp - 2):
+        w = v + 1
+        c = np.zeros(m2)
+        for s in range(m2):
+            a = 0.0
+            for r in range(m1):
+                a += U[v, r] * mu[r, s]
+            c[s] = a
+        g = np.zeros(Wp - 2)  # the row of Σ_rs mu[r, s] U_r V_s
+        for s in range(m2):
+            cs = c[s]
+            for u in range(Wp - 2):
+                g[u] += cs * VT[s, u]
+        mr = 0.0
+        for u in range(1, Wp - 1):
+            x = Z[w, u] - (g[u - 1] + mu_h * h[w, u]) if unknown[w, u] else 0.0
+            out[w, u] = x
+            mr = max(mr, abs(x))
+        m = max(m, mr)
+    return m
+
+
+@numba.njit(cache=True, parallel=True)
+def _masked_padded_kernel(g, unknown, out):
+    Hp, Wp = out.shape
+    for v in numba.prange(0, Hp):
+        for u in range(Wp):
+            out[v, u] = g[v - 1, u - 1] if unknown[v, u] else 0.0
+
+
+def _masked_padded(g, unknown, out=None):
+    """g (H, W) as a padded float64 field, 0 off the unknowns (into ``out`` if it fits)."""
+    if out is None or out.shape != unknown.shape:
+        out = np.empty(unknown.shape)
+    _masked_padded_kernel(g, unknown, out)
+    return out
+
+
+#: Column blocks of :func:`_galerkin_sums` (a constant: the sums do not depend on the threads).
+_GALERKIN_BLOCKS = 16
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _galerkin_sums(D, Ex, Ey, PA, PAy, PB, PBx):
+    """E's separable sums (m1², m2²): PAᵀ D PB − PAᵀ Ex PBx − PAyᵀ Ey PB over the interior of
+    the padded arrays (PA, PAy (H, m1²); PB, PBx (W, m2²)). Each of :data:`_GALERKIN_BLOCKS`
+    column blocks accumulates the row products PAᵀ D over its columns (axpys along the
+    contiguous rows, no BLAS threads), then multiplies by PB; the blocks are summed in order."""
+    Hp, Wp = D.shape
+    H, W = Hp - 2, Wp - 2
+    ka, kb = PA.shape[1], PB.shape[1]
+    nb = min(_GALERKIN_BLOCKS, W)
+    part = np.zeros((nb, ka, kb))
+    for blk in numba.prange(0, nb):
+        u0 = blk * W // nb
+        u1 = (blk + 1) * W // nb
+        n = u1 - u0
+        aD = np.zeros((ka, n))
+        aX = np.zeros((ka, n))
+        aY = np.zeros((ka, n))
+        for v in range(H):
+            for k in range(ka):
+                pa = PA[v, k]
+                py = PAy[v, k]
+                for j in range(n):
+                    aD[k, j] += pa * D[v + 1, u0 + j + 1]
+                    aX[k, j] += pa * Ex[v + 1, u0 + j + 1]
+                    aY[k, j] += py * Ey[v + 1, u0 + j + 1]
+        for k in range(ka):
+            for m in range(kb):
+                acc = 0.0
+                for j in range(n):
+                    acc += (aD[k, j] - aY[k, j]) * PB[u0 + j, m] - aX[k, j] * PBx[u0 + j, m]
+                part[blk, k, m] = acc
+    out = np.zeros((ka, kb))
+    for blk in range(nb):
+        out += part[blk]
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _residual_start(D, Ex, Ey, b, x, R, ZD, buf):
+    """R = b − N x on the interior (``multigrid._residual``'s sums; the padding kept), buf =
+    R's interior (single precision, for the transforms) and ZD = 0, in one parallel pass."""
+    Hp, Wp = D.shape
+    for v in numba.prange(0, Hp):
+        for u in range(Wp):
+            ZD[v, u] = 0.0
+        if 0 < v < Hp - 1:
+            for u in range(1, Wp - 1):
+                r = (b[v, u] - D[v, u] * x[v, u] + Ex[v, u - 1] * x[v, u - 1] + Ex[v, u] * x[v, u + 1]
+                     + Ey[v - 1, u] * x[v - 1, u] + Ey[v, u] * x[v + 1, u])
+                R[v, u] = r
+                buf[v - 1, u - 1] = r
+
+
+class LowModes:
+    """The deflation space W of one grid and gauge pixel (module docstring) and, after
+    :meth:`prepare`, E = WᵀNW of one operator."""
+
+    def __init__(self, shape, pinned, modes=DEFLATION_MODES, lap=None):
+        H, W = (int(n) for n in shape)
+        m1, m2 = min(int(modes[0]), H), min(int(modes[1]), W)
+        self.shape = (H, W)
+        self.U = _dct_basis(H, m1)
+        self.VT = np.ascontiguousarray(_dct_basis(W, m2).T)
+        V = self.VT.T
+        # pair products of the basis vectors for E's separable sums (rows: pixels)
+        Un = np.vstack([self.U[1:], np.zeros((1, m1))])
+        Vn = np.vstack([V[1:], np.zeros((1, m2))])
+        self._PA = (self.U[:, :, None] * self.U[:, None, :]).reshape(H, m1 * m1)
+        self._PAy = (self.U[:, :, None] * Un[:, None, :] + Un[:, :, None] * self.U[:, None, :]).reshape(H, m1 * m1)
+        self._PB = (V[:, :, None] * V[:, None, :]).reshape(W, m2 * m2)
+        self._PBx = (V[:, :, None] * Vn[:, None, :] + Vn[:, :, None] * V[:, None, :]).reshape(W, m2 * m2)
+        # h: the Neumann Laplacian's Green's function at the pin, L⁺(e_s − 1/n) up to a constant
+        # (W holds the constants): the pinned solver's y for r = −1/n off the pin (it sets r_s
+        # to minus the others' sum, 1 − 1/n).
+        if lap is None or tuple(lap.shape) != (H, W) or tuple(lap.pinned) != (int(pinned[0]), int(pinned[1])):
+            lap = DCTLaplacian((H, W), pinned, dtype=np.float32)
+        self._g = lap.solve(np.full((H, W), -1.0 / (H * W), dtype=lap.dtype), overwrite=True, pin=False)
+        self.T = np.zeros((H, m2))
+        self.th = np.zeros(H)
+
+    def prepare(self, D, Ex, Ey, unknown):
+        """E = WᵀNW for the padded operator (D, Ex, Ey), its unknowns ``unknown`` (padded)."""
+        H, W = self.shape
+        m1, m2 = self.U.shape[1], self.VT.shape[0]
+        self.h = _masked_padded(self._g, unknown, getattr(self, "h", None))
+        # Σ D φφ' − Σ_x-edges Ex (φ(u)φ'(u+1) + φ(u+1)φ'(u)) − Σ_y-edges Ey (…): the stored
+        # arrays are 0 at and around pixels that are not unknowns, so φ is restricted to them.
+        Ecc = _galerkin_sums(D, Ex, Ey, self._PA, self._PAy, self._PB, self._PBx)
+        Ecc = Ecc.reshape(m1, m1, m2, m2).transpose(0, 2, 1, 3).reshape(m1 * m2, m1 * m2)
+        _project(self.h, self.h, self.VT, self.h, 1, D, Ex, Ey, self.T, self.th)
+        Ech = (self.U.T @ self.T).reshape(m1 * m2)
+        n = m1 * m2 + 1
+        E = np.empty((n, n))
+        E[:-1, :-1] = 0.5 * (Ecc + Ecc.T)
+        E[:-1, -1] = E[-1, :-1] = Ech
+        E[-1, -1] = self.th.sum()
+        # The constant lies in both the mode (0, 0) and h's span only through the restriction;
+        # a semi-definite E (round-off) is solved by least squares.
+        self.E_inv = np.linalg.pinv(E, hermitian=True)
+
+    def coefficients(self, F, G, D, Ex, Ey):
+        """μ = E⁻¹ Wᵀ y, y = N F − G (G not None) or F: (mu (m1, m2), mu_h)."""
+        project = _project_z if F.dtype == np.float32 else _project
+        project(F, F if G is None else G, self.VT, self.h, 0 if G is None else 2, D, Ex, Ey, self.T, self.th)
+        c = np.append((self.U.T @ self.T).ravel(), self.th.sum())
+        mu = self.E_inv @ c
+        return np.ascontiguousarray(mu[:-1].reshape(self.U.shape[1], self.VT.shape[0])), float(mu[-1])
+
+
+def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, lap=None, work=None,
+                     modes=None, unknown=None):
+    """Deflated CG for N x = b on a full frame (one right-hand side), preconditioned by the
+    pinned Laplacian's DCT inverse in single precision (:func:`pmdsim.evaluation.poisson.dct_pcg`),
+    the deflation space W of ``modes`` (:class:`LowModes`; created and prepared for N if not
+    given, prepared if it was not) solved
+    exactly: x₀ = W E⁻¹ Wᵀ b, then CG with directions N-orthogonal to W, their preconditioned
+    residuals z deflated, z − W E⁻¹ WᵀN z.
+
+    Stops when the max-norm of the deflated preconditioned residual (the estimate of the error)
+    is below ``max(atol, min(rtol · its initial value, cap))`` and adds it to x, as ``dct_pcg``.
+    Arguments as :func:`pmdsim.evaluation.poisson.dct_pcg` with b (H + 2, W + 2) and ``work`` a
+    :class:`pmdsim.evaluation.poisson._DCTWork` for one field with an extra float64 field ``ZD``
+    (created if missing). Returns (x, iterations, converged); x is ``work.X[0]``."""
+    Hp, Wp = D.shape
+    if lap is None:
+        lap = DCTLaplacian((Hp - 2, Wp - 2), pinned, dtype=np.float32)
+    if unknown is None:
+        unknown = D > 0.0
+    if modes is None:
+        modes = LowModes((Hp - 2, Wp - 2), pinned, lap=lap)
+    if getattr(modes, "E_inv", None) is None:  # not prepared (a prepared one is for this operator)
+        modes.prepare(D, Ex, Ey, unknown)
+    if work is None:
+        work = _DCTWork(1, D.shape)
+    if getattr(work, "ZD", None) is None or work.ZD.shape != D.shape:
+        work.ZD = np.zeros(D.shape)
+    X, R, Z, P, AP, buf, ZD = work.X[0], work.R[0], work.Z[0], work.P[0], work.AP[0], work.buf[0], work.ZD
+    U, VT, h = modes.U, modes.VT, modes.h
+    # x₀ = W E⁻¹ Wᵀ b, r₀ = b − N x₀
+    mu, mu_h = modes.coefficients(b, None, D, Ex, Ey)
+    Z[:] = 0.0  # (Z, the kernel's one argument type: the scatter overwrites it below)
+    _expand(Z, U, VT, -mu, -mu_h, h, unknown, X)
+    _residual_start(D, Ex, Ey, b, X, R, ZD, buf)  # r₀ 0 off the unknowns (b is, and N has no couplings there)
+
+    def precondition(total):
+        y = lap.solve(buf[None], overwrite=True, totals=np.array([total]), pin=False)[0]
+        rz, _ = _scatter_dot_max(R, y, y[lap.pinned], unknown, Z)
+        mu, mu_h = modes.coefficients(Z, R, D, Ex, Ey)  # z − W E⁻¹ Wᵀ(N z − r)
+        zmax = _expand(Z, U, VT, mu, mu_h, h, unknown, ZD)
+        return rz, zmax
+
+    rz, zmax = precondition(float(np.sum(R)))
+    tol = max(atol, min(rtol * zmax, cap))
+    beta = 0.0
+    alpha = 0.0  # the last step, X += αP, is deferred to the next direction pass or the end
+    its = 0
+    while True:
+        if zmax <= tol:
+            _finish_step(X, P, alpha, Z, False)
+            X += ZD
+            return X, its, True
+        if its >= max_iter:
+            _finish_step(X, P, alpha, Z, False)
+            return X, its, False
+        pAp = _direction_matvec(D, Ex, Ey, ZD, P, AP, beta, X, alpha)  # (applies the last step)
+        if not (pAp > 0.0 and rz > 0.0):  # breakdown (round-off at convergence)
+            return X, its, False
+        alpha = rz / pAp
+        total = _update_gather(R, AP, alpha, buf)
+        its += 1
+        rz_old = rz
+        rz, zmax = precondition(total)
+        beta = rz / rz_old
