@@ -7,7 +7,9 @@ as the mono path does (:func:`pmdsim.studies.jobs.evaluate_image_set`): each cam
 :func:`pmdsim.studies.evaluate_files.background_files`) as soon as its anchored integration ends —
 while the other camera integrates, the agreement report and σ compute — and its height map PNG
 in another; numpy's huge-page hint is off while the job runs
-(:func:`pmdsim.studies.evaluate_memory.small_pages`). The file's layout and contents, the
+(:func:`pmdsim.studies.evaluate_memory.small_pages`), the decoder's modulation and offset maps are
+dropped after decoding and the registrations' rays and screen points after σ
+(:func:`pmdsim.studies.evaluate_memory.kept_for_files`). The file's layout and contents, the
 messages and the errors are those of the serial job (write order of ``evaluation.h5``: every
 camera's maps, then each camera's σ maps, the file attributes, the stereo report, the
 consistency maps).
@@ -44,7 +46,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, reconstruct_stereo, stereo_views
     from . import uncertainty_job as uj
     from .evaluate_files import background_files
-    from .evaluate_memory import small_pages
+    from .evaluate_memory import KeptDecoding, kept_for_files, small_pages
     from .jobs import (DEFAULT_MIN_VALID_FRACTION, EvaluationSummary, JobInputError, _decode_checked, _image_files,
                        _name_files, _tick)
 
@@ -71,7 +73,11 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     checks = {}
     with small_pages():  # 4 kB pages: huge ones cost ≈ 2.8 ms/MB of system time on first touch here
         for cam in manifest.cameras:
-            decoded[cam], cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, consistency)
+            dec, cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, consistency)
+            # what registration, σ, the files and the summary read: the modulation and offset maps go
+            decoded[cam] = KeptDecoding(dec.screen_xy_mm, dec.valid, dec.flags, dec.std_xy_mm,
+                                        getattr(dec, "reversed", None))
+            del dec
             if cons is not None:
                 checks[cam] = cons
             _tick(progress, f"decoded {cam}")
@@ -96,7 +102,10 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                 raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
             st, uncs, u_warn = uj.stereo_uncertainty(setup, views, decoded, st, screen=screen_model,
                                                      enabled=uncertainty)
-            results = {cam: (decoded[cam], views[cam].registration, st.cameras[cam].reconstruction) for cam in decoded}
+            # the view rays and screen points (110 MB per 1920 × 1200 camera) are released: only the files'
+            results = {cam: kept_for_files(decoded[cam], views[cam].registration, st.cameras[cam].reconstruction)
+                       for cam in decoded}
+            views = decoded = None
             figures.submit(uj.stereo_figures, tmp, results, uncs)
             for cam in results:
                 h5_tasks.submit(h5.add_extras, cam, uj.uncertainty_datasets(uncs.get(cam)) or {})
