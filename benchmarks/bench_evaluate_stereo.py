@@ -121,18 +121,6 @@ def _instrument():
 
     stereo.reconstruct_stereo = reconstruct_stereo
     uj.stereo_uncertainty = _timed("uncertainty", uj.stereo_uncertainty)
-    import pmdsim.evaluation.uncertainty_stereo as us
-
-    inner_sigma = _timed("  of which σ (B: inside the stereo stage, before the report)", us.stereo_with_uncertainty)
-
-    def sigma(*a, **k):  # counted on its own also when called inside the stereo stage (st25h)
-        was, _ACTIVE.on = getattr(_ACTIVE, "on", False), False
-        try:
-            return _labelled("  σ", inner_sigma)(*a, **k)
-        finally:
-            _ACTIVE.on = was
-
-    us.stereo_with_uncertainty = sigma
     uj.stereo_figures = _timed("files: PNG", uj.stereo_figures)
     jobs.write_height_map_png = _timed("files: PNG", jobs.write_height_map_png)
     try:  # the job in its own module (st25h): files written while it computes

@@ -546,8 +546,7 @@ def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter,
 # ============================================================================ main
 def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
                        search_step_mm: float = DEFAULT_SEARCH_STEP_MM, stride_px: int | None = None,
-                       max_iter: int = 20, tol_mm: float = 1e-9, on_reconstruction=None,
-                       before_report=None) -> StereoReconstruction:
+                       max_iter: int = 20, tol_mm: float = 1e-9, on_reconstruction=None) -> StereoReconstruction:
     """Absolute surface from two or more calibrated cameras, without a seed (module docstring).
 
     Parameters
@@ -570,12 +569,6 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
         :class:`~pmdsim.evaluation.integration.Reconstruction`, the one the result holds) as soon
         as each camera's integration ends, in camera order, before the next camera integrates
         and before the agreement report (e.g. to write the camera's maps meanwhile).
-    before_report : callable, optional
-        Called as ``before_report(preliminary, arrays)`` once every camera is integrated, before
-        the agreement report: ``preliminary`` a StereoReconstruction with the final
-        reconstructions and anchors but no report (``overlap`` all False, the report's maps
-        NaN), ``arrays`` each camera's (o, d, q, valid) as the report reads them (e.g. to compute
-        σ, which does not read the report, and write it while the report computes).
 
     Returns
     -------
@@ -661,31 +654,20 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
             on_reconstruction(name, recs[name])
     del fields  # the integration's work arrays (≈ 0.2 GB at 1920 × 1200): freed before the report
 
-    t2, c2 = time.perf_counter(), time.process_time()
-    timings["integration"], timings["integration_cpu"] = t2 - t1, c2 - c1
-
-    def cameras(report):
-        out = {}
-        for name in arrays:
-            zA = recs[name].height_mm
-            if report is None:  # before the report: no overlap, NaN maps (read-only views of one NaN)
-                ang = dzm = np.broadcast_to(np.float64(np.nan), zA.shape)
-            else:
-                ang, dzm = report[name]
-            vu, az, ar, searched, n_amb = anchors[name]
-            fit = (zA[vu[:, 0], vu[:, 1]] - az) * 1e3
-            out[name] = StereoCamera(recs[name], np.isfinite(ang), ang * 1e6, dzm * 1e3, vu, az, ar * 1e6, fit,
-                                     searched, n_amb)
-        return out
-
-    if before_report is not None:
-        before_report(StereoReconstruction(cameras(None), (lo, hi), step, stride, dict(timings)), arrays)
-
     # 3. agreement report
     t2, c2 = time.perf_counter(), time.process_time()
+    timings["integration"], timings["integration_cpu"] = t2 - t1, c2 - c1
     from .stereo_report import agreement  # here: it imports this module's kernels
 
-    out = cameras(agreement(arrays, cams, {n: r.height_mm for n, r in recs.items()}))
+    report = agreement(arrays, cams, {n: r.height_mm for n, r in recs.items()})
+    out = {}
+    for name in arrays:
+        zA = recs[name].height_mm
+        ang, dzm = report[name]
+        vu, az, ar, searched, n_amb = anchors[name]
+        fit = (zA[vu[:, 0], vu[:, 1]] - az) * 1e3
+        out[name] = StereoCamera(recs[name], np.isfinite(ang), ang * 1e6, dzm * 1e3, vu, az, ar * 1e6, fit,
+                                 searched, n_amb)
     timings["report"], timings["report_cpu"] = time.perf_counter() - t2, time.process_time() - c2
     return StereoReconstruction(out, (lo, hi), step, stride, timings)
 

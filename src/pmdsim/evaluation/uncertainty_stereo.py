@@ -338,7 +338,7 @@ def stereo_height_std(lins: dict, A: dict, noise: dict, *, samples: int = DEFAUL
 
 def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstruction, *, screen_model=None,
                        samples: int = DEFAULT_SAMPLES, rng_seed: int = DEFAULT_RNG_SEED,
-                       noise_stride: int | None = None, arrays: dict | None = None) -> dict:
+                       noise_stride: int | None = None) -> dict:
     """Per camera the :class:`~pmdsim.evaluation.uncertainty.SurfaceUncertainty` of a stereo
     evaluation and its anchors' σ (module docstring).
 
@@ -359,9 +359,6 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
         Subgrid stride s of the heights' noise σ (:mod:`pmdsim.evaluation.uncertainty_stereo_subgrid`);
         default :func:`~pmdsim.evaluation.uncertainty_stereo_subgrid.default_noise_stride` (every
         pixel below 150 px in the shorter image side). 1: every pixel.
-    arrays : dict name → tuple, optional
-        Every camera's ``_view_arrays`` (o, d, q, valid) when the caller has them (e.g.
-        :func:`~pmdsim.evaluation.stereo.reconstruct_stereo`'s ``before_report``); else made here.
 
     Returns
     -------
@@ -381,8 +378,7 @@ def stereo_uncertainty(setup, views: dict, decoded: dict, stereo: StereoReconstr
     if int(samples) < 2:
         raise UncertaintyError(f"samples must be ≥ 2, got {samples!r}")
     tangents = {c: _tangents(setup, screen_model, decoded[c]) for c in views}
-    if arrays is None:  # once per camera (each a full-size copy)
-        arrays = {c: _view_arrays(views[c]) for c in views}
+    arrays = {c: _view_arrays(views[c]) for c in views}  # once per camera (each a full-size copy)
     first = stereo.cameras[next(iter(views))].reconstruction.reconstructed.shape
     s = default_noise_stride(first) if noise_stride is None else int(noise_stride)
     if s < 1:

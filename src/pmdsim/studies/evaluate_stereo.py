@@ -5,9 +5,8 @@ The job of :func:`pmdsim.studies.jobs.evaluate_image_set_stereo` (which calls
 as the mono path does (:func:`pmdsim.studies.jobs.evaluate_image_set`): each camera's maps go to
 ``evaluation.h5`` in a background thread (:class:`pmdsim.io.hdf5.EvaluationFile`,
 :func:`pmdsim.studies.evaluate_files.background_files`) as soon as its anchored integration ends —
-while the other camera integrates and σ computes — and its height map PNG in another; σ (which
-does not read the agreement report) runs before the report, on the reconstruction's own view
-arrays, and its maps are written while the report computes; numpy's huge-page hint is off while the job runs
+while the other camera integrates, the agreement report and σ compute — and its height map PNG
+in another; numpy's huge-page hint is off while the job runs
 (:func:`pmdsim.studies.evaluate_memory.small_pages`), the decoder's modulation and offset maps are
 dropped after decoding and the registrations' rays and screen points after σ
 (:func:`pmdsim.studies.evaluate_memory.kept_for_files`). The file's layout and contents, the
@@ -45,7 +44,6 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     the files written while later stages compute (module docstring)."""
     from ..evaluation.integration import ReconstructionError
     from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, reconstruct_stereo, stereo_views
-    from ..evaluation.uncertainty_stereo import stereo_with_uncertainty, with_uncertainty
     from . import uncertainty_job as uj
     from .evaluate_files import background_files
     from .evaluate_memory import KeptDecoding, kept_for_files, small_pages
@@ -69,7 +67,6 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     if not 0.0 <= float(min_valid_fraction) <= 1.0:
         raise JobInputError(f"min_valid_fraction must be in [0, 1], got {min_valid_fraction!r}")
     search = DEFAULT_SEARCH_RANGE_MM if search_range_mm is None else tuple(search_range_mm)
-    surface = None if screen_model == "planar" else setup.screen.surface
     prov = provenance(command, setup.to_toml())
     t0 = time.perf_counter()
     decoded = {}
@@ -85,7 +82,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                 checks[cam] = cons
             _tick(progress, f"decoded {cam}")
         try:
-            views = stereo_views(setup, decoded, screen_model=surface)
+            views = stereo_views(setup, decoded, screen_model=None if screen_model == "planar" else setup.screen.surface)
         except ReconstructionError as e:
             raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
         with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp, \
@@ -99,35 +96,21 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                                title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
                                label="height (µm)", path=tmp / f"height_{cam}.png")
 
-            sigma = {}
-
-            def before_report(preliminary, arrays):  # σ does not read the report: it and its files meanwhile
-                if uncertainty:
-                    sigma["st"], sigma["uncs"], sigma["warnings"] = stereo_with_uncertainty(
-                        setup, views, decoded, preliminary, screen_model=surface, arrays=arrays)
-                else:
-                    sigma["st"], sigma["uncs"], sigma["warnings"] = preliminary, {}, []
-                uncs = sigma["uncs"]
-                figures.submit(uj.stereo_figures, tmp, {c: (None, None, sc.reconstruction)
-                                                        for c, sc in preliminary.cameras.items()}, uncs)
-                for cam in preliminary.cameras:
-                    h5_tasks.submit(h5.add_extras, cam, uj.uncertainty_datasets(uncs.get(cam)) or {})
-                h5_tasks.submit(h5.finish, {**prov, "method": "stereo", "screen_model": screen_model,
-                                            "image_dir": str(image_dir),
-                                            "uncertainty": uj.stereo_attribute(uncs, uncertainty)})
-
             try:
-                st = reconstruct_stereo(views, search_range_mm=search, on_reconstruction=camera_done,
-                                        before_report=before_report)
+                st = reconstruct_stereo(views, search_range_mm=search, on_reconstruction=camera_done)
             except ReconstructionError as e:
                 raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
-            st = with_uncertainty(st, {c: (sc.uncertainty, sc.anchor_height_std_um)
-                                       for c, sc in sigma["st"].cameras.items() if sc.uncertainty is not None})
-            uncs, u_warn = sigma["uncs"], sigma["warnings"]
+            st, uncs, u_warn = uj.stereo_uncertainty(setup, views, decoded, st, screen=screen_model,
+                                                     enabled=uncertainty)
             # the view rays and screen points (110 MB per 1920 × 1200 camera) are released: only the files'
             results = {cam: kept_for_files(decoded[cam], views[cam].registration, st.cameras[cam].reconstruction)
                        for cam in decoded}
             views = decoded = None
+            figures.submit(uj.stereo_figures, tmp, results, uncs)
+            for cam in results:
+                h5_tasks.submit(h5.add_extras, cam, uj.uncertainty_datasets(uncs.get(cam)) or {})
+            h5_tasks.submit(h5.finish, {**prov, "method": "stereo", "screen_model": screen_model,
+                                        "image_dir": str(image_dir), "uncertainty": uj.stereo_attribute(uncs, uncertainty)})
             h5_tasks.submit(append_stereo_h5, tmp / "evaluation.h5", st,
                             {"search_range_mm": list(st.search_range_mm), "search_step_mm": st.search_step_mm,
                              "stride_px": st.stride_px})
