@@ -328,3 +328,27 @@ def test_cubic_convolution_is_exact_for_quadratics_and_needs_16_valid_pixels():
     assert not _interp(arr, ok, 6.5, 4.5, out) and not _interp(arr, ok, 8.9, 6.9, out)
     assert _interp(arr, ok, 9.1, 4.5, out)
     assert not _interp(arr, np.ones((H, W), bool), 0.5, 5.0, out)  # too close to the border
+
+
+def test_on_reconstruction_hands_over_each_camera_in_order_before_the_report(base, flat_decoded):
+    """`evaluate --stereo` writes a camera's maps while the next integrates (studies/evaluate_stereo):
+    the callback gets every camera once, in camera order, with the reconstruction the result holds,
+    before the agreement report exists."""
+    from pmdsim.evaluation import stereo_report
+    from pmdsim.evaluation.stereo import reconstruct_stereo, stereo_views
+
+    views = stereo_views(base, flat_decoded)
+    seen, report_calls = [], []
+    agreement = stereo_report.agreement
+
+    def spy(*a, **k):
+        report_calls.append(len(seen))
+        return agreement(*a, **k)
+
+    stereo_report.agreement = spy
+    try:
+        res = reconstruct_stereo(views, on_reconstruction=lambda name, rec: seen.append((name, rec)))
+    finally:
+        stereo_report.agreement = agreement
+    assert [n for n, _ in seen] == list(views) and report_calls == [len(views)]
+    assert all(rec is res.cameras[n].reconstruction for n, rec in seen)

@@ -56,7 +56,8 @@ from .integration import (
     _check_inputs,
     _points_and_normals,
 )
-from .least_squares import _INNER_CAP, _INNER_MAX_ITER, _INNER_RTOL, _apply_update, _assemble_gauss_newton, _start_heights
+from .least_squares import (_INNER_CAP, _INNER_MAX_ITER, _INNER_RTOL, _apply_update, _assemble_gauss_newton, _Fields,
+                            _start_heights)
 from .multigrid import _CGWork, _pcg
 from .registration import Registration
 from ..geometry.compact import compact_repr
@@ -90,7 +91,7 @@ _FD_STEP_MM = 1e-3
 
 
 # ============================================================================ kernels
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _project(R, t, cam, px, py, pz):
     """Reference-frame point → pixel (u, v) of a camera (eqs. 2–4). ``R``, ``t``: T_cam_ref;
     ``cam`` = (fx, fy, ppx, ppy, k1, k2, k3, p1, p2). Returns (ok, u, v)."""
@@ -108,7 +109,7 @@ def _project(R, t, cam, px, py, pz):
     return True, cam[0] * xd + cam[2], cam[1] * yd + cam[3]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _keys(s):
     """Cubic-convolution weights (Keys 1981, a = −1/2) of the 4 samples at −1, 0, 1, 2 for
     the fractional position s ∈ [0, 1): C¹, exact for quadratics."""
@@ -117,20 +118,36 @@ def _keys(s):
     return (-0.5 * s3 + s2 - 0.5 * s, 1.5 * s3 - 2.5 * s2 + 1.0, -1.5 * s3 + 2.0 * s2 + 0.5 * s, 0.5 * s3 - 0.5 * s2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _interp(arr, ok, u, v, out):
     """Cubic convolution of ``arr`` (H, W, C) at pixel (u, v) into ``out`` (C,); False (out
     untouched) unless all 16 samples of the 4 × 4 neighbourhood are inside and ``ok``."""
-    H = arr.shape[0]
-    W = arr.shape[1]
-    if not (u >= 1.0 and v >= 1.0 and u < W - 2.0 and v < H - 2.0):
+    inside, iu, iv = _cell(arr, u, v)
+    if not inside:
         return False
-    iu = int(np.floor(u))
-    iv = int(np.floor(v))
     for j in range(iv - 1, iv + 3):
         for i in range(iu - 1, iu + 3):
             if not ok[j, i]:
                 return False
+    _interp_at(arr, iu, iv, u, v, out)
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cell(arr, u, v):
+    """(inside, ⌊u⌋, ⌊v⌋): whether the 4 × 4 neighbourhood of the cubic convolution at pixel
+    (u, v) lies inside ``arr`` (H, W, …), and its cell."""
+    H = arr.shape[0]
+    W = arr.shape[1]
+    if not (u >= 1.0 and v >= 1.0 and u < W - 2.0 and v < H - 2.0):
+        return False, 0, 0
+    return True, int(np.floor(u)), int(np.floor(v))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _interp_at(arr, iu, iv, u, v, out):
+    """The cubic convolution of :func:`_interp` at (u, v) from the 4 × 4 samples around
+    (iu, iv) = (⌊u⌋, ⌊v⌋), which the caller checked."""
     wu = _keys(u - iu)
     wv = _keys(v - iv)
     C = arr.shape[2]
@@ -142,10 +159,9 @@ def _interp(arr, ok, u, v, out):
                 row += wu[b] * arr[iv - 1 + a, iu - 1 + b, c]
             s += wv[a] * row
         out[c] = s
-    return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, out):
     """r(z) = g_A − g_B at height z on A's view ray (d) with A's screen point q; partner B
     (centre oB, screen points qB (H, W, 3) registered where okB, T_cam_ref = RB, tB, intrinsics
@@ -169,7 +185,7 @@ def _residual(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, out
     return np.isfinite(out[0]) and np.isfinite(out[1])
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _residual_jacobian(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2):
     """r(z) into r0 (as :func:`_residual`; ``buf`` then holds the partner's q_B at z) and
     J = ∂r/∂z by a central difference of step :data:`_FD_STEP_MM` (r1, r2: work). Returns
@@ -182,7 +198,7 @@ def _residual_jacobian(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB,
     return True, (r1[0] - r2[0]) / (2.0 * h), (r1[1] - r2[1]) / (2.0 * h)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _refine(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r1, r2, step_max):
     """Gauss–Newton on the 2-vector r(z) from z (central-difference derivative). Returns
     (ok, z, |r|)."""
@@ -206,7 +222,7 @@ def _refine(oA, dx, dy, dz, qx, qy, qz, z, oB, qB, okB, RB, tB, camB, buf, r0, r
     return True, z, np.sqrt(r0[0] * r0[0] + r0[1] * r0[1])
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, n_steps, out_z, out_r, out_n):
     """Normal-consistency search (module docstring, step 1) for the pixels (rows[k], cols[k]).
     out_z: height (NaN if none), out_r: |r| at it (rad), out_n: number of distinct refined
@@ -273,7 +289,7 @@ def _search_kernel(oA, d, q, rows, cols, oB, qB, okB, RB, tB, camB, z_lo, step, 
         out_n[k] = cnt
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _refine_kernel(oA, d, q, rows, cols, z0, oB, qB, okB, RB, tB, camB, step_max, out_z, out_r):
     """Gauss–Newton (:func:`_refine`) of the heights on A's rays through the pixels (rows[k],
     cols[k]) from z0[k] with partner B; out_z NaN and out_r inf where it fails."""
@@ -288,49 +304,6 @@ def _refine_kernel(oA, d, q, rows, cols, z0, oB, qB, okB, RB, tB, camB, step_max
                            qB, okB, RB, tB, camB, buf, r0, r1, r2, step_max)
         out_z[k] = z if ok else np.nan
         out_r[k] = r if ok else np.inf
-
-
-@numba.njit(cache=True, parallel=True)
-def _report_kernel(oA, d, q, zA, oB, qB, okB, zB, okzB, RB, tB, camB, ang_out, dz_out):
-    """Per pixel of A with a height: the angle between A's and B's implied normals (rad) and
-    z_A − z_B along A's ray (mm); NaN where B does not see the point."""
-    H, W = zA.shape
-    for v in numba.prange(0, H):
-        buf = np.empty(3)
-        r0 = np.empty(6)
-        hb = np.empty(1)
-        for u in range(W):
-            ang_out[v, u] = np.nan
-            dz_out[v, u] = np.nan
-            z = zA[v, u]
-            if not np.isfinite(z):
-                continue
-            if not _residual(oA, d[v, u, 0], d[v, u, 1], d[v, u, 2], q[v, u, 0], q[v, u, 1], q[v, u, 2], z, oB,
-                             qB, okB, RB, tB, camB, buf, r0):
-                continue
-            ax, ay, az = -r0[2], -r0[3], 1.0
-            bx, by, bz = -r0[4], -r0[5], 1.0
-            cx = ay * bz - az * by
-            cy = az * bx - ax * bz
-            cz = ax * by - ay * bx
-            ang_out[v, u] = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
-            # B's surface along A's ray: z ← z_B(projection of p(z)), a contraction for slopes ≪ 1
-            # (the first projection is the one of the residual above); to 1e-7 mm.
-            zz = z
-            good = False
-            for _ in range(_REPORT_MAX_ITER):
-                t = (zz - oA[2]) / d[v, u, 2]
-                ok, uu, vv = _project(RB, tB, camB, oA[0] + t * d[v, u, 0], oA[1] + t * d[v, u, 1], zz)
-                if not ok or not _interp(zB, okzB, uu, vv, hb):
-                    good = False
-                    break
-                good = True
-                change = hb[0] - zz
-                zz = hb[0]
-                if abs(change) < _REPORT_TOL_MM:
-                    break
-            if good:
-                dz_out[v, u] = z - zz
 
 
 # ============================================================================ data
@@ -449,6 +422,14 @@ def _view_arrays(view: StereoView):
     return o, d, np.ascontiguousarray(q_filled), valid
 
 
+def _partners(arrays: dict, cams: dict, name: str):
+    """Every camera but ``name`` as a partner: (partner, o, q, valid, R, t, intrinsics) from
+    ``arrays`` (:func:`_view_arrays`) and ``cams`` (:func:`_camera_arrays`)."""
+    for partner, (oB, _, qB, okB) in arrays.items():
+        if partner != name:
+            yield (partner, oB, qB, okB, *cams[partner])
+
+
 def stereo_residual(views: dict, camera: str, partner: str, pixel, z_mm):
     """The normal-consistency residual r(z) = g_camera − g_partner (slopes, 2-vector) at heights
     ``z_mm`` (array) on ``camera``'s view ray through ``pixel`` (row, column); NaN where the
@@ -519,10 +500,13 @@ def stereo_views(model, decoded: dict, *, screen_model=None) -> dict:
 
 
 # ============================================================================ integration
-def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter):
+def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter, fields=None):
     """Zonal least-squares integration (:func:`~pmdsim.evaluation.least_squares.reconstruct_least_squares`'s
     equations) of the valid pixels' components that hold an anchor, gauged by the anchor
-    equations (weight :data:`ANCHOR_WEIGHT`) instead of a fixed seed. Returns
+    equations (weight :data:`ANCHOR_WEIGHT`) instead of a fixed seed. ``fields`` (a
+    :class:`~pmdsim.evaluation.least_squares._Fields` of at least (H + 2)(W + 2) elements): the
+    work arrays of the start and of the iteration, reused (by the cameras of one reconstruction:
+    no page faults of fresh arrays); a new one if not given. Returns
     (z (H, W), S, seed, iterations, converged, last change)."""
     labels, _ = ndimage.label(valid)
     lab = labels[anchors_vu[:, 0], anchors_vu[:, 1]]
@@ -530,14 +514,14 @@ def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter)
     cv, cu = anchors_vu.mean(axis=0)
     k = int(np.argmin((anchors_vu[:, 0] - cv) ** 2 + (anchors_vu[:, 1] - cu) ** 2))
     seed = (int(anchors_vu[k, 0]), int(anchors_vu[k, 1]))
-    z = _start_heights(o, d, q, S, seed, float(anchors_z[k]), tol_mm, max_iter)
     H, W = S.shape
-    D = np.zeros((H + 2, W + 2))
-    iD = np.zeros_like(D)
-    Ex = np.zeros_like(D)
-    Ey = np.zeros_like(D)
-    rhs = np.zeros_like(D)
-    work = _CGWork(D.shape)
+    if fields is None:
+        fields = _Fields((H + 2) * (W + 2))
+    fields.reset()
+    z = _start_heights(o, d, q, S, seed, float(anchors_z[k]), tol_mm, max_iter, fields)
+    fields.reset()  # the start's arrays are dead: the iteration's are carved from the same buffers
+    D, iD, Ex, Ey, rhs = (fields.zeros((H + 2, W + 2)) for _ in range(5))
+    work = _CGWork(D.shape, zeros=fields.zeros)
     av = anchors_vu[:, 0] + 1
     au = anchors_vu[:, 1] + 1
     w2 = ANCHOR_WEIGHT ** 2
@@ -562,7 +546,7 @@ def _integrate_anchored(o, d, q, valid, anchors_vu, anchors_z, tol_mm, max_iter)
 # ============================================================================ main
 def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
                        search_step_mm: float = DEFAULT_SEARCH_STEP_MM, stride_px: int | None = None,
-                       max_iter: int = 20, tol_mm: float = 1e-9) -> StereoReconstruction:
+                       max_iter: int = 20, tol_mm: float = 1e-9, on_reconstruction=None) -> StereoReconstruction:
     """Absolute surface from two or more calibrated cameras, without a seed (module docstring).
 
     Parameters
@@ -580,6 +564,11 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
     max_iter, tol_mm
         Gauss–Newton iterations and tolerance of the anchored integration
         (as :func:`~pmdsim.evaluation.least_squares.reconstruct_least_squares`).
+    on_reconstruction : callable, optional
+        Called as ``on_reconstruction(name, reconstruction)`` (a
+        :class:`~pmdsim.evaluation.integration.Reconstruction`, the one the result holds) as soon
+        as each camera's integration ends, in camera order, before the next camera integrates
+        and before the agreement report (e.g. to write the camera's maps meanwhile).
 
     Returns
     -------
@@ -631,10 +620,7 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
         best_z = np.full(rows.size, np.nan)
         best_r = np.full(rows.size, np.inf)
         amb = np.zeros(rows.size, dtype=bool)
-        for partner, (oB, _, qB, okB) in arrays.items():
-            if partner == name:
-                continue
-            RB, tB, camB = cams[partner]
+        for _, oB, qB, okB, RB, tB, camB in _partners(arrays, cams, name):
             z = np.empty(rows.size)
             r = np.empty(rows.size)
             cnt = np.empty(rows.size, dtype=np.int64)
@@ -656,34 +642,28 @@ def reconstruct_stereo(views: dict, *, search_range_mm=DEFAULT_SEARCH_RANGE_MM,
     t1, c1 = time.perf_counter(), time.process_time()
     timings["search"], timings["search_cpu"] = t1 - t0, c1 - c0
     recs = {}
+    fields = _Fields(max((a[3].shape[0] + 2) * (a[3].shape[1] + 2) for a in arrays.values()))  # shared work arrays
     for name, (o, d, q, valid) in arrays.items():
         vu, az, ar, _, _ = anchors[name]
-        z, S, seed, it, conv, change = _integrate_anchored(o, d, q, valid, vu, az, tol_mm, max_iter)
+        z, S, seed, it, conv, change = _integrate_anchored(o, d, q, valid, vu, az, tol_mm, max_iter, fields)
         recon = S & np.isfinite(z)
         z = np.where(recon, z, np.nan)
         pts, nrm = _points_and_normals(o, d, q, z)
         recs[name] = Reconstruction(z, pts, nrm, recon, "stereo", int(it), bool(conv), seed, float(change))
+        if on_reconstruction is not None:
+            on_reconstruction(name, recs[name])
+    del fields  # the integration's work arrays (≈ 0.2 GB at 1920 × 1200): freed before the report
 
     # 3. agreement report
     t2, c2 = time.perf_counter(), time.process_time()
     timings["integration"], timings["integration_cpu"] = t2 - t1, c2 - c1
+    from .stereo_report import agreement  # here: it imports this module's kernels
+
+    report = agreement(arrays, cams, {n: r.height_mm for n, r in recs.items()})
     out = {}
-    for name, (o, d, q, valid) in arrays.items():
+    for name in arrays:
         zA = recs[name].height_mm
-        ang = np.full(zA.shape, np.nan)
-        dzm = np.full(zA.shape, np.nan)
-        for partner, (oB, _, qB, okB) in arrays.items():
-            if partner == name:
-                continue
-            RB, tB, camB = cams[partner]
-            zB = recs[partner].height_mm
-            okzB = np.isfinite(zB)
-            a = np.empty(zA.shape)
-            dz = np.empty(zA.shape)
-            _report_kernel(o, d, q, zA, oB, qB, okB, np.ascontiguousarray(np.nan_to_num(zB)[..., None]), okzB,
-                           RB, tB, camB, a, dz)
-            ang = np.fmax(ang, a)
-            dzm = np.where(np.isnan(dzm) | (np.abs(dz) > np.abs(dzm)), dz, dzm)
+        ang, dzm = report[name]
         vu, az, ar, searched, n_amb = anchors[name]
         fit = (zA[vu[:, 0], vu[:, 1]] - az) * 1e3
         out[name] = StereoCamera(recs[name], np.isfinite(ang), ang * 1e6, dzm * 1e3, vu, az, ar * 1e6, fit,

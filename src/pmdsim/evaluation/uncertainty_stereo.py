@@ -63,7 +63,7 @@ _RTOL = 1e-4  # relative tolerance of each sample's multigrid-CG solve (docs/ben
 
 
 # ============================================================================ kernels
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _anchor_kernel(oA, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, p_out, qB_out, J_out, r_out, idx_out,
                    w_out, ok_out):
     """Per anchor k of A (pixel rows[k], cols[k], height za[k]) with partner B: the point p on
@@ -113,7 +113,7 @@ def _anchor_kernel(oA, d, q, rows, cols, za, oB, qB, okB, RB, tB, camB, p_out, q
         ok_out[k] = True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nonfinite_on(x, S):
     """The number of pixels of S (H, W) where x (H, W, c) has a component that is not finite (one
     pass, no masked copy of x)."""
@@ -129,7 +129,7 @@ def _nonfinite_on(x, S):
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _anchor_draw(anchor, cam, pix, coef, seeds, k, n_chunks, out):
     """δa of sample k (out, one per anchor) from the linear terms δa_i = Σ_t coef_t·ξ(cam_t, pix_t)."""
     out[:] = 0.0

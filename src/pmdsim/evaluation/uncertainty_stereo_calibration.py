@@ -74,7 +74,7 @@ _RTOL = 1e-6
 THREADS = 1
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _std_maps(var, S, h_um, g_urad):
     """From the variances var (H, W, 3) (height mm², slopes): h_um (H, W) = sqrt(var₀)·1e3 and
     g_urad (H, W, 2) = sqrt(var₁,₂)·1e6 on S, NaN off it — numpy's ``np.sqrt(var[..., 0]) * 1e3``

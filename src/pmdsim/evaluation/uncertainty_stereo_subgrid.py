@@ -66,7 +66,7 @@ def _nearest(x, o: int, s: int, n: int) -> np.ndarray:
     return np.clip((np.asarray(x, dtype=np.int64) - o + s // 2) // s, 0, n - 1)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _add_draws(a, seed, pix, n_chunks, K, t0, t1, row):
     """Add pixel ``pix``'s δg_k = a ξ_k (a (2, 2)) of the K samples to its block's sums row (2K,)
     (x: row[k], y: row[K + k]). The four values ±a₀₀ ± a₀₁ (and ±a₁₀ ± a₁₁) are tabulated and
@@ -85,7 +85,7 @@ def _add_draws(a, seed, pix, n_chunks, K, t0, t1, row):
             row[K + 32 * c + kk] += t1[b]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _block_row_means(acc, cnt, K, i, out):
     """out[k, i, j] = the block sums acc (wc, 2K) over the counts cnt (wc,) (at least 1)."""
     for j in range(acc.shape[0]):
@@ -95,7 +95,7 @@ def _block_row_means(acc, cnt, K, i, out):
             out[k, i, j, 1] = acc[j, K + k] / n
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _block_means(A, S, seed, n_chunks, K, row_block, col_block, hc, wc, out):
     """out (K, hc, wc, 2) = the mean of δg_k = A ξ_k over each subgrid pixel's block of
     reconstructed pixels (row_block[v], col_block[u]: the block of pixel (v, u)), for the K
@@ -119,7 +119,7 @@ def _block_means(A, S, seed, n_chunks, K, row_block, col_block, hc, wc, out):
         _block_row_means(acc, cnt, K, i, out)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _finite(x):
     """numpy's ``nan_to_num`` of one float: NaN → 0, ±inf → ± the largest float."""
     if np.isnan(x):
@@ -129,7 +129,7 @@ def _finite(x):
     return x
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def _jacobian_block_means(o, p, q, T, S, sig, seed, n_chunks, K, row_block, col_block, hc, wc, out, gstd):
     """:func:`_block_means` of A = J·diag(σ) computed per pixel in the same pass
     (:func:`~pmdsim.evaluation.uncertainty._pixel_jacobian`, NaN-free as ``np.nan_to_num``)
@@ -161,7 +161,7 @@ def _jacobian_block_means(o, p, q, T, S, sig, seed, n_chunks, K, row_block, col_
         _block_row_means(acc, cnt, K, i, out)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _interpolated_std(sd, S, o, s, out):
     """out (H, W) = sqrt(x²), x the bilinear interpolation of the subgrid's σ sd (h, w) (no NaN;
     node (i, j) is pixel (o + s·i, o + s·j), linear extrapolation beyond the outer nodes), NaN
@@ -184,7 +184,7 @@ def _interpolated_std(sd, S, o, s, out):
             out[v, u] = np.sqrt(x * x)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _anchor_draws(anchor, cam, pix, coef, seeds, K, n_chunks, out):
     """out (K, n): δa of every sample k from the linear terms δa_i = Σ_t coef_t·ξ_k(cam_t, pix_t)
     (what :func:`pmdsim.evaluation.uncertainty_stereo._anchor_draw` gives per sample, in the same

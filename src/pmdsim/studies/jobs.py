@@ -575,77 +575,11 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     checks, flagged pixels not used, :class:`ConsistencyFailure` if none passes, the maps in
     ``evaluation.h5``); the summary carries each camera's valid fraction, so that
     :meth:`EvaluationSummary.failures` applies ``min_valid_fraction`` as for mono."""
-    from ..evaluation.integration import ReconstructionError
-    from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, evaluate_stereo_decoded
-    from ..io.hdf5 import append_stereo_h5
-    from . import uncertainty_job as uj
+    from .evaluate_stereo import evaluate_image_set_stereo as run  # the job (its files written while it computes)
 
-    manifest = load_manifest(image_dir, screen_size_mm=setup.screen.size_mm)
-    if screen_model is None:
-        screen_model = manifest.instrument.screen_model or "planar"
-    if screen_model not in ("planar", "setup"):
-        raise JobInputError(f"screen model must be 'planar' or 'setup', got {screen_model!r}")
-    unknown = [c for c in manifest.cameras if c not in setup.cameras]
-    if unknown:
-        raise JobInputError(f"camera(s) {unknown} of {image_dir}/manifest.json are not in the setup "
-                            f"(setup cameras: {list(setup.cameras)})")
-    if len(manifest.cameras) < 2:
-        raise JobInputError(f"--stereo needs images of at least two cameras; {image_dir}/manifest.json has "
-                            f"{list(manifest.cameras)}")
-    if not 0.0 <= float(min_valid_fraction) <= 1.0:
-        raise JobInputError(f"min_valid_fraction must be in [0, 1], got {min_valid_fraction!r}")
-    search = DEFAULT_SEARCH_RANGE_MM if search_range_mm is None else tuple(search_range_mm)
-    prov = provenance(command, setup.to_toml())
-    t0 = time.perf_counter()
-    decoded = {}
-    checks = {}
-    for cam in manifest.cameras:
-        decoded[cam], cons = _decode_checked(manifest, setup, cam, noise_std, image_dir, consistency)
-        if cons is not None:
-            checks[cam] = cons
-        _tick(progress, f"decoded {cam}")
-    try:
-        views, st = evaluate_stereo_decoded(setup, decoded, search_range_mm=search,
-                                            screen_model=None if screen_model == "planar" else setup.screen.surface)
-    except ReconstructionError as e:
-        raise ComputationError(f"stereo evaluation of {image_dir}: {e}") from None
-    st, uncs, u_warn = uj.stereo_uncertainty(setup, views, decoded, st, screen=screen_model, enabled=uncertainty)
-    results = {cam: (decoded[cam], views[cam].registration, st.cameras[cam].reconstruction) for cam in decoded}
-    summary = st.summary()
-    with atomic_output_dir(out_dir, force=force, inputs=[image_dir, *inputs], command=command) as tmp:
-        for cam, (_, _, rec) in results.items():
-            p = rec.p_sample_mm
-            write_height_map_png(p[..., 0], p[..., 1], rec.height_mm * 1e3,
-                                 title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
-                                 label="height (µm)", path=tmp / f"height_{cam}.png")
-        uj.stereo_figures(tmp, results, uncs)
-        write_evaluation_h5(tmp / "evaluation.h5", results,
-                            {**prov, "method": "stereo", "screen_model": screen_model, "image_dir": str(image_dir),
-                             "uncertainty": uj.stereo_attribute(uncs, uncertainty)},
-                            extras={c: uj.uncertainty_datasets(uncs.get(c)) for c in results})
-        append_stereo_h5(tmp / "evaluation.h5", st, {"search_range_mm": list(st.search_range_mm),
-                                                      "search_step_mm": st.search_step_mm, "stride_px": st.stride_px})
-        if checks:
-            write_consistency_h5(tmp / "evaluation.h5", checks,
-                                 {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
-    cams = {}
-    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
-    for cam, (dec, _, rec) in results.items():
-        h = rec.height_mm[rec.reconstructed] * 1e3
-        usable = int(np.count_nonzero((dec.flags & photometric) == 0))
-        n_rec = int(rec.reconstructed.sum())
-        c = checks.get(cam)
-        cams[cam] = {"pixels": int(dec.valid.size), "decoded": int(dec.valid.sum()),
-                     "reconstructed": n_rec,
-                     "height_min_um": float(np.min(h)) if h.size else float("nan"),
-                     "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged), "stereo": summary[cam], "usable": usable,
-                     "valid_fraction": n_rec / usable if usable else 0.0,
-                     "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else [],
-                     **uj.uncertainty_stats(uncs.get(cam))}
-    return EvaluationSummary(cams, time.perf_counter() - t0, warnings=tuple(u_warn),
-                             response=manifest.instrument.response_info, min_valid_fraction=float(min_valid_fraction))
+    return run(image_dir, setup, out_dir, screen_model=screen_model, search_range_mm=search_range_mm,
+               noise_std=noise_std, force=force, command=command, progress=progress, inputs=inputs,
+               min_valid_fraction=min_valid_fraction, consistency=consistency, uncertainty=uncertainty)
 
 
 # ============================================================================ calibrate
