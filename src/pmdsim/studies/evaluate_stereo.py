@@ -21,10 +21,8 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from ..errors import ComputationError
-from ..evaluation.phase import PhaseFlag
 from ..io import atomic_output_dir, provenance
 from ..io.hdf5 import EvaluationFile, append_stereo_h5, write_consistency_h5
 from ..io.imageset import load_manifest
@@ -47,8 +45,8 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     from . import uncertainty_job as uj
     from .evaluate_files import background_files
     from .evaluate_memory import KeptDecoding, kept_for_files, small_pages
-    from .jobs import (DEFAULT_MIN_VALID_FRACTION, EvaluationSummary, JobInputError, _decode_checked, _image_files,
-                       _name_files, _tick)
+    from .jobs import (DEFAULT_MIN_VALID_FRACTION, EvaluationSummary, JobInputError, _decode_checked, _camera_summary,
+                       _image_files, _tick)
 
     if min_valid_fraction is None:
         min_valid_fraction = DEFAULT_MIN_VALID_FRACTION
@@ -118,21 +116,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                 h5_tasks.submit(write_consistency_h5, tmp / "evaluation.h5", checks,
                                 {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
             summary = st.summary()
-    cams = {}
-    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
-    for cam, (dec, _, rec) in results.items():
-        h = rec.height_mm[rec.reconstructed] * 1e3
-        usable = int(np.count_nonzero((dec.flags & photometric) == 0))
-        n_rec = int(rec.reconstructed.sum())
-        c = checks.get(cam)
-        cams[cam] = {"pixels": int(dec.valid.size), "decoded": int(dec.valid.sum()),
-                     "reconstructed": n_rec,
-                     "height_min_um": float(np.min(h)) if h.size else float("nan"),
-                     "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged), "stereo": summary[cam], "usable": usable,
-                     "valid_fraction": n_rec / usable if usable else 0.0,
-                     "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else [],
-                     **uj.uncertainty_stats(uncs.get(cam))}
+    cams = {cam: _camera_summary(cam, dec, rec, checks.get(cam), manifest, uncs.get(cam), stereo=summary[cam])
+            for cam, (dec, _, rec) in results.items()}
     return EvaluationSummary(cams, time.perf_counter() - t0, warnings=tuple(u_warn),
                              response=manifest.instrument.response_info, min_valid_fraction=float(min_valid_fraction))

@@ -507,24 +507,30 @@ def evaluate_image_set(image_dir: str | Path, setup: Setup, out_dir: str | Path,
         if checks:
             h5_tasks.submit(write_consistency_h5, tmp / "evaluation.h5", checks,
                             {cam: _image_files(manifest, cam, c.images) for cam, c in checks.items()})
-    cams = {}
-    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
-    for cam, (decoded, reg, rec) in results.items():
-        h = rec.height_mm[rec.reconstructed] * 1e3
-        usable = int(np.count_nonzero((decoded.flags & photometric) == 0))
-        n_rec = int(rec.reconstructed.sum())
-        c = checks.get(cam)
-        cams[cam] = {"pixels": int(decoded.valid.size), "decoded": int(decoded.valid.sum()),
-                     "reconstructed": n_rec,
-                     "height_min_um": float(np.min(h)) if h.size else float("nan"),
-                     "height_max_um": float(np.max(h)) if h.size else float("nan"),
-                     "converged": bool(rec.converged), "anchor": anchors[cam], "usable": usable,
-                     "valid_fraction": n_rec / usable if usable else 0.0,
-                     "consistency_counts": c.counts() if c is not None else {},
-                     "reasons": [_name_files(r, manifest, cam, c.images) for r in c.reasons()] if c is not None else [],
-                     **uj.uncertainty_stats(uncs.get(cam))}
+    cams = {cam: _camera_summary(cam, decoded, rec, checks.get(cam), manifest, uncs.get(cam), anchor=anchors[cam])
+            for cam, (decoded, reg, rec) in results.items()}
     return EvaluationSummary(cams, time.perf_counter() - t0, fit_json if fit is not None else None, tuple(warnings),
                              manifest.instrument.response_info, float(min_valid_fraction), tuple(notes))
+
+
+def _camera_summary(cam, decoded, rec, check, manifest, unc, **extra) -> dict:
+    """One camera's entry of :class:`EvaluationSummary` (mono and stereo ``evaluate``): pixel
+    counts, the height range (µm), convergence, the consistency counts and reasons (image files
+    named), the σ statistics; ``extra`` adds path-specific keys (``anchor`` or ``stereo``)."""
+    from . import uncertainty_job as uj
+
+    photometric = int(PhaseFlag.DARK | PhaseFlag.SATURATED | PhaseFlag.LOW_MODULATION | PhaseFlag.NONFINITE)
+    h = rec.height_mm[rec.reconstructed] * 1e3
+    usable = int(np.count_nonzero((decoded.flags & photometric) == 0))
+    n_rec = int(rec.reconstructed.sum())
+    return {"pixels": int(decoded.valid.size), "decoded": int(decoded.valid.sum()), "reconstructed": n_rec,
+            "height_min_um": float(np.min(h)) if h.size else float("nan"),
+            "height_max_um": float(np.max(h)) if h.size else float("nan"),
+            "converged": bool(rec.converged), **extra, "usable": usable,
+            "valid_fraction": n_rec / usable if usable else 0.0,
+            "consistency_counts": check.counts() if check is not None else {},
+            "reasons": [_name_files(r, manifest, cam, check.images) for r in check.reasons()] if check is not None else [],
+            **uj.uncertainty_stats(unc)}
 
 
 def _ratios_by_camera_pose(residuals) -> dict:
