@@ -153,8 +153,10 @@ def _instrument():
                                                 nested=True))
     uncertainty_job.height_std_figure = _timed("files", uncertainty_job.height_std_figure)
     for name in ("write_evaluation_h5", "write_consistency_h5", *fig_names, "write_json"):
-        setattr(jobs, name, _timed("files", getattr(jobs, name)))
-    jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
+        if hasattr(jobs, name):  # trees before issue 25 call write_evaluation_h5 from jobs; later ones EvaluationFile
+            setattr(jobs, name, _timed("files", getattr(jobs, name)))
+    if hasattr(jobs, "write_evaluation_h5"):
+        jobs.write_evaluation_h5 = _timed("  of which write_evaluation_h5", jobs.write_evaluation_h5, nested=True)
     setattr(surface_figures, slope_name, _timed("files", getattr(surface_figures, slope_name)))
     try:  # the cameras two at a time (issue 25, studies/evaluate_cameras): the wall span of their pipelines
         from pmdsim.studies import evaluate_cameras

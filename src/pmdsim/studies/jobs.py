@@ -32,7 +32,6 @@ from ..io import (
     atomic_file,
     atomic_output_dir,
     provenance,
-    write_evaluation_h5,
     write_json,
     write_mapping_h5,
     write_png,
