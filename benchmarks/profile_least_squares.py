@@ -106,7 +106,7 @@ def main() -> None:
 
         setattr(mod, name, timed)
 
-    for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_and_normals", "_start_heights",
+    for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_normals", "_start_heights",
                  "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
         wrap(LS, name)
     if a.cg_kernels:
@@ -183,7 +183,7 @@ def first_calls(frame: str, threads: int, calls: int) -> None:
         setattr(mod, name, timed)
 
     for name in ("_start_heights", "_gauss_newton", "_assemble_gauss_newton", "_every_second", "_run_stepwise",
-                 "_points_and_normals", "_pcg", "Multigrid"):
+                 "_points_normals", "_pcg", "Multigrid"):
         wrap(LS, name)
     wrap(P, "dct_pcg")
     wrap(P, "DCTLaplacian")
