@@ -106,9 +106,10 @@ def main() -> None:
 
         setattr(mod, name, timed)
 
-    for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_normals", "_start_heights",
-                 "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
-        wrap(LS, name)
+    for name in ("_gauss_newton", "_assemble_gauss_newton", "_points_normals", "_points_and_normals",
+                 "_start_heights", "_fill_kernel", "_run_stepwise", "_interpolate_coarse"):
+        if hasattr(LS, name):  # (an older tree has other names)
+            wrap(LS, name)
     if a.cg_kernels:
         import scipy.fft
 
@@ -183,8 +184,9 @@ def first_calls(frame: str, threads: int, calls: int) -> None:
         setattr(mod, name, timed)
 
     for name in ("_start_heights", "_gauss_newton", "_assemble_gauss_newton", "_every_second", "_run_stepwise",
-                 "_points_normals", "_pcg", "Multigrid"):
-        wrap(LS, name)
+                 "_points_normals", "_points_and_normals", "_pcg", "Multigrid"):
+        if hasattr(LS, name):  # (an older tree has other names)
+            wrap(LS, name)
     wrap(P, "dct_pcg")
     wrap(P, "DCTLaplacian")
     print(f"scipy.fft imported before call 1: {'scipy.fft' in sys.modules}")

@@ -15,7 +15,7 @@ from .integration import (
     ReconstructionError,
     _check_inputs,
     _check_seed,
-    _points_normals,
+    _points_and_normals,
 )
 from . import poisson
 from .multigrid import _CGWork, _pcg
@@ -319,29 +319,12 @@ class _Fields:
     machine 20–60 % of the full reconstruction's time was system time, varying with the
     other jobs). A view is zeroed where an earlier level may have written it, so it is
     exactly a fresh ``np.zeros`` array. No two levels' arrays are alive at once (a level's
-    solve ends before the next level starts).
+    solve ends before the next level starts)."""
 
-    ``backing``: zeroed arrays (any shape, C-contiguous) whose memory the first buffers are
-    carved from (at 64-byte boundaries, as long as a whole buffer fits), e.g. the call's
-    outputs, which are written only after the work arrays are dead: fresh memory is then
-    touched once for both — its first touch, a page fault and the kernel zeroing the page, was
-    the largest part of a first call's extra cost (docs/benchmarks.md, "The least-squares
-    integration's first call (rc26)")."""
-
-    def __init__(self, size: int, backing=()):
+    def __init__(self, size: int):
         self.size = int(size)
         self._bufs: dict = {}  # dtype → [[buffer, elements possibly non-zero], ...]
         self._next: dict = {}
-        self._backing = [np.ascontiguousarray(b).reshape(-1).view(np.uint8) for b in backing]
-
-    def _new_buffer(self, n: int, dtype) -> np.ndarray:
-        """A zeroed 1-D buffer of n elements: carved from the backing memory if it fits there."""
-        nbytes = n * dtype.itemsize
-        for i, b in enumerate(self._backing):
-            if b.size >= nbytes:
-                self._backing[i] = b[-(-nbytes // 64) * 64:]
-                return b[:nbytes].view(dtype)
-        return np.zeros(n, dtype=dtype)  # calloc: zero until touched
 
     def reset(self) -> None:
         """Hand out the buffers again from the first (the arrays handed out before are dead)."""
@@ -356,7 +339,7 @@ class _Fields:
         k = self._next.get(dtype, 0)
         self._next[dtype] = k + 1
         if k == len(bufs) or bufs[k][0].size < n:
-            entry = [self._new_buffer(max(n, self.size), dtype), 0]
+            entry = [np.zeros(max(n, self.size), dtype=dtype), 0]  # calloc: zero until touched
             if k == len(bufs):
                 bufs.append(entry)
             else:
@@ -637,11 +620,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
         labels, _ = ndimage.label(valid)  # 4-connectivity
         S = np.ascontiguousarray(labels == labels[seed])
 
-    # The outputs (zero pages until touched) first lend their memory to the work arrays of
-    # every level (_Fields), which are dead before the points and normals are written.
-    pts = np.zeros((H, W, 3))
-    nrm = np.zeros((H, W, 3))
-    fields = _Fields((H + 2) * (W + 2), backing=(pts, nrm))
+    fields = _Fields((H + 2) * (W + 2))  # the work arrays of every level
     z = _start_heights(o, d, q, S, seed, z0, tol_mm, max_iter, fields)
     first = _FIRST_UPDATE_FRAC if _starts_coarse(S) else None
     it, converged, change = _gauss_newton(o, d, q, S, seed, z, tol_mm, max_iter, atol_frac=_INNER_CAP, fields=fields,
@@ -650,7 +629,7 @@ def reconstruct_least_squares(o, d, q, valid, seed_pixel=None, seed_height_mm=0.
 
     recon = S & np.isfinite(z)
     z[~recon] = np.nan  # z is this call's own array
-    _points_normals(o, d, q, z, pts, nrm)  # every element written
+    pts, nrm = _points_and_normals(o, d, q, z)
     return Reconstruction(
         height_mm=z,
         p_sample_mm=pts,
