@@ -19,7 +19,6 @@ from .integration import (
 )
 from . import poisson
 from .multigrid import _CGWork, _pcg
-from .multigrid_lists import Multigrid
 from .stepwise import STEP_MAX_ITER, _NB_DU, _NB_DV, _fill_kernel, _interpolate_coarse, _run_stepwise
 
 __all__ = ["reconstruct_least_squares"]
@@ -399,9 +398,7 @@ def _gauss_newton(o, d, q, S, seed, z, tol, max_iter, atol_frac=0.01, fields=Non
                                        cap=cap, lap=lap, work=work)
             delta, solved = X[0], bool(ok[0])
         else:
-            # (the hierarchy's typed lists built by compiled code: multigrid_lists)
-            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol, _INNER_RTOL, _INNER_MAX_ITER, cap=cap, work=work,
-                                    mg=Multigrid(D, iD, Ex, Ey))
+            delta, _, solved = _pcg(D, iD, Ex, Ey, rhs, atol, _INNER_RTOL, _INNER_MAX_ITER, cap=cap, work=work)
         change = _apply_update(z, delta, D)
         if not np.isfinite(change):
             raise ReconstructionError(

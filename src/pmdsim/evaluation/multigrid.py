@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba.typed import List
+
+from .multigrid_lists import array_list
 
 __all__: list[str] = []
 
@@ -366,15 +367,17 @@ class _Multigrid:
             levels.append((D, iD, Ex, Ey))
         self.n_levels = len(levels)
         shapes = [lv[0].shape for lv in levels]
-        self.Ds = List([lv[0] for lv in levels])
-        self.iDs = List([lv[1] for lv in levels])
-        self.Exs = List([lv[2] for lv in levels])
-        self.Eys = List([lv[3] for lv in levels])
+        # numba typed lists built by cached compiled code (multigrid_lists: numba.typed.List([...])
+        # would compile numba's list helpers, 0.25 s of CPU, in every fresh process)
+        self.Ds = array_list([lv[0] for lv in levels])
+        self.iDs = array_list([lv[1] for lv in levels])
+        self.Exs = array_list([lv[2] for lv in levels])
+        self.Eys = array_list([lv[3] for lv in levels])
         # Work arrays per level (level 0's are unused: its input and output are the caller's).
-        self.xs = List([np.zeros(s) for s in shapes])     # the level's result
-        self.rcs = List([np.zeros(s) for s in shapes])    # restricted residual (level input)
-        self.r2s = List([np.zeros(s) for s in shapes])    # residual for the second cycle
-        self.accs = List([np.zeros(s) for s in shapes])   # sum of the two coarse cycles
+        self.xs = array_list([np.zeros(s) for s in shapes])     # the level's result
+        self.rcs = array_list([np.zeros(s) for s in shapes])    # restricted residual (level input)
+        self.r2s = array_list([np.zeros(s) for s in shapes])    # residual for the second cycle
+        self.accs = array_list([np.zeros(s) for s in shapes])   # sum of the two coarse cycles
         self._factor_coarsest(*levels[-1])
 
     def _factor_coarsest(self, D, _iD, Ex, Ey):

@@ -1,4 +1,4 @@
-"""The multigrid hierarchy's typed lists built in cached compiled code (issue 25 item 3).
+"""Numba typed lists of arrays built in cached compiled code (issue 25 item 3).
 
 :class:`pmdsim.evaluation.multigrid._Multigrid` hands its levels to the compiled cycle as
 numba typed lists. ``numba.typed.List([...])`` called from Python compiles numba's own
@@ -8,18 +8,17 @@ typed-list helpers (``_make_list``, ``_append``: not cached) on its first use in
 the command's critical path (docs/benchmarks.md, "The least-squares integration's first call
 (rc26)"). :func:`array_list` builds the same list (same type, the same arrays, not copies)
 with two small kernels of this module, which numba's cache keeps: ≈ 7 ms on their first call.
-:class:`Multigrid` is ``_Multigrid`` with its lists built so (the same hierarchy and cycle).
+``_Multigrid`` builds its lists so, for every caller of the multigrid-preconditioned CG (the
+least-squares integration's coarse levels and masked frames, the anchored stereo integration,
+the σ solves).
 """
 
 from __future__ import annotations
 
 import numba
-import numpy as np
 from numba.typed import List
 
-from .multigrid import _MG_COARSEST_CELLS, _coarsen, _Multigrid
-
-__all__ = ["Multigrid", "array_list"]
+__all__ = ["array_list"]
 
 
 @numba.njit(cache=True)
@@ -49,21 +48,3 @@ def array_list(arrays) -> List:
         _list_append(out, a)
     return out
 
-
-class Multigrid(_Multigrid):
-    """:class:`~pmdsim.evaluation.multigrid._Multigrid` (aggregation multigrid of a padded
-    5-point SPD operator; the same levels, coarsest factor and :meth:`apply`) with its typed
-    lists built by :func:`array_list`. Pass it to :func:`~pmdsim.evaluation.multigrid._pcg`
-    as ``mg``."""
-
-    def __init__(self, D, iD, Ex, Ey):  # noqa: D107 — the levels as _Multigrid.__init__
-        levels = [(D, iD, Ex, Ey)]
-        while (D.shape[0] - 2) * (D.shape[1] - 2) > _MG_COARSEST_CELLS:
-            D, iD, Ex, Ey = _coarsen(D, Ex, Ey)
-            levels.append((D, iD, Ex, Ey))
-        self.n_levels = len(levels)
-        self.Ds, self.iDs, self.Exs, self.Eys = (array_list([lv[k] for lv in levels]) for k in range(4))
-        # Work arrays per level: result, restricted residual, second cycle's residual, sum of the cycles.
-        self.xs, self.rcs, self.r2s, self.accs = (array_list([np.zeros(lv[0].shape) for lv in levels])
-                                                  for _ in range(4))
-        self._factor_coarsest(*levels[-1])
