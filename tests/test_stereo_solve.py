@@ -151,3 +151,10 @@ def test_dct_path_matches_the_multigrid_path_and_scipy(table1_binned, monkeypatc
         keep = (D[1:-1, 1:-1] > 0).ravel()
         step = spsolve(_sparse(D, Ex, Ey)[keep][:, keep].tocsc(), rhs[1:-1, 1:-1].ravel()[keep])
         assert np.max(np.abs(step)) < tol
+
+
+def test_warm_up_integrates_its_flat_mirror_to_zero():
+    # the synthetic screen points are the reflections in the plane z = 0 (closed form): the
+    # anchored integration with anchors at 0 must return 0
+    z = stereo.warm_up()
+    assert z.shape == (320, 320) and np.max(np.abs(z)) < 1e-9
