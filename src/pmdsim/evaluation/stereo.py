@@ -24,7 +24,8 @@ Method (all in one reconstruction frame, e.g. the sample frame; heights along it
    ambiguous and not used.
 2. **Anchored integration of each camera's slopes.** Each camera's slope field is integrated
    by the zonal least-squares integration of :mod:`pmdsim.evaluation.least_squares` (the same
-   Gauss–Newton assembly and multigrid-preconditioned CG), without a fixed seed: the gauge
+   Gauss–Newton assembly; on full frames CG preconditioned by the DCT with an exact level,
+   :mod:`pmdsim.evaluation.stereo_solve`, else by multigrid), without a fixed seed: the gauge
    comes from the anchor equations w·(z_i − a_i) = 0 added to the normal equations (weight
    :data:`ANCHOR_WEIGHT`: small, so that the anchors set the absolute level, which the slopes
    cannot, and the slopes set the shape). A camera's anchors are those found along its own
