@@ -7,7 +7,8 @@ Per stage of :func:`pmdsim.studies.jobs.evaluate_image_set_stereo`, summed over 
 any thread: wall time, CPU time of the calling thread, and — for calls from the main thread —
 the process's system time and minor page faults (``resource.getrusage``; first touches of fresh
 memory). Stages: decode (reading + decoding), checks (nominal map + consistency checks),
-registration (``stereo_views``), the stereo search / integration / report
+registration (``stereo_views``), the integration's warm-up (a thread during decode, st26), the
+stereo search / integration / report
 (``StereoReconstruction.timings``), σ (``stereo_uncertainty``), files (``evaluation.h5``, PNGs).
 Stages overlapped in threads are summed per thread (so they may add to more than the wall
 time); "total" is the wall time of the call. ``--huge-pages``: numpy's huge-page hint left on (A/B of
@@ -102,6 +103,8 @@ def _instrument():
         setattr(jobs, name, _timed("checks", getattr(jobs, name)))
     stereo.stereo_views = _timed("registration", stereo.stereo_views)
     stereo._integrate_anchored = _labelled("  integration", stereo._integrate_anchored)
+    if hasattr(stereo, "warm_up"):  # the integration's kernels loaded in a thread while decoding (st26)
+        stereo.warm_up = _timed("warm-up (thread, during decode)", stereo.warm_up)
     stereo._points_and_normals = _labelled("  points and normals", stereo._points_and_normals)
     try:  # the report in its own module (st25h)
         import pmdsim.evaluation.stereo_report as sr

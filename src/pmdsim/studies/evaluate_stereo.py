@@ -17,6 +17,7 @@ consistency maps).
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 from typing import Sequence
@@ -32,6 +33,26 @@ from .map_png import write_height_map_png
 __all__ = ["evaluate_image_set_stereo"]
 
 
+def _start_warm_up(warm_up):
+    """``warm_up`` (:func:`pmdsim.evaluation.stereo.warm_up`) started in a daemon thread, if
+    numba's threading layer allows parallel kernels from two threads at once
+    (:func:`~pmdsim.studies.evaluate_cameras.concurrent_cameras`); returns the thread or None."""
+    from .evaluate_cameras import concurrent_cameras
+
+    if not concurrent_cameras(2):
+        return None
+
+    def run():
+        try:
+            warm_up()
+        except Exception:  # noqa: BLE001 (only a warm-up: the integration loads its kernels itself)
+            pass
+
+    thread = threading.Thread(target=run, name="pmdsim-stereo-warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
 def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str | Path, *,
                               screen_model: str | None = None, search_range_mm=None, noise_std=None, force: bool = False,
                               command: str | None = None, progress=None, inputs: Sequence[str | Path | None] = (),
@@ -41,7 +62,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     (its parameters, outputs, summary and errors; ``min_valid_fraction`` None: its default);
     the files written while later stages compute (module docstring)."""
     from ..evaluation.integration import ReconstructionError
-    from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, reconstruct_stereo, stereo_views
+    from ..evaluation.stereo import DEFAULT_SEARCH_RANGE_MM, reconstruct_stereo, stereo_views, warm_up
     from . import uncertainty_job as uj
     from .evaluate_files import background_files
     from .evaluate_memory import KeptDecoding, kept_for_files, small_pages
@@ -67,6 +88,7 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
     search = DEFAULT_SEARCH_RANGE_MM if search_range_mm is None else tuple(search_range_mm)
     prov = provenance(command, setup.to_toml())
     t0 = time.perf_counter()
+    warm = _start_warm_up(warm_up)  # the integration's kernels loaded while the images are decoded
     decoded = {}
     checks = {}
     with small_pages():  # 4 kB pages: huge ones cost ≈ 2.8 ms/MB of system time on first touch here
@@ -94,6 +116,8 @@ def evaluate_image_set_stereo(image_dir: str | Path, setup: Setup, out_dir: str 
                                title=f"{cam}: absolute height in the sample frame (stereo, {screen_model} screen model)",
                                label="height (µm)", path=tmp / f"height_{cam}.png")
 
+            if warm is not None:
+                warm.join()
             try:
                 st = reconstruct_stereo(views, search_range_mm=search, on_reconstruction=camera_done)
             except ReconstructionError as e:
