@@ -405,11 +405,22 @@ class _LinearisedIntegration:
             self.pos.reshape(-1)[self.order[:self.n]] = np.arange(self.n) - self.starts[lo]
         else:
             shape = (H + 2, W + 2)
-            self.D, self.iD, self.Ex, self.Ey, self.rhs = (np.zeros(shape) for _ in range(5))
-            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, self.iD, self.Ex, self.Ey,
-                                   self.rhs)
+            self.D, iD, self.Ex, self.Ey, rhs = (np.zeros(shape) for _ in range(5))
+            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, iD, self.Ex, self.Ey, rhs)
             if not (self.D > 0).any():
                 raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
+            # iD and the right-hand side's array: only the multigrid CG's (:attr:`iD`, :meth:`apply`);
+            # the DCT-preconditioned σ of a full frame never reads them (37 MB at 1920×1200)
+            self._iD = self._rhs = None
+            del iD, rhs
+
+    @property
+    def iD(self):
+        """1/D on the unknowns, 0 elsewhere (padded; as the assembly's, built on first use)."""
+        if self._iD is None:
+            self._iD = np.zeros_like(self.D)
+            np.divide(1.0, self.D, out=self._iD, where=self.D > 0.0)
+        return self._iD
 
     @property
     def mg(self):
@@ -434,11 +445,13 @@ class _LinearisedIntegration:
             if not _stepwise_linear(self.geo, self.layer, self.order, self.n, dg, dz):
                 raise UncertaintyError(_STEPWISE_SINGULAR)
             return dz
-        _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self.rhs)
-        scale = float(np.max(np.abs(self.rhs)))
+        if self._rhs is None:
+            self._rhs = np.zeros_like(self.D)
+        _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self._rhs)
+        scale = float(np.max(np.abs(self._rhs)))
         if scale == 0.0:
             return np.where(self.S, 0.0, np.nan)
-        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
+        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self._rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
         if not ok or not np.isfinite(x).all():
             raise UncertaintyError("the linearised least-squares system did not converge (singular or "
                                    "ill-conditioned normal equations); no σ")

@@ -60,6 +60,7 @@ SIGMA_MAX_ITER = 500
 #: faster per field on this machine (one core's vector units).
 SIGMA_BATCH = 2
 
+_NOT_FINITE = "the linearised least-squares system gave non-finite heights; no σ"
 
 
 @numba.njit(cache=True, parallel=True)
@@ -214,34 +215,36 @@ class _SigmaSolver:
         else:
             self.work = _CGWork(lin.D.shape)
 
-    def solve(self, B):
-        """Yields the solution (a padded field) of each right-hand side of B (k, H + 2, W + 2),
-        in order; a yielded field is work space, valid until the next one is requested."""
+    def accumulate(self, B, acc):
+        """acc += x² on S (H, W) for the solution x of each right-hand side of B (k, H + 2, W + 2)."""
         lin = self.lin
         fail = ("the linearised least-squares system did not converge (singular or ill-conditioned normal "
                 "equations); no σ")
-        if self.kind == "dct" and self.modes is not None:
+        if self.kind == "dct" and self.modes is not None:  # x² added by the solver's last pass
             for b in B:
-                x, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
-                                            SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
-                                            unknown=self.unknown)
+                finite, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
+                                                 SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
+                                                 unknown=self.unknown, acc=acc, on=lin.S)
                 if not ok:
                     raise UncertaintyError(fail)
-                yield x
+                if not finite:
+                    raise UncertaintyError(_NOT_FINITE)
             return
         if self.kind == "dct":
             X, _, ok = dct_pcg(lin.D, lin.Ex, lin.Ey, B, lin.seed, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, lap=self.lap,
                                work=self.work, unknown=self.unknown)
             if not ok.all():
                 raise UncertaintyError(fail)
-            yield from X
-            return
-        for b in B:
-            x, _, ok = _pcg(lin.D, lin.iD, lin.Ex, lin.Ey, b, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, work=self.work,
-                            mg=lin.mg)
-            if not ok:
-                raise UncertaintyError(fail)
-            yield x
+        for i, b in enumerate(B):
+            if self.kind == "dct":
+                x = X[i]
+            else:
+                x, _, ok = _pcg(lin.D, lin.iD, lin.Ex, lin.Ey, b, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, work=self.work,
+                                mg=lin.mg)
+                if not ok:
+                    raise UncertaintyError(fail)
+            if not _accumulate_sq(lin.S, x, acc):
+                raise UncertaintyError(_NOT_FINITE)
 
 
 def least_squares_sum_sq(lin, A, seed: int, K: int) -> np.ndarray:
@@ -263,7 +266,5 @@ def _least_squares_sum_sq(lin, S, A, seed, K):
     for k0 in range(0, K, SIGMA_BATCH):
         n = min(SIGMA_BATCH, K - k0)
         _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.geo, B[:n], n_blocks)
-        for x in solver.solve(B[:n]):
-            if not _accumulate_sq(S, x, acc):
-                raise UncertaintyError("the linearised least-squares system gave non-finite heights; no σ")
+        solver.accumulate(B[:n], acc)
     return acc
