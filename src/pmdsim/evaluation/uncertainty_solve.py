@@ -124,7 +124,56 @@ def _row_edges(geo, S, v, E, ok):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
+def _edge_coefficients(geo, S, out):
+    """Every edge's J_a, J_b, Δx, Δy (:func:`_row_edges`) in single precision, once per camera
+    (the σ's right-hand sides read them for every batch): out[v, 0:4, u] of the edge (v, u) →
+    (v, u + 1), out[v, 4:8, u] of (v, u) → (v + 1, u) (out (H, 8, W) float32; half the bytes of
+    the geometry map they replace); J_a is NaN where ``uncertainty._ls_rhs`` leaves the edge out
+    (not joining two pixels of S, or J_a, J_b not finite)."""
+    H, W = S.shape
+    for v in numba.prange(0, H):
+        E = np.zeros((8, W))
+        ok = np.empty((2, W), dtype=np.bool_)
+        _row_edges(geo, S, v, E, ok)
+        for k in range(8):
+            for u in range(W):
+                out[v, k, u] = E[k, u]
+        for u in range(W):
+            if not ok[0, u]:
+                out[v, 0, u] = np.nan
+            if not ok[1, u]:
+                out[v, 4, u] = np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _ls_rhs_edges(S, sv, su, edges, dg, rhs):
+    """``uncertainty._ls_rhs`` from the single-precision edge coefficients of
+    :func:`_edge_coefficients` (the same sums in the same order)."""
+    H, W = S.shape
+    rhs[:, :] = 0.0
+    for v in range(H):
+        for u in range(W):
+            if not S[v, u]:
+                continue
+            a_free = not (v == sv and u == su)
+            for e in range(2):
+                vb = v + e
+                ub = u + 1 - e
+                Ja = edges[v, 4 * e, u]
+                if not Ja == Ja:  # NaN: the edge is left out
+                    continue
+                Jb, dx, dy = edges[v, 4 * e + 1, u], edges[v, 4 * e + 2, u], edges[v, 4 * e + 3, u]
+                dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
+                if not np.isfinite(dr):
+                    continue
+                if a_free:
+                    rhs[v + 1, u + 1] -= Ja * dr
+                if not (vb == sv and ub == su):
+                    rhs[vb + 1, ub + 1] -= Jb * dr
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, edges, B, n_blocks):
     """B[j] = the right-hand side −Jᵀ δr (padded, ``uncertainty._ls_rhs``) of sample k0 + j's
     slope perturbations A ξ (``uncertainty._sample_dg``), j < len(B), in one pass: the rows in
     ``n_blocks`` blocks in parallel, each row's edge Jacobians formed once for the batch (a
@@ -143,22 +192,20 @@ def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
         cur = np.empty((W, n, 2))  # δg of row v
         nxt = np.empty((W, n, 2))  # δg of row v + 1
         up = np.zeros((n, W))  # J_b δr of the edge down into row v (0: none)
-        E = np.empty((8, W))
-        ok = np.empty((2, W), dtype=np.bool_)
         _row_dg(A, S, key, k0, n, n_chunks, v0, cur)
         if v0 > 0:  # the edges from the row above the block
             _row_dg(A, S, key, k0, n, n_chunks, v0 - 1, nxt)
-            _row_edges(geo, S, v0 - 1, E, ok)
+            E = edges[v0 - 1]
             for j in range(n):
                 for u in range(W):
-                    if ok[1, u]:
+                    if E[4, u] == E[4, u]:
                         dr = -0.5 * ((nxt[u, j, 0] + cur[u, j, 0]) * E[6, u] + (nxt[u, j, 1] + cur[u, j, 1]) * E[7, u])
                         if np.isfinite(dr):
                             up[j, u] = E[5, u] * dr
         for v in range(v0, v1):
             if v + 1 < H:
                 _row_dg(A, S, key, k0, n, n_chunks, v + 1, nxt)
-            _row_edges(geo, S, v, E, ok)
+            E = edges[v]  # (J_a NaN: the edge is left out)
             for j in range(n):
                 Bv = B[j, v + 1]
                 upj = up[j]
@@ -175,14 +222,14 @@ def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
                     r -= upj[u]
                     r -= left
                     left = 0.0
-                    if ok[0, u]:
+                    if E[0, u] == E[0, u]:
                         dr = -0.5 * ((cur[u, j, 0] + cur[u + 1, j, 0]) * E[2, u]
                                      + (cur[u, j, 1] + cur[u + 1, j, 1]) * E[3, u])
                         if np.isfinite(dr):
                             r -= E[0, u] * dr
                             left = E[1, u] * dr
                     upj[u] = 0.0
-                    if ok[1, u]:
+                    if E[4, u] == E[4, u]:
                         dr = -0.5 * ((cur[u, j, 0] + nxt[u, j, 0]) * E[6, u] + (cur[u, j, 1] + nxt[u, j, 1]) * E[7, u])
                         if np.isfinite(dr):
                             r -= E[4, u] * dr
@@ -265,6 +312,6 @@ def _least_squares_sum_sq(lin, S, A, seed, K):
     n_blocks = 4 * numba.get_num_threads()
     for k0 in range(0, K, SIGMA_BATCH):
         n = min(SIGMA_BATCH, K - k0)
-        _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.geo, B[:n], n_blocks)
+        _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.edges, B[:n], n_blocks)
         solver.accumulate(B[:n], acc)
     return acc
