@@ -21,6 +21,14 @@ def _operator(rng, H=40, W=52, seed=(20, 11), potential=1e-3):
     return D, Ex, Ey
 
 
+def _random_rhs(rng, D):
+    """A padded random right-hand side, 0 off the unknowns (D = 0)."""
+    b = np.zeros(D.shape)
+    b[1:-1, 1:-1] = rng.standard_normal((D.shape[0] - 2, D.shape[1] - 2))
+    b[D == 0] = 0.0
+    return b
+
+
 def test_deflated_pcg_matches_spsolve():
     from pmdsim.evaluation.uncertainty_deflation import LowModes, deflated_dct_pcg
 
@@ -31,9 +39,7 @@ def test_deflated_pcg_matches_spsolve():
     modes = LowModes((H, W), seed)
     modes.prepare(D, Ex, Ey, D > 0)
     for k in range(3):  # the prepared space reused for several right-hand sides, as by the σ
-        b = np.zeros((H + 2, W + 2))
-        b[1:-1, 1:-1] = rng.standard_normal((H, W))
-        b[D == 0] = 0.0
+        b = _random_rhs(rng, D)
         ref = spsolve(A.tocsc(), b[1:-1, 1:-1].ravel()[unk])
         x, its, ok = deflated_dct_pcg(D, Ex, Ey, b, seed, 0.0, 1e-12, 100, modes=modes)
         assert ok and its < 100
@@ -111,9 +117,7 @@ def test_fused_passes_match_numpy_references():
     assert np.allclose(modes.T, G @ modes.VT.T, rtol=0, atol=tol * np.abs(G).sum())
     assert np.allclose(modes.th, (G * modes.h[1:-1, 1:-1]).sum(axis=1), rtol=0, atol=tol * np.abs(G).sum())
     # x₀ = −W μ and r₀ = b − N x₀
-    b = np.zeros_like(R)
-    b[1:-1, 1:-1] = rng.standard_normal((H, W))
-    b[~unknown] = 0.0
+    b = _random_rhs(rng, D)
     X, R0, buf = np.zeros_like(R), np.zeros_like(R), np.zeros((H, W), np.float32)
     ud._start(D, Ex, Ey, b, modes.U, modes.VT, mu, mu_h, modes.h, unknown, X, R0, buf)
     x0 = _deflated_z_reference(np.zeros((H, W), np.float32), np.float32(0), unknown, modes, mu, mu_h)[0]  # −W μ
@@ -161,9 +165,7 @@ def test_deflated_pcg_accumulates_the_squares_of_the_solution():
     A, unk = _sparse(D, Ex, Ey)
     modes = LowModes((H, W), seed)
     modes.prepare(D, Ex, Ey, D > 0)
-    b = np.zeros((H + 2, W + 2))
-    b[1:-1, 1:-1] = rng.standard_normal((H, W))
-    b[D == 0] = 0.0
+    b = _random_rhs(rng, D)
     ref = np.zeros(H * W)
     ref[unk] = spsolve(A.tocsc(), b[1:-1, 1:-1].ravel()[unk])
     on = np.ones((H, W), bool)

@@ -351,6 +351,18 @@ def _stepwise_linear(geo, layer, order, n, dg, dz):
     return True
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _subtract_edge(rhs, dg, v, u, vb, ub, Ja, Jb, dx, dy, a_free, b_free):
+    """The edge (v, u) → (vb, ub)'s terms of −Jᵀ δr, δr = −½(δg_a + δg_b)·Δxy (left out if
+    J_a, J_b or δr is not finite; a pixel not free gets none)."""
+    dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
+    if np.isfinite(Ja) and np.isfinite(Jb) and np.isfinite(dr):
+        if a_free:
+            rhs[v + 1, u + 1] -= Ja * dr
+        if b_free:
+            rhs[vb + 1, ub + 1] -= Jb * dr
+
+
 @numba.njit(cache=True, nogil=True)
 def _ls_rhs(S, sv, su, geo, dg, rhs):
     """−Jᵀ δr of the trapezoidal equations for slope perturbations dg (padded rhs), with
@@ -368,13 +380,7 @@ def _ls_rhs(S, sv, su, geo, dg, rhs):
                 if vb >= H or ub >= W or not S[vb, ub]:
                     continue
                 Ja, Jb, dx, dy = _edge_jac(geo, v, u, vb, ub)
-                dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
-                if not (np.isfinite(Ja) and np.isfinite(Jb) and np.isfinite(dr)):
-                    continue
-                if a_free:
-                    rhs[v + 1, u + 1] -= Ja * dr
-                if not (vb == sv and ub == su):
-                    rhs[vb + 1, ub + 1] -= Jb * dr
+                _subtract_edge(rhs, dg, v, u, vb, ub, Ja, Jb, dx, dy, a_free, not (vb == sv and ub == su))
 
 
 class _LinearisedIntegration:

@@ -49,6 +49,21 @@ def _dct_basis(n: int, m: int) -> np.ndarray:
     return B
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_sums(y, VT, h, w, T, th, v):
+    """T[v, s] = Σ_u y[u] VT[s, u] and th[v] = Σ_u y[u] h[w, u + 1] (y (W,); reassociated in
+    the ``fastmath`` callers)."""
+    for s in range(VT.shape[0]):
+        a = 0.0
+        for u in range(y.shape[0]):
+            a += y[u] * VT[s, u]
+        T[v, s] = a
+    a = 0.0
+    for u in range(1, y.shape[0] + 1):
+        a += y[u - 1] * h[w, u]
+    th[v] = a
+
+
 @numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
 def _project_row(F, G, VT, h, matvec, D, Ex, Ey, T, th, v, y):
     """Row v of :func:`_project` (y: a row buffer (W,))."""
@@ -65,15 +80,7 @@ def _project_row(F, G, VT, h, matvec, D, Ex, Ey, T, th, v, y):
     else:
         for u in range(1, Wp - 1):
             y[u - 1] = F[w, u]
-    for s in range(m2):
-        a = 0.0
-        for u in range(Wp - 2):
-            a += y[u] * VT[s, u]
-        T[v, s] = a
-    a = 0.0
-    for u in range(1, Wp - 1):
-        a += y[u - 1] * h[w, u]
-    th[v] = a
+    _row_sums(y, VT, h, w, T, th, v)
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
@@ -144,15 +151,7 @@ def _nz_row_sums(F, G, VT, h, D, Ex, Ey, T, th, v, y):
                     - Ey[w - 1, u] * F[0, u] - Ey[w, u] * F[2, u])
     for u in range(1, Wp - 1):
         y[u - 1] -= G[w, u]
-    for s in range(m2):
-        a = 0.0
-        for u in range(Wp - 2):
-            a += y[u] * VT[s, u]
-        T[v, s] = a
-    a = 0.0
-    for u in range(1, Wp - 1):
-        a += y[u - 1] * h[w, u]
-    th[v] = a
+    _row_sums(y, VT, h, w, T, th, v)
 
 
 @numba.njit(cache=True, parallel=True)

@@ -35,7 +35,7 @@ from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads
 from .multigrid import _CGWork, _pcg
 from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
-from .uncertainty import UncertaintyError, _xi
+from .uncertainty import UncertaintyError, _subtract_edge, _xi
 from .uncertainty_deflation import LowModes, deflated_dct_pcg
 from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key
 
@@ -163,13 +163,8 @@ def _ls_rhs_edges(S, sv, su, edges, dg, rhs):
                 if not Ja == Ja:  # NaN: the edge is left out
                     continue
                 Jb, dx, dy = edges[v, 4 * e + 1, u], edges[v, 4 * e + 2, u], edges[v, 4 * e + 3, u]
-                dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
-                if not np.isfinite(dr):
-                    continue
-                if a_free:
-                    rhs[v + 1, u + 1] -= Ja * dr
-                if not (vb == sv and ub == su):
-                    rhs[vb + 1, ub + 1] -= Jb * dr
+                _subtract_edge(rhs, dg, v, u, vb, ub, float(Ja), float(Jb), float(dx), float(dy), a_free,
+                               not (vb == sv and ub == su))
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
