@@ -410,22 +410,24 @@ class _LinearisedIntegration:
             self.pos = np.zeros((H, W), dtype=np.int64)
             self.pos.reshape(-1)[self.order[:self.n]] = np.arange(self.n) - self.starts[lo]
         else:
-            shape = (H + 2, W + 2)
-            self.D, iD, self.Ex, self.Ey, rhs = (np.zeros(shape) for _ in range(5))
-            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, iD, self.Ex, self.Ey, rhs)
-            if not (self.D > 0).any():
-                raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
-            # iD and the right-hand side's array: only the multigrid CG's (:attr:`iD`, :meth:`apply`);
-            # the DCT-preconditioned σ of a full frame never reads them (37 MB at 1920×1200)
-            self._iD = self._rhs = None
-            del iD, rhs
-            # the σ's right-hand sides read each edge's coefficients in single precision instead of
-            # the geometry map (74 MB less at 1920×1200; uncertainty_solve._edge_coefficients)
+            # Memory (issue 25): the σ's right-hand sides read each edge's coefficients in single
+            # precision (uncertainty_solve._edge_coefficients), formed first so that the geometry
+            # map (147 MB at 1920×1200) is gone before the operator is assembled; the height and
+            # slope copies go after it.
             from .uncertainty_solve import _edge_coefficients  # noqa: PLC0415 (it imports this module)
 
             self.edges = np.empty((H, 8, W), dtype=np.float32)
             _edge_coefficients(self.geo, S, self.edges)
             del self.geo
+            shape = (H + 2, W + 2)
+            self.D, iD, self.Ex, self.Ey, rhs = (np.zeros(shape) for _ in range(5))
+            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, iD, self.Ex, self.Ey, rhs)
+            del iD, rhs, q, z
+            if not (self.D > 0).any():
+                raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
+            # iD and the right-hand side's array: only the multigrid CG's (:attr:`iD`, :meth:`apply`);
+            # the DCT-preconditioned σ of a full frame never reads them (37 MB at 1920×1200)
+            self._iD = self._rhs = None
 
     @property
     def iD(self):
