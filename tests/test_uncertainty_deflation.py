@@ -119,7 +119,7 @@ def test_fused_passes_match_numpy_references():
     # x₀ = −W μ and r₀ = b − N x₀
     b = _random_rhs(rng, D)
     X, R0, buf = np.zeros_like(R), np.zeros_like(R), np.zeros((H, W), np.float32)
-    ud._start(D, Ex, Ey, b, modes.U, modes.VT, mu, mu_h, modes.h, unknown, X, R0, buf)
+    ud._start(D, Ex, Ey, b, modes.U, modes.VT, mu, mu_h, modes.h, unknown, X, R0, buf, True)
     x0 = _deflated_z_reference(np.zeros((H, W), np.float32), np.float32(0), unknown, modes, mu, mu_h)[0]  # −W μ
     assert np.allclose(X, x0, rtol=0, atol=1e-14) and np.allclose(R0, b - _apply_reference(D, Ex, Ey, x0), atol=1e-13)
     assert np.array_equal(buf, R0[1:-1, 1:-1].astype(np.float32))
@@ -140,18 +140,31 @@ def test_fused_passes_match_numpy_references():
     S = unknown[1:-1, 1:-1].copy()
     S[seed] = True
     acc = rng.random((H, W))
-    m, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 0)
+    m, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 0, mu, mu_h, False)
     assert abs(m - np.max(np.abs(Zd))) < 1e-15 and bad == 0
     x_ref = X + alpha * P + Zd
     acc_ref = acc + np.where(S, x_ref[c] ** 2, 0.0)
-    _, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 2)
+    _, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 2, mu, mu_h, False)
     assert bad == 0 and np.allclose(acc, acc_ref, rtol=1e-14, atol=0)
     keep, X[3, 4] = X[3, 4], np.nan  # a non-finite x on S is counted
-    _, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 2)
+    _, bad = ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 2, mu, mu_h, False)
     assert bad == 1
     X[3, 4] = keep
-    ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 1)
+    ud._finish_deflated(X, P, alpha, y, y0, unknown, modes.U, modes.VT, mu, mu_h, modes.h, S, acc, 1, mu, mu_h, False)
     assert np.allclose(X[c], x_ref[c], atol=1e-14)
+    # x₀ not stored (``_start`` without X), formed again in the last pass: the same values
+    X2, R2, buf2 = np.full_like(R, 9.0), np.zeros_like(R), np.zeros((H, W), np.float32)
+    ud._start(D, Ex, Ey, b, modes.U, modes.VT, mu, mu_h, modes.h, unknown, X2, R2, buf2, False)
+    assert (X2 == 9.0).all() and np.array_equal(R2, R0)
+    mu1, mu1_h = rng.standard_normal((3, 4)), 0.3
+    Zd1 = _deflated_z_reference(y, y0, unknown, modes, mu1, mu1_h)[0]
+    acc = rng.random((H, W))  # (the NaN case above left a NaN in acc)
+    acc0 = acc.copy()
+    _, bad = ud._finish_deflated(X2, P, alpha, y, y0, unknown, modes.U, modes.VT, mu1, mu1_h, modes.h, S, acc, 2, mu,
+                                 mu_h, True)
+    assert bad == 0 and np.allclose(acc, acc0 + np.where(S, (x0 + alpha * P + Zd1)[c] ** 2, 0.0), rtol=1e-14, atol=0)
+    ud._finish_deflated(X2, P, alpha, y, y0, unknown, modes.U, modes.VT, mu1, mu1_h, modes.h, S, acc, 3, mu, mu_h, True)
+    assert np.allclose(X2[c], x0[c], rtol=0, atol=1e-14)
 
 
 def test_deflated_pcg_accumulates_the_squares_of_the_solution():

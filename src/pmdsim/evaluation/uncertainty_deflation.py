@@ -185,9 +185,10 @@ def _scatter_project(R, y, y0, unknown, D, Ex, Ey, VT, h, T, th):
 
 
 @numba.njit(cache=True, parallel=True)
-def _start(D, Ex, Ey, b, U, VT, mu, mu_h, h, unknown, X, R, buf):
-    """x₀ = −(Σ_rs mu[r, s] U_r V_s + mu_h h) on the unknowns (0 elsewhere) into X and r₀ =
-    b − N x₀ into R and (single precision) into buf, in one parallel pass over the interior:
+def _start(D, Ex, Ey, b, U, VT, mu, mu_h, h, unknown, X, R, buf, store_x):
+    """x₀ = −(Σ_rs mu[r, s] U_r V_s + mu_h h) on the unknowns (0 elsewhere) into X (if
+    ``store_x``; else :func:`_finish_deflated` forms it again) and r₀ = b − N x₀ into R and
+    (single precision) into buf, in one parallel pass over the interior:
     each row forms x₀ on its neighbour rows itself (:func:`_deflated_rows`, the sums of the
     expansion; the padding of X and R is left as it is, 0)."""
     Hp, Wp = D.shape
@@ -198,7 +199,8 @@ def _start(D, Ex, Ey, b, U, VT, mu, mu_h, h, unknown, X, R, buf):
         _deflated_rows(buf, np.float32(0.0), False, unknown, U, VT, mu, mu_h, h, w, xr, np.empty(m2), np.empty(Wp - 2))
         for u in range(1, Wp - 1):
             x = xr[1, u]
-            X[w, u] = x
+            if store_x:
+                X[w, u] = x
             r = (b[w, u] - D[w, u] * x + Ex[w, u - 1] * xr[1, u - 1] + Ex[w, u] * xr[1, u + 1]
                  + Ey[w - 1, u] * xr[0, u] + Ey[w, u] * xr[2, u])
             R[w, u] = r
@@ -241,12 +243,13 @@ def _direction_deflated(D, Ex, Ey, y, y0, unknown, U, VT, mu, mu_h, h, P, AP, be
 
 
 @numba.njit(cache=True, parallel=True)
-def _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, S, acc, mode):
+def _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, S, acc, mode, mu0, mu0_h, x_implicit):
     """With Z the deflated preconditioned residual (:func:`_direction_deflated`), formed row by
     row: ``mode`` 0: only max |Z|; 1: X = (X + αP) + Z (rounded as ``poisson._finish_step``
     then X += Z); 2: x = (X + αP) + Z not stored, acc += x² on S (H, W) instead (as
-    ``uncertainty_solve._accumulate_sq``). Returns (max |Z|, the number of non-finite x on S
-    (mode 2))."""
+    ``uncertainty_solve._accumulate_sq``); 3: X = x₀ only. With ``x_implicit`` X is not read:
+    it is x₀ = −(Σ_rs mu0[r, s] U_r V_s + mu0_h h) (not stored by :func:`_start`), formed again
+    with its sums. Returns (max |Z|, the number of non-finite x on S (mode 2))."""
     Hp, Wp = X.shape
     m2 = VT.shape[0]
     m = 0.0
@@ -255,10 +258,19 @@ def _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, S, acc, mo
         w = v + 1
         c = np.empty(m2)
         g = np.empty(Wp - 2)
+        g0 = np.empty(Wp - 2)
         _expansion_row(U, VT, mu, v, c, g)
         for u in range(1, Wp - 1):  # g = the row of Z (the terms formed, then selected: vectorised)
             t = float(y[v, u - 1] - y0) - (g[u - 1] + mu_h * h[w, u])
             g[u - 1] = t if unknown[w, u] else 0.0
+        if x_implicit and mode != 0:  # g0 = the row of x₀
+            _expansion_row(U, VT, mu0, v, c, g0)
+            for u in range(1, Wp - 1):
+                t = 0.0 - (g0[u - 1] + mu0_h * h[w, u])
+                g0[u - 1] = t if unknown[w, u] else 0.0
+        else:
+            for u in range(1, Wp - 1):
+                g0[u - 1] = X[w, u]
         mr = 0.0
         br = 0
         if mode == 0:
@@ -266,12 +278,15 @@ def _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, S, acc, mo
                 mr = max(mr, abs(g[u]))
         elif mode == 1:
             for u in range(1, Wp - 1):
-                x = X[w, u] + alpha * P[w, u]
+                x = g0[u - 1] + alpha * P[w, u]
                 x += g[u - 1]
                 X[w, u] = x
+        elif mode == 3:
+            for u in range(1, Wp - 1):
+                X[w, u] = g0[u - 1]
         else:
             for u in range(1, Wp - 1):
-                x = X[w, u] + alpha * P[w, u]
+                x = g0[u - 1] + alpha * P[w, u]
                 x += g[u - 1]
                 on = S[v, u - 1]
                 a = acc[v, u - 1]
@@ -446,7 +461,9 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
         mode = 2
     # x₀ = W E⁻¹ Wᵀ b, r₀ = b − N x₀ (0 off the unknowns: b is, and N has no couplings there)
     mu, mu_h = modes.coefficients(b, D, Ex, Ey)
-    _start(D, Ex, Ey, b, U, VT, -mu, -mu_h, h, unknown, X, R, buf)
+    mu0, mu0_h = -mu, -mu_h
+    x_implicit = mode == 2  # x₀ formed again where it is read (18 MB less; its pages never touched)
+    _start(D, Ex, Ey, b, U, VT, mu0, mu0_h, h, unknown, X, R, buf, not x_implicit)
 
     def precondition(total):  # y = L_s⁻¹ r; z = y − y_s, rz = r·z; μ of z − W E⁻¹ Wᵀ(N z − r)
         y = lap.solve(buf[None], overwrite=True, totals=np.array([total]), pin=False)[0]
@@ -464,12 +481,16 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
     its = 0
     while True:
         if zmax <= tol:
-            _, bad = _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, on, acc, mode)
+            _, bad = _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, on, acc, mode, mu0, mu0_h,
+                                      x_implicit)
             return (X if mode == 1 else bad == 0), its, True
         if its >= max_iter:
             _finish_step(X, P, alpha, buf, False)
             return (X if mode == 1 else False), its, False
         if its > 0:  # (applies the last step)
+            if x_implicit:  # X = x₀ first
+                _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, on, acc, 3, mu0, mu0_h, True)
+                x_implicit = False
             pAp, _ = _direction_deflated(D, Ex, Ey, y, y0, unknown, U, VT, mu, mu_h, h, P, AP, beta, X, alpha)
         if not (pAp > 0.0 and rz > 0.0):  # breakdown (round-off at convergence)
             return (X if mode == 1 else False), its, False
@@ -479,4 +500,4 @@ def deflated_dct_pcg(D, Ex, Ey, b, pinned, atol, rtol, max_iter, *, cap=np.inf, 
         rz_old = rz
         y, y0, mu, mu_h, rz = precondition(total)
         beta = rz / rz_old
-        zmax, _ = _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, on, acc, 0)
+        zmax, _ = _finish_deflated(X, P, alpha, y, y0, unknown, U, VT, mu, mu_h, h, on, acc, 0, mu0, mu0_h, x_implicit)
