@@ -351,6 +351,18 @@ def _stepwise_linear(geo, layer, order, n, dg, dz):
     return True
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _subtract_edge(rhs, dg, v, u, vb, ub, Ja, Jb, dx, dy, a_free, b_free):
+    """The edge (v, u) → (vb, ub)'s terms of −Jᵀ δr, δr = −½(δg_a + δg_b)·Δxy (left out if
+    J_a, J_b or δr is not finite; a pixel not free gets none)."""
+    dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
+    if np.isfinite(Ja) and np.isfinite(Jb) and np.isfinite(dr):
+        if a_free:
+            rhs[v + 1, u + 1] -= Ja * dr
+        if b_free:
+            rhs[vb + 1, ub + 1] -= Jb * dr
+
+
 @numba.njit(cache=True, nogil=True)
 def _ls_rhs(S, sv, su, geo, dg, rhs):
     """−Jᵀ δr of the trapezoidal equations for slope perturbations dg (padded rhs), with
@@ -368,13 +380,7 @@ def _ls_rhs(S, sv, su, geo, dg, rhs):
                 if vb >= H or ub >= W or not S[vb, ub]:
                     continue
                 Ja, Jb, dx, dy = _edge_jac(geo, v, u, vb, ub)
-                dr = -0.5 * ((dg[v, u, 0] + dg[vb, ub, 0]) * dx + (dg[v, u, 1] + dg[vb, ub, 1]) * dy)
-                if not (np.isfinite(Ja) and np.isfinite(Jb) and np.isfinite(dr)):
-                    continue
-                if a_free:
-                    rhs[v + 1, u + 1] -= Ja * dr
-                if not (vb == sv and ub == su):
-                    rhs[vb + 1, ub + 1] -= Jb * dr
+                _subtract_edge(rhs, dg, v, u, vb, ub, Ja, Jb, dx, dy, a_free, not (vb == sv and ub == su))
 
 
 class _LinearisedIntegration:
@@ -404,12 +410,32 @@ class _LinearisedIntegration:
             self.pos = np.zeros((H, W), dtype=np.int64)
             self.pos.reshape(-1)[self.order[:self.n]] = np.arange(self.n) - self.starts[lo]
         else:
+            # Memory (issue 25): the σ's right-hand sides read each edge's coefficients in single
+            # precision (uncertainty_solve._edge_coefficients), formed first so that the geometry
+            # map (147 MB at 1920×1200) is gone before the operator is assembled; the height and
+            # slope copies go after it.
+            from .uncertainty_solve import _edge_coefficients  # noqa: PLC0415 (it imports this module)
+
+            self.edges = np.empty((H, 8, W), dtype=np.float32)
+            _edge_coefficients(self.geo, S, self.edges)
+            del self.geo
             shape = (H + 2, W + 2)
-            self.D, self.iD, self.Ex, self.Ey, self.rhs = (np.zeros(shape) for _ in range(5))
-            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, self.iD, self.Ex, self.Ey,
-                                   self.rhs)
+            self.D, iD, self.Ex, self.Ey, rhs = (np.zeros(shape) for _ in range(5))
+            _assemble_gauss_newton(o, d, q, S, z, self.seed[0], self.seed[1], self.D, iD, self.Ex, self.Ey, rhs)
+            del iD, rhs, q, z
             if not (self.D > 0).any():
                 raise UncertaintyError("the least-squares normal equations have no unknown; no σ")
+            # iD and the right-hand side's array: only the multigrid CG's (:attr:`iD`, :meth:`apply`);
+            # the DCT-preconditioned σ of a full frame never reads them (37 MB at 1920×1200)
+            self._iD = self._rhs = None
+
+    @property
+    def iD(self):
+        """1/D on the unknowns, 0 elsewhere (padded; as the assembly's, built on first use)."""
+        if self._iD is None:
+            self._iD = np.zeros_like(self.D)
+            np.divide(1.0, self.D, out=self._iD, where=self.D > 0.0)
+        return self._iD
 
     @property
     def mg(self):
@@ -434,11 +460,15 @@ class _LinearisedIntegration:
             if not _stepwise_linear(self.geo, self.layer, self.order, self.n, dg, dz):
                 raise UncertaintyError(_STEPWISE_SINGULAR)
             return dz
-        _ls_rhs(self.S, self.seed[0], self.seed[1], self.geo, dg, self.rhs)
-        scale = float(np.max(np.abs(self.rhs)))
+        if self._rhs is None:
+            self._rhs = np.zeros_like(self.D)
+        from .uncertainty_solve import _ls_rhs_edges  # noqa: PLC0415 (it imports this module)
+
+        _ls_rhs_edges(self.S, self.seed[0], self.seed[1], self.edges, dg, self._rhs)
+        scale = float(np.max(np.abs(self._rhs)))
         if scale == 0.0:
             return np.where(self.S, 0.0, np.nan)
-        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self.rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
+        x, _, ok = _pcg(self.D, self.iD, self.Ex, self.Ey, self._rhs, 0.0, 1e-6, 500, work=self.work, mg=self.mg)
         if not ok or not np.isfinite(x).all():
             raise UncertaintyError("the linearised least-squares system did not converge (singular or "
                                    "ill-conditioned normal equations); no σ")

@@ -35,7 +35,7 @@ from ..geometry.kernel_args import SERIAL_BELOW_PX, numba_threads
 from .multigrid import _CGWork, _pcg
 from . import poisson
 from .poisson import DCTLaplacian, _DCTWork, dct_pcg
-from .uncertainty import UncertaintyError, _xi
+from .uncertainty import UncertaintyError, _subtract_edge, _xi
 from .uncertainty_deflation import LowModes, deflated_dct_pcg
 from .uncertainty_stepwise import _draw_word, _edge_jac, _seed_key
 
@@ -60,6 +60,7 @@ SIGMA_MAX_ITER = 500
 #: faster per field on this machine (one core's vector units).
 SIGMA_BATCH = 2
 
+_NOT_FINITE = "the linearised least-squares system gave non-finite heights; no σ"
 
 
 @numba.njit(cache=True, parallel=True)
@@ -123,7 +124,51 @@ def _row_edges(geo, S, v, E, ok):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
+def _edge_coefficients(geo, S, out):
+    """Every edge's J_a, J_b, Δx, Δy (:func:`_row_edges`) in single precision, once per camera
+    (the σ's right-hand sides read them for every batch): out[v, 0:4, u] of the edge (v, u) →
+    (v, u + 1), out[v, 4:8, u] of (v, u) → (v + 1, u) (out (H, 8, W) float32; half the bytes of
+    the geometry map they replace); J_a is NaN where ``uncertainty._ls_rhs`` leaves the edge out
+    (not joining two pixels of S, or J_a, J_b not finite)."""
+    H, W = S.shape
+    for v in numba.prange(0, H):
+        E = np.zeros((8, W))
+        ok = np.empty((2, W), dtype=np.bool_)
+        _row_edges(geo, S, v, E, ok)
+        for k in range(8):
+            for u in range(W):
+                out[v, k, u] = E[k, u]
+        for u in range(W):
+            if not ok[0, u]:
+                out[v, 0, u] = np.nan
+            if not ok[1, u]:
+                out[v, 4, u] = np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _ls_rhs_edges(S, sv, su, edges, dg, rhs):
+    """``uncertainty._ls_rhs`` from the single-precision edge coefficients of
+    :func:`_edge_coefficients` (the same sums in the same order)."""
+    H, W = S.shape
+    rhs[:, :] = 0.0
+    for v in range(H):
+        for u in range(W):
+            if not S[v, u]:
+                continue
+            a_free = not (v == sv and u == su)
+            for e in range(2):
+                vb = v + e
+                ub = u + 1 - e
+                Ja = edges[v, 4 * e, u]
+                if not Ja == Ja:  # NaN: the edge is left out
+                    continue
+                Jb, dx, dy = edges[v, 4 * e + 1, u], edges[v, 4 * e + 2, u], edges[v, 4 * e + 3, u]
+                _subtract_edge(rhs, dg, v, u, vb, ub, float(Ja), float(Jb), float(dx), float(dy), a_free,
+                               not (vb == sv and ub == su))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, edges, B, n_blocks):
     """B[j] = the right-hand side −Jᵀ δr (padded, ``uncertainty._ls_rhs``) of sample k0 + j's
     slope perturbations A ξ (``uncertainty._sample_dg``), j < len(B), in one pass: the rows in
     ``n_blocks`` blocks in parallel, each row's edge Jacobians formed once for the batch (a
@@ -142,22 +187,20 @@ def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
         cur = np.empty((W, n, 2))  # δg of row v
         nxt = np.empty((W, n, 2))  # δg of row v + 1
         up = np.zeros((n, W))  # J_b δr of the edge down into row v (0: none)
-        E = np.empty((8, W))
-        ok = np.empty((2, W), dtype=np.bool_)
         _row_dg(A, S, key, k0, n, n_chunks, v0, cur)
         if v0 > 0:  # the edges from the row above the block
             _row_dg(A, S, key, k0, n, n_chunks, v0 - 1, nxt)
-            _row_edges(geo, S, v0 - 1, E, ok)
+            E = edges[v0 - 1]
             for j in range(n):
                 for u in range(W):
-                    if ok[1, u]:
+                    if E[4, u] == E[4, u]:
                         dr = -0.5 * ((nxt[u, j, 0] + cur[u, j, 0]) * E[6, u] + (nxt[u, j, 1] + cur[u, j, 1]) * E[7, u])
                         if np.isfinite(dr):
                             up[j, u] = E[5, u] * dr
         for v in range(v0, v1):
             if v + 1 < H:
                 _row_dg(A, S, key, k0, n, n_chunks, v + 1, nxt)
-            _row_edges(geo, S, v, E, ok)
+            E = edges[v]  # (J_a NaN: the edge is left out)
             for j in range(n):
                 Bv = B[j, v + 1]
                 upj = up[j]
@@ -174,14 +217,14 @@ def _sampled_rhs(A, S, seed, k0, n_chunks, sv, su, geo, B, n_blocks):
                     r -= upj[u]
                     r -= left
                     left = 0.0
-                    if ok[0, u]:
+                    if E[0, u] == E[0, u]:
                         dr = -0.5 * ((cur[u, j, 0] + cur[u + 1, j, 0]) * E[2, u]
                                      + (cur[u, j, 1] + cur[u + 1, j, 1]) * E[3, u])
                         if np.isfinite(dr):
                             r -= E[0, u] * dr
                             left = E[1, u] * dr
                     upj[u] = 0.0
-                    if ok[1, u]:
+                    if E[4, u] == E[4, u]:
                         dr = -0.5 * ((cur[u, j, 0] + nxt[u, j, 0]) * E[6, u] + (cur[u, j, 1] + nxt[u, j, 1]) * E[7, u])
                         if np.isfinite(dr):
                             r -= E[4, u] * dr
@@ -214,34 +257,36 @@ class _SigmaSolver:
         else:
             self.work = _CGWork(lin.D.shape)
 
-    def solve(self, B):
-        """Yields the solution (a padded field) of each right-hand side of B (k, H + 2, W + 2),
-        in order; a yielded field is work space, valid until the next one is requested."""
+    def accumulate(self, B, acc):
+        """acc += x² on S (H, W) for the solution x of each right-hand side of B (k, H + 2, W + 2)."""
         lin = self.lin
         fail = ("the linearised least-squares system did not converge (singular or ill-conditioned normal "
                 "equations); no σ")
-        if self.kind == "dct" and self.modes is not None:
+        if self.kind == "dct" and self.modes is not None:  # x² added by the solver's last pass
             for b in B:
-                x, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
-                                            SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
-                                            unknown=self.unknown)
+                finite, _, ok = deflated_dct_pcg(lin.D, lin.Ex, lin.Ey, b, lin.seed, 0.0, SIGMA_DEFLATED_RTOL,
+                                                 SIGMA_MAX_ITER, lap=self.lap, work=self.work, modes=self.modes,
+                                                 unknown=self.unknown, acc=acc, on=lin.S)
                 if not ok:
                     raise UncertaintyError(fail)
-                yield x
+                if not finite:
+                    raise UncertaintyError(_NOT_FINITE)
             return
         if self.kind == "dct":
             X, _, ok = dct_pcg(lin.D, lin.Ex, lin.Ey, B, lin.seed, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, lap=self.lap,
                                work=self.work, unknown=self.unknown)
             if not ok.all():
                 raise UncertaintyError(fail)
-            yield from X
-            return
-        for b in B:
-            x, _, ok = _pcg(lin.D, lin.iD, lin.Ex, lin.Ey, b, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, work=self.work,
-                            mg=lin.mg)
-            if not ok:
-                raise UncertaintyError(fail)
-            yield x
+        for i, b in enumerate(B):
+            if self.kind == "dct":
+                x = X[i]
+            else:
+                x, _, ok = _pcg(lin.D, lin.iD, lin.Ex, lin.Ey, b, 0.0, SIGMA_RTOL, SIGMA_MAX_ITER, work=self.work,
+                                mg=lin.mg)
+                if not ok:
+                    raise UncertaintyError(fail)
+            if not _accumulate_sq(lin.S, x, acc):
+                raise UncertaintyError(_NOT_FINITE)
 
 
 def least_squares_sum_sq(lin, A, seed: int, K: int) -> np.ndarray:
@@ -262,8 +307,6 @@ def _least_squares_sum_sq(lin, S, A, seed, K):
     n_blocks = 4 * numba.get_num_threads()
     for k0 in range(0, K, SIGMA_BATCH):
         n = min(SIGMA_BATCH, K - k0)
-        _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.geo, B[:n], n_blocks)
-        for x in solver.solve(B[:n]):
-            if not _accumulate_sq(S, x, acc):
-                raise UncertaintyError("the linearised least-squares system gave non-finite heights; no σ")
+        _sampled_rhs(A, S, seed, k0, n_chunks, lin.seed[0], lin.seed[1], lin.edges, B[:n], n_blocks)
+        solver.accumulate(B[:n], acc)
     return acc

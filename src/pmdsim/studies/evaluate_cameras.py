@@ -28,7 +28,8 @@ from typing import Callable, ContextManager, Iterator, Sequence
 from ..errors import InputError, PmdsimError
 
 __all__ = ["CameraResult", "CameraCancelled", "evaluate_camera", "camera_results", "concurrent_cameras",
-           "THREAD_SAFE_LAYERS", "CAMERA_THREADS_ENV", "CAMERA_OVERLAP_ENV", "STAGES"]
+           "THREAD_SAFE_LAYERS", "CAMERA_THREADS_ENV", "CAMERA_OVERLAP_ENV", "SIGMA_STAGE_ENV", "STAGES",
+           "sigma_stage"]
 
 #: numba threading layers that allow parallel regions launched from two threads at once.
 THREAD_SAFE_LAYERS = ("omp", "tbb")
@@ -39,6 +40,10 @@ CAMERA_THREADS_ENV = "PMDSIM_CAMERA_THREADS"
 #: (:data:`STAGES`: one camera decodes while the other reconstructs, …), ``full`` without that
 #: rule (measured: more memory, two cameras' largest working sets at once).
 CAMERA_OVERLAP_ENV = "PMDSIM_CAMERA_OVERLAP"
+#: Environment variable: the stage the least-squares σ is gated with (:func:`sigma_stage`):
+#: ``reconstruct`` (default; the peak memory of two cameras' largest working sets at once is
+#: avoided) or ``sigma`` (its own stage, as the stepwise σ; for A/B measurements).
+SIGMA_STAGE_ENV = "PMDSIM_LSQ_SIGMA_STAGE"
 #: The stages of :func:`evaluate_camera`, each entered by one camera at a time when overlapped
 #: by stage: reading + decoding + checks, registration + reconstruction, σ.
 STAGES = ("decode", "reconstruct", "sigma")
@@ -115,7 +120,7 @@ def evaluate_camera(setup, cam: str, *, manifest, noise_std, image_dir, run_chec
         return out
     decoded = kept_for_files(decoded, reg, rec)[0]  # σ reads the coordinates and their σ: release the rest
     if uncertainty:
-        with stage("sigma"):
+        with stage(sigma_stage(method)):
             check_stop()
             out.unc, w = uj.camera_uncertainty(setup, cam, decoded, reg, rec, method=method,
                                                screen_model=model_surface, anchor=cam_anchor,
@@ -123,6 +128,15 @@ def evaluate_camera(setup, cam: str, *, manifest, noise_std, image_dir, run_chec
         out.warnings += w
     out.kept = kept_for_files(decoded, reg, rec)  # release the rest now
     return out
+
+
+def sigma_stage(method: str) -> str:
+    """The stage (:data:`STAGES`) of a camera's σ: on the least-squares path the σ shares the
+    reconstruction's stage, so that one camera's σ never overlaps the other camera's
+    reconstruction (:data:`SIGMA_STAGE_ENV`); measured: docs/benchmarks.md, lsq26."""
+    if method == "least_squares" and _env_choice(SIGMA_STAGE_ENV, ("reconstruct", "sigma")) == "reconstruct":
+        return "reconstruct"
+    return "sigma"
 
 
 def _reconstruct(setup, cam: str, decoded, out: CameraResult, *, model_surface, anchor, method: str):
